@@ -1,0 +1,153 @@
+"""The ``hilsim`` command: one entry for running, inspecting and measuring simulations.
+
+    hilsim up SCENARIO [--clock lockstep|realtime] [--duration S] [--seed N]
+    hilsim run SERVICE --config FILE
+    hilsim topic list | echo KEY [--count N] [--json] | hz KEY
+    hilsim view [RRD]
+    hilsim goal ROBOT --joints J1 … | --pose X Y Z [R P Y]
+    hilsim plan evaluate --targets FILE [--criterion length|smoothness|weighted]
+    hilsim bench loop|plan [--json]
+    hilsim router [--listen ENDPOINT]
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from hilsim.config import ConfigError, load_scenario
+
+
+def _parse_set(items: Sequence[str]) -> dict[str, Any]:
+    import yaml
+
+    out: dict[str, Any] = {}
+    for it in items:
+        k, sep, v = it.partition("=")
+        if not sep:
+            raise ConfigError(f"--set {it}: expected FIELD=VALUE, e.g. clock.mode=realtime")
+        out[k.strip()] = yaml.safe_load(v)
+    return out
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from hilsim.registry import UnknownService, service_class
+    from hilsim.service import setup_logging
+
+    setup_logging(args.service, logging.DEBUG if args.verbose else logging.INFO)
+    try:
+        cls = service_class(args.service)
+    except UnknownService as e:
+        print(f"hilsim run: {e}", file=sys.stderr)
+        return 2
+    sc = load_scenario(args.config, _parse_set(args.set))
+    return int(cls(sc).run())
+
+
+def _lazy(module: str, func: str) -> Callable[[argparse.Namespace], int]:
+    def call(args: argparse.Namespace) -> int:
+        import importlib
+
+        return int(getattr(importlib.import_module(module), func)(args))
+
+    return call
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="hilsim", description="Distributed robot simulator over Zenoh.")
+    p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    sub = p.add_subparsers(dest="cmd", required=True)
+
+    up = sub.add_parser("up", help="start all services of a scenario, run its task, stop, summarise")
+    up.add_argument("scenario", help="scenario name in config/ (e.g. arm) or a YAML path")
+    up.add_argument("--clock", choices=["lockstep", "realtime"], help="override clock.mode")
+    up.add_argument("--duration", type=float, help="stop after this many sim seconds")
+    up.add_argument("--seed", type=int, help="override the scenario seed")
+    up.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="override any scenario field")
+    up.add_argument("--out", help="run directory (default runs/<timestamp>)")
+    up.add_argument("--no-logger", action="store_true", help="do not record (benchmarks)")
+    up.add_argument("--router", help="connect to this Zenoh router instead of starting one")
+    up.set_defaults(func=_lazy("hilsim.launcher", "cmd_up"))
+
+    run = sub.add_parser("run", help="run one service alone (what docker compose uses)")
+    run.add_argument("service", help="physics, sensors, controller, planner, logger, or a bridge name")
+    run.add_argument("--config", required=True, help="scenario YAML")
+    run.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
+    run.set_defaults(func=cmd_run)
+
+    topic = sub.add_parser("topic", help="inspect keys like `ros2 topic`")
+    tsub = topic.add_subparsers(dest="topic_cmd", required=True)
+    for name in ("list", "echo", "hz"):
+        t = tsub.add_parser(name)
+        if name != "list":
+            t.add_argument("key", help="full key, e.g. hilsim/arm/joint_states")
+        t.add_argument("--connect", help="Zenoh endpoint (default: the scenario default / HILSIM_ZENOH_CONNECT)")
+        t.add_argument("--prefix", default=None)
+        t.add_argument("--duration", type=float, default=None, help="seconds to listen")
+        if name == "echo":
+            t.add_argument("--count", type=int, default=None)
+            t.add_argument("--json", action="store_true")
+        if name == "hz":
+            t.add_argument("--window", type=int, default=1000)
+        t.set_defaults(func=_lazy("hilsim.topic", f"cmd_{name}"))
+
+    view = sub.add_parser("view", help="open the Rerun viewer on a recording (latest by default)")
+    view.add_argument("rrd", nargs="?")
+    view.add_argument("--runs", default="runs")
+    view.set_defaults(func=_lazy("hilsim.recording", "cmd_view"))
+
+    goal = sub.add_parser("goal", help="send a move goal to a running planner and print feedback")
+    goal.add_argument("robot")
+    g = goal.add_mutually_exclusive_group(required=True)
+    g.add_argument("--joints", type=float, nargs="+")
+    g.add_argument("--pose", type=float, nargs="+", help="x y z [roll pitch yaw]")
+    goal.add_argument("--planner", default="")
+    goal.add_argument("--timeout", type=float, default=60.0)
+    goal.add_argument("--connect")
+    goal.add_argument("--prefix", default=None)
+    goal.set_defaults(func=_lazy("hilsim.planning.client", "cmd_goal"))
+
+    plan = sub.add_parser("plan", help="planning tools")
+    psub = plan.add_subparsers(dest="plan_cmd", required=True)
+    ev = psub.add_parser("evaluate", help="plan several targets and compare them (paper Table III)")
+    ev.add_argument("--targets", required=True)
+    ev.add_argument("--criterion", choices=["length", "smoothness", "weighted"], default="weighted")
+    ev.add_argument("--scenario", default="arm")
+    ev.add_argument("--csv")
+    ev.add_argument("--execute", action="store_true")
+    ev.set_defaults(func=_lazy("hilsim.planning.evaluate", "cmd_evaluate"))
+
+    bench = sub.add_parser("bench", help="benchmarks (figures and ratios against an in-run baseline)")
+    bsub = bench.add_subparsers(dest="bench_cmd", required=True)
+    bl = bsub.add_parser("loop", help="distributed lockstep loop vs in-process, and realtime jitter")
+    bl.add_argument("--json", action="store_true")
+    bl.add_argument("--sim-seconds", type=float, default=5.0)
+    bl.add_argument("--realtime-seconds", type=float, default=60.0)
+    bl.set_defaults(func=_lazy("hilsim.bench", "cmd_loop"))
+    bp = bsub.add_parser("plan", help="planners on the shipped scenes")
+    bp.add_argument("--json", action="store_true")
+    bp.add_argument("--seeds", type=int, default=10)
+    bp.set_defaults(func=_lazy("hilsim.planning.bench", "cmd_bench"))
+
+    router = sub.add_parser("router", help="run a standalone Zenoh router on loopback")
+    router.add_argument("--listen", default="tcp/127.0.0.1:7447")
+    router.set_defaults(func=_lazy("hilsim.launcher", "cmd_router"))
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args))
+    except ConfigError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

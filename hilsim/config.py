@@ -1,0 +1,255 @@
+"""Scenario files: YAML in ``config/``, validated with pydantic.
+
+A bad file never produces a traceback: :func:`load_scenario` raises :class:`ConfigError`
+whose message is one line naming the file, the field and what was expected, e.g.
+``config/arm.yaml: controller.gains.joint_2.kp: Input should be a valid number (got 'fast')``.
+
+Relative paths inside a scenario are resolved against the directory of the file.
+Environment overrides (applied after the file): ``HILSIM_PREFIX``, ``HILSIM_ZENOH_CONNECT``
+(comma-separated endpoints), ``HILSIM_ZENOH_MODE``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+CONFIG_DIR = REPO_ROOT / "config"
+MODELS_DIR = REPO_ROOT / "models"
+
+SERVICE_NAMES = ("physics", "sensors", "controller", "planner", "logger")
+
+
+class ConfigError(Exception):
+    """A scenario that cannot be used; the message is one line for the user."""
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class ZenohConfig(_Model):
+    mode: Literal["peer", "client"] = "peer"
+    # Where the services meet. `hilsim up` runs a router on loopback and fills this in.
+    connect: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:0"])
+    multicast_scouting: bool = False
+
+
+class ClockConfig(_Model):
+    mode: Literal["lockstep", "realtime"] = "lockstep"
+    dt: float = Field(0.001, gt=0, le=0.1, description="physics step [s]")
+    ack_timeout: float = Field(10.0, gt=0, description="wall seconds physics waits for a lockstep ack before publishing a fault")
+
+
+class WorldConfig(_Model):
+    model: Path = Field(description="MJCF world file (robot included)")
+    urdf: Path | None = None
+    gravity_compensation: bool = True
+
+
+class PhysicsConfig(_Model):
+    actuator: Literal["effort", "position", "velocity"] = "effort"
+    truth_imu_site: str | None = "imu"
+
+
+class SensorConfig(BaseModel):
+    """One emulated sensor; ``type`` picks the class, the other fields are its parameters."""
+
+    model_config = ConfigDict(extra="allow")
+    type: str
+    rate_hz: float = Field(100.0, gt=0)
+    enabled: bool = True
+
+
+class PidGains(_Model):
+    kp: float = Field(ge=0)
+    ki: float = Field(0.0, ge=0)
+    kd: float = Field(0.0, ge=0)
+    i_limit: float = Field(math.inf, gt=0, description="anti-windup: limit on |ki * integral|")
+    output_limit: float | None = Field(None, gt=0)
+    feedforward: float = Field(0.0, ge=0, description="velocity feed-forward gain")
+
+
+class ControllerConfig(_Model):
+    rate_hz: float = Field(1000.0, gt=0)
+    gains: dict[str, PidGains] = Field(default_factory=dict, description="per joint name, or 'default'")
+    hold_timeout: float = Field(0.05, gt=0, description="sim seconds without joint_states before holding")
+
+
+class PlannerConfig(BaseModel):
+    model_config = ConfigDict(extra="allow")
+    planner: str = "rrtstar"
+    planning_time: float = Field(1.0, gt=0)
+    clearance: float = Field(0.005, ge=0)
+
+
+class TaskConfig(_Model):
+    targets: list[list[float]] = Field(default_factory=list)
+    tolerance: float = Field(0.01, gt=0)
+    settle_time: float = Field(0.3, ge=0)
+    target_timeout: float = Field(30.0, gt=0, description="sim seconds per target")
+
+
+class LoggerConfig(_Model):
+    enabled: bool = True
+    out_dir: Path = Path("runs")
+    run_dir: Path | None = Field(None, description="write here instead of <out_dir>/<timestamp> (set by `hilsim up`)")
+    record: list[str] = Field(default_factory=lambda: ["**"], description="key expressions under <prefix>/")
+
+
+class Scenario(_Model):
+    name: str
+    robot: str = "arm"
+    prefix: str = "hilsim"
+    seed: int = 0
+    duration: float | None = Field(None, gt=0, description="sim seconds; None = until the task ends")
+    services: list[str] = Field(default_factory=lambda: list(SERVICE_NAMES))
+    zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
+    clock: ClockConfig = Field(default_factory=ClockConfig)
+    world: WorldConfig
+    physics: PhysicsConfig = Field(default_factory=PhysicsConfig)
+    sensors: dict[str, SensorConfig] = Field(default_factory=dict)
+    controller: ControllerConfig = Field(default_factory=ControllerConfig)
+    planner: PlannerConfig = Field(default_factory=PlannerConfig)
+    task: TaskConfig = Field(default_factory=TaskConfig)
+    logger: LoggerConfig = Field(default_factory=LoggerConfig)
+    source: Path | None = Field(None, exclude=True, description="file this came from")
+
+    @field_validator("prefix", "robot")
+    @classmethod
+    def _key_safe(cls, v: str) -> str:
+        if not v or any(c in v for c in "/*?#$ "):
+            raise ValueError("must be a non-empty name without '/', '*', '?', '#', '$' or spaces")
+        return v
+
+    @field_validator("services")
+    @classmethod
+    def _known_services(cls, v: list[str]) -> list[str]:
+        for s in v:
+            if s not in SERVICE_NAMES:
+                raise ValueError(f"unknown service {s!r}; expected some of {', '.join(SERVICE_NAMES)}")
+        return v
+
+    @model_validator(mode="after")
+    def _control_rate(self) -> Scenario:
+        steps = 1.0 / (self.controller.rate_hz * self.clock.dt)
+        if abs(steps - round(steps)) > 1e-6 or round(steps) < 1:
+            raise ValueError(
+                f"controller.rate_hz ({self.controller.rate_hz}) must divide the physics rate ({1 / self.clock.dt:g} Hz)"
+            )
+        return self
+
+    @property
+    def dt_ns(self) -> int:
+        return round(self.clock.dt * 1e9)
+
+    @property
+    def control_decimation(self) -> int:
+        return round(1.0 / (self.controller.rate_hz * self.clock.dt))
+
+    def lockstep_participants(self) -> list[str]:
+        """Services physics waits for at every step in lockstep mode."""
+        return [s for s in ("sensors", "controller", "planner") if s in self.services]
+
+    def dump(self) -> dict[str, Any]:
+        return self.model_dump(mode="json", exclude={"source"})
+
+
+def _format_error(path: Path | str, err: ValidationError) -> str:
+    e = err.errors()[0]
+    loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
+    got = e.get("input")
+    extra = f" (got {got!r})" if got is not None and not isinstance(got, dict | list) and e["type"] != "missing" else ""
+    more = f" [+{len(err.errors()) - 1} more]" if len(err.errors()) > 1 else ""
+    return f"{path}: {loc}: {e['msg']}{extra}{more}"
+
+
+def _resolve_paths(data: dict[str, Any], base: Path) -> None:
+    world = data.get("world")
+    if isinstance(world, dict):
+        for k in ("model", "urdf"):
+            if isinstance(world.get(k), str) and not os.path.isabs(world[k]):
+                world[k] = str((base / world[k]).resolve())
+
+
+def set_dotted(data: dict[str, Any], dotted: str, value: Any) -> None:
+    """Apply an override such as ``clock.mode=realtime`` to raw scenario data."""
+    parts = dotted.split(".")
+    d = data
+    for p in parts[:-1]:
+        d = d.setdefault(p, {})
+        if not isinstance(d, dict):
+            raise ConfigError(f"override {dotted}: {p} is not a section")
+    d[parts[-1]] = value
+
+
+def scenario_path(name_or_path: str | Path) -> Path:
+    """``arm`` -> ``config/arm.yaml``; a path is taken as it is."""
+    p = Path(name_or_path)
+    if p.suffix in (".yaml", ".yml") or p.exists():
+        return p
+    return CONFIG_DIR / f"{name_or_path}.yaml"
+
+
+def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = None) -> Scenario:
+    path = scenario_path(name_or_path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        avail = ", ".join(sorted(p.stem for p in CONFIG_DIR.glob("*.yaml") if _is_scenario(p)))
+        raise ConfigError(f"{path}: no such scenario file (available in config/: {avail})") from None
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read: {e.strerror}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f"line {mark.line + 1}" if mark else "?"
+        raise ConfigError(f"{path}: {where}: not valid YAML ({getattr(e, 'problem', e)})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: (top level): expected a mapping of scenario fields, got {type(data).__name__}")
+    for k, v in (overrides or {}).items():
+        set_dotted(data, k, v)
+    _apply_env(data)
+    _resolve_paths(data, path.resolve().parent)
+    try:
+        sc = Scenario.model_validate(data)
+    except ValidationError as e:
+        raise ConfigError(_format_error(path, e)) from None
+    if not sc.world.model.exists():
+        raise ConfigError(f"{path}: world.model: file {sc.world.model} does not exist")
+    if sc.world.urdf is not None and not sc.world.urdf.exists():
+        raise ConfigError(f"{path}: world.urdf: file {sc.world.urdf} does not exist")
+    sc.source = path
+    return sc
+
+
+def _is_scenario(p: Path) -> bool:
+    try:
+        d = yaml.safe_load(p.read_text())
+    except (OSError, yaml.YAMLError):
+        return False
+    return isinstance(d, dict) and "world" in d
+
+
+def _apply_env(data: dict[str, Any]) -> None:
+    if v := os.environ.get("HILSIM_PREFIX"):
+        data["prefix"] = v
+    z = data.setdefault("zenoh", {}) if isinstance(data.get("zenoh", {}), dict) else None
+    if z is None:
+        return
+    if v := os.environ.get("HILSIM_ZENOH_CONNECT"):
+        z["connect"] = [e.strip() for e in v.split(",") if e.strip()]
+    if v := os.environ.get("HILSIM_ZENOH_MODE"):
+        z["mode"] = v
+
+
+def write_scenario(sc: Scenario, path: Path) -> None:
+    path.write_text(yaml.safe_dump(sc.dump(), sort_keys=False))

@@ -1,0 +1,112 @@
+"""The key scheme: the one place that spells Zenoh keys and says which message type each carries.
+
+Every key is ``<prefix>/<robot>/<topic>`` (prefix ``hilsim`` by default, so several
+simulations can share a network by choosing different prefixes), except sim time, which
+is ``<prefix>/clock``. Ground truth lives under ``<prefix>/<robot>/truth/…``.
+``docs/keys.md`` documents the same table for people; ``TOPICS`` below is the table for code.
+
+No other module builds a key string by hand: services ask a :class:`Keys` instance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from hilsim import msgs
+
+DEFAULT_PREFIX = "hilsim"
+
+# topic -> message type. Topics are relative to <prefix>/<robot>/ unless listed in GLOBAL_TOPICS.
+TOPICS: dict[str, type] = {
+    "joint_states": msgs.JointState,
+    "joint_commands": msgs.JointState,
+    "joint_trajectory": msgs.JointTrajectory,
+    "controller/reference": msgs.JointState,
+    "imu": msgs.Imu,
+    "gps/fix": msgs.NavSatFix,
+    "scan": msgs.LaserScan,
+    "cmd_vel": msgs.Twist,
+    "odom": msgs.Odometry,
+    "tf": msgs.TFMessage,
+    "truth/joint_states": msgs.JointState,
+    "truth/imu": msgs.Imu,
+    "truth/odom": msgs.Odometry,
+    "planner/path": msgs.JointTrajectory,
+    "planner/feedback": msgs.MoveFeedback,
+    "planner/result": msgs.MoveResult,
+}
+# Keys whose last segment is a service name.
+PER_SERVICE_TOPICS: dict[str, type] = {
+    "health": msgs.DiagnosticArray,
+    "sync": msgs.Clock,
+    "log": msgs.Log,
+}
+GLOBAL_TOPICS: dict[str, type] = {"clock": msgs.Clock}
+
+# Queryables (request/reply): topic -> (request type, reply type).
+SERVICES: dict[str, tuple[type, type]] = {
+    "planner/goal": (msgs.MoveGoal, msgs.GoalResponse),
+    "planner/cancel": (msgs.CancelRequest, msgs.GoalResponse),
+    "controller/set_parameters": (msgs.SetParameters, msgs.SetParametersResult),
+}
+
+
+class UnknownKey(KeyError):
+    """A key outside the scheme: no message type is known for it."""
+
+
+@dataclass(frozen=True)
+class Keys:
+    """Builds the keys of one robot in one simulation."""
+
+    prefix: str = DEFAULT_PREFIX
+    robot: str = "arm"
+
+    def topic(self, name: str) -> str:
+        if name not in TOPICS and name not in SERVICES:
+            raise UnknownKey(f"unknown topic {name!r}; known: {', '.join(sorted(TOPICS))}")
+        return f"{self.prefix}/{self.robot}/{name}"
+
+    @property
+    def clock(self) -> str:
+        return f"{self.prefix}/clock"
+
+    def truth(self, name: str) -> str:
+        return self.topic(f"truth/{name}")
+
+    def health(self, service: str) -> str:
+        return f"{self.prefix}/{self.robot}/health/{service}"
+
+    def sync(self, service: str) -> str:
+        """Lockstep acknowledgement of a participant: a Clock stamped with the step it finished."""
+        return f"{self.prefix}/{self.robot}/sync/{service}"
+
+    def log(self, service: str) -> str:
+        return f"{self.prefix}/{self.robot}/log/{service}"
+
+    def alive(self, service: str) -> str:
+        """Liveliness token of a running service (no payload)."""
+        return f"{self.prefix}/{self.robot}/alive/{service}"
+
+    @property
+    def all_alive(self) -> str:
+        return f"{self.prefix}/{self.robot}/alive/*"
+
+    @property
+    def everything(self) -> str:
+        """Wildcard matching every data key of the simulation (robot topics and clock)."""
+        return f"{self.prefix}/**"
+
+
+def message_type(key: str) -> type:
+    """Message type carried by a concrete key of the scheme (any prefix and robot)."""
+    parts = key.split("/")
+    if len(parts) == 2 and parts[1] in GLOBAL_TOPICS:
+        return GLOBAL_TOPICS[parts[1]]
+    if len(parts) >= 3:
+        rest = "/".join(parts[2:])
+        if rest in TOPICS:
+            return TOPICS[rest]
+        if len(parts) == 4 and parts[2] in PER_SERVICE_TOPICS:
+            return PER_SERVICE_TOPICS[parts[2]]
+    raise UnknownKey(f"{key!r} is not a hilsim data key")
