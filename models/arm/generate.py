@@ -107,11 +107,11 @@ LINKS: dict[str, list[Prim]] = {
         Prim("elbow_link_pivot", "cylinder", 0.25, fromto=(0, 0, -0.035, 0, 0, 0.035), radius=0.033, rgba=BLUE),
         Prim("elbow_link_block", "box", 0.10, pos=(0.037, 0.004, 0), half=(0.020, 0.024, 0.028), rgba=BLUE)],
     "forearm_link": [
-        Prim("forearm_link_beam", "capsule", 0.35, fromto=(0, 0, 0.030, 0, 0, 0.150), radius=0.022, rgba=WHITE)],
+        Prim("forearm_link_beam", "capsule", 0.35, fromto=(0, 0, 0.030, 0, 0, 0.135), radius=0.022, rgba=WHITE)],
     "wrist_link": [
         Prim("wrist_link_pivot", "cylinder", 0.20, fromto=(0, 0, -0.022, 0, 0, 0.022), radius=0.019, rgba=BLUE)],
     "hand_link": [
-        Prim("hand_link_flange", "cylinder", 0.10, fromto=(0.004, 0, 0, 0.044, 0, 0), radius=0.016, rgba=GREY)],
+        Prim("hand_link_flange", "cylinder", 0.10, fromto=(0.006, 0, 0, 0.044, 0, 0), radius=0.016, rgba=GREY)],
 }
 
 # ----------------------------------------------------------------------------
