@@ -45,7 +45,9 @@ class ZenohConfig(_Model):
 class ClockConfig(_Model):
     mode: Literal["lockstep", "realtime"] = "lockstep"
     dt: float = Field(0.001, gt=0, le=0.1, description="physics step [s]")
-    ack_timeout: float = Field(10.0, gt=0, description="wall seconds physics waits for a lockstep ack before publishing a fault")
+    ack_timeout: float = Field(
+        10.0, gt=0, description="wall seconds physics waits for a lockstep ack before publishing a fault"
+    )
 
 
 class WorldConfig(_Model):
@@ -142,7 +144,8 @@ class Scenario(_Model):
         steps = 1.0 / (self.controller.rate_hz * self.clock.dt)
         if abs(steps - round(steps)) > 1e-6 or round(steps) < 1:
             raise ValueError(
-                f"controller.rate_hz ({self.controller.rate_hz}) must divide the physics rate ({1 / self.clock.dt:g} Hz)"
+                f"controller.rate_hz ({self.controller.rate_hz}) must divide "
+                f"the physics rate ({1 / self.clock.dt:g} Hz)"
             )
         return self
 
@@ -166,7 +169,8 @@ def _format_error(path: Path | str, err: ValidationError) -> str:
     e = err.errors()[0]
     loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
     got = e.get("input")
-    extra = f" (got {got!r})" if got is not None and not isinstance(got, dict | list) and e["type"] != "missing" else ""
+    shown = got is not None and not isinstance(got, dict | list) and e["type"] != "missing"
+    extra = f" (got {got!r})" if shown else ""
     more = f" [+{len(err.errors()) - 1} more]" if len(err.errors()) > 1 else ""
     return f"{path}: {loc}: {e['msg']}{extra}{more}"
 

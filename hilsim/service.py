@@ -200,7 +200,10 @@ class Service:
                 pass  # session closing: the text is in the process log already
 
     def health(self) -> msgs.DiagnosticArray:
-        level = LEVEL_ERROR if self.state == "fault" else (LEVEL_WARN if self.errors or sum(self.rejected.values()) else LEVEL_OK)
+        if self.state == "fault":
+            level = LEVEL_ERROR
+        else:
+            level = LEVEL_WARN if self.errors or sum(self.rejected.values()) else LEVEL_OK
         values = {
             "state": self.state,
             "msgs_in": sum(self.counts_in.values()),

@@ -1,0 +1,362 @@
+"""``hilsim up``: start a scenario's services as separate processes, run its task, stop, summarise.
+
+The launcher opens an embedded Zenoh router on a free loopback port (or joins ``--router``),
+writes the resolved scenario to ``runs/<timestamp>/scenario.yaml``, starts one
+``hilsim run SERVICE`` process per service, waits for each liveliness token, then follows
+``planner/result`` (task progress) and ``health/*``. It stops when the planner reports the
+task result, the scenario duration is reached, a service dies, or on Ctrl-C; the logger is
+stopped last so it can drain and close the recording. Children get SIGTERM if the launcher
+itself dies (PR_SET_PDEATHSIG), so no process outlives a run.
+
+Reads: ``<prefix>/<robot>/planner/result``, ``<prefix>/<robot>/health/*``, ``alive/*``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from hilsim import msgs, transport
+from hilsim.config import Scenario, load_scenario, write_scenario
+from hilsim.keys import Keys
+
+STOP_ORDER = ("physics", "planner", "controller", "sensors", "logger")
+START_ORDER = ("logger", "controller", "sensors", "planner", "physics")
+
+
+def _pdeathsig() -> None:
+    """In the child: get SIGTERM when the launcher dies, and leave the terminal's signals to it."""
+    os.setpgrp()
+    try:
+        libc = ctypes.CDLL("libc.so.6", use_errno=True)
+        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+
+
+@dataclass
+class Child:
+    name: str
+    proc: subprocess.Popen[bytes]
+    log_path: Path
+    ready: bool = False
+
+
+@dataclass
+class Outcome:
+    task: msgs.MoveResult | None = None
+    results: list[msgs.MoveResult] = field(default_factory=list)
+    health: dict[str, dict[str, str]] = field(default_factory=dict)
+    physics_done: bool = False
+    died: list[tuple[str, int]] = field(default_factory=list)
+    interrupted: bool = False
+
+
+class Launcher:
+    def __init__(self, sc: Scenario, run_dir: Path, *, router: str | None = None, quiet: bool = False) -> None:
+        self.sc = sc
+        self.run_dir = run_dir
+        self.keys = Keys(sc.prefix, sc.robot)
+        self.quiet = quiet
+        self.router_ep = router
+        self._router: zenoh.Session | None = None
+        self.children: dict[str, Child] = {}
+        self.outcome = Outcome()
+        self.changed = threading.Event()
+        self.lock = threading.Lock()
+
+    def say(self, text: str) -> None:
+        if not self.quiet:
+            print(text, flush=True)
+
+    # ------------------------------------------------------------------ start
+    def start(self) -> None:
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        if self.router_ep is None:
+            self.router_ep, self._router = open_default_router()
+            self.say(f"zenoh router: {self.router_ep}")
+        self.sc.zenoh.connect = [self.router_ep]
+        self.sc.logger.run_dir = self.run_dir.resolve()
+        cfg = self.run_dir / "scenario.yaml"
+        write_scenario(self.sc, cfg)
+        self.session = transport.open_session(self.sc.zenoh)
+        self._subs = [
+            self.session.declare_subscriber(self.keys.topic("planner/result"), self._on_result),
+            self.session.declare_subscriber(self.keys.health("*"), self._on_health),
+            self.session.liveliness().declare_subscriber(self.keys.all_alive, self._on_alive, history=True),
+        ]
+        env = dict(os.environ)
+        env.setdefault("PYTHONUNBUFFERED", "1")
+        for name in [s for s in START_ORDER if s in self.sc.services]:
+            log_path = self.run_dir / f"{name}.log"
+            with open(log_path, "wb") as logf:
+                proc = subprocess.Popen(
+                    [sys.executable, "-m", "hilsim.cli", "run", name, "--config", str(cfg)],
+                    stdout=logf if name != "logger" else subprocess.PIPE,
+                    stderr=logf,
+                    stdin=subprocess.DEVNULL,
+                    env=env,
+                    preexec_fn=_pdeathsig,
+                )
+            self.children[name] = Child(name, proc, log_path)
+            if name == "logger":
+                # the logger's stdout is its per-key summary, shown to the user at the end
+                assert proc.stdout is not None
+                threading.Thread(target=self._pump, args=(proc.stdout, log_path), daemon=True).start()
+
+    def _pump(self, stream: Any, log_path: Path) -> None:
+        with open(log_path.with_suffix(".out"), "wb") as f:
+            for line in stream:
+                f.write(line)
+                f.flush()
+
+    def wait_ready(self, timeout: float = 120.0) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.check_children():
+                return False
+            with self.lock:
+                if all(c.ready for c in self.children.values()):
+                    pids = ", ".join(f"{c.name} (pid {c.proc.pid})" for c in self.children.values())
+                    self.say(f"ready: {pids}")
+                    return True
+            self.changed.wait(0.1)
+            self.changed.clear()
+        missing = [c.name for c in self.children.values() if not c.ready]
+        self.say(f"error: services did not announce themselves within {timeout:.0f}s: {', '.join(missing)}")
+        return False
+
+    # ------------------------------------------------------------------ follow
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self.lock:
+            if name in self.children and sample.kind == zenoh.SampleKind.PUT:
+                self.children[name].ready = True
+        self.changed.set()
+
+    def _on_result(self, sample: zenoh.Sample) -> None:
+        try:
+            res = msgs.decode(msgs.MoveResult, sample.payload.to_bytes())
+        except msgs.BadMessage as e:
+            self.say(f"warning: unreadable planner result: {e}")
+            return
+        with self.lock:
+            if res.goal_id == "task":
+                self.outcome.task = res
+            else:
+                self.outcome.results.append(res)
+                err = max((abs(e) for e in res.execution_error), default=float("nan"))
+                status = "reached" if res.success else f"FAILED ({res.message})"
+                self.say(f"  {res.goal_id}: {status} at t={msgs.seconds(res.header.stamp):.2f}s sim, "
+                         f"planning {res.planning_time:.2f}s, max joint error {err:.4f} rad")
+        self.changed.set()
+
+    def _on_health(self, sample: zenoh.Sample) -> None:
+        try:
+            h = msgs.decode(msgs.DiagnosticArray, sample.payload.to_bytes())
+        except msgs.BadMessage:
+            return
+        for st in h.status:
+            vals = {kv.key: kv.value for kv in st.values}
+            with self.lock:
+                self.outcome.health[st.name] = vals
+                if st.name == "physics" and vals.get("state") == "done":
+                    self.outcome.physics_done = True
+        self.changed.set()
+
+    def check_children(self) -> bool:
+        """True if a service died (recorded in the outcome)."""
+        dead = False
+        for c in self.children.values():
+            rc = c.proc.poll()
+            if rc is not None and (c.name, rc) not in self.outcome.died:
+                self.outcome.died.append((c.name, rc))
+                tail = _tail(c.log_path)
+                why = f": {tail}" if tail else ""
+                self.say(f"error: service {c.name} (pid {c.proc.pid}) exited with code {rc}{why}")
+                dead = True
+        return dead
+
+    def follow(self, wall_timeout: float | None = None) -> None:
+        """Wait for the end of the run: task result, duration, a dead service, or Ctrl-C."""
+        t0 = time.monotonic()
+        last_print = t0
+        while True:
+            if self.check_children():
+                return
+            with self.lock:
+                if self.outcome.task is not None or self.outcome.physics_done:
+                    return
+            if wall_timeout is not None and time.monotonic() - t0 > wall_timeout:
+                self.say(f"error: run did not finish within {wall_timeout:.0f}s wall")
+                return
+            if time.monotonic() - last_print > 10.0:
+                last_print = time.monotonic()
+                ph = self.outcome.health.get("physics", {})
+                self.say(f"  … sim time {ph.get('sim_time', '?')} s, "
+                         f"real-time factor {ph.get('real_time_factor', '?')}")
+            self.changed.wait(0.2)
+            self.changed.clear()
+
+    # ------------------------------------------------------------------ stop
+    def stop(self) -> None:
+        for name in STOP_ORDER:
+            c = self.children.get(name)
+            if c is None:
+                continue
+            if c.proc.poll() is None:
+                c.proc.send_signal(signal.SIGINT)
+                try:
+                    c.proc.wait(timeout=300 if name == "logger" else 15)
+                except subprocess.TimeoutExpired:
+                    self.say(f"warning: {name} did not stop within the grace period; killing it")
+                    c.proc.kill()
+                    c.proc.wait()
+        for s in getattr(self, "_subs", []):
+            s.undeclare()
+        if hasattr(self, "session"):
+            self.session.close()
+        if self._router is not None:
+            self._router.close()
+
+    def kill_all(self) -> None:
+        for c in self.children.values():
+            if c.proc.poll() is None:
+                c.proc.kill()
+
+
+def open_default_router() -> tuple[str, zenoh.Session]:
+    """The well-known loopback port if free (so `hilsim topic` finds it), else any free port."""
+    ep = f"tcp/127.0.0.1:{transport.DEFAULT_ROUTER_PORT}"
+    try:
+        return ep, transport.open_router(ep)
+    except ConnectionError:
+        ep = f"tcp/127.0.0.1:{transport.free_port()}"
+        print(f"note: port {transport.DEFAULT_ROUTER_PORT} is taken (another simulation?); using {ep} "
+              f"(pass --connect {ep} to hilsim topic)", flush=True)
+        return ep, transport.open_router(ep)
+
+
+def _tail(path: Path, n: int = 1) -> str:
+    try:
+        lines = [ln for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
+    except OSError:
+        return ""
+    errs = [ln for ln in lines if "ERROR" in ln or "Error" in ln or "error" in ln]
+    return " | ".join((errs or lines)[-n:])[-300:]
+
+
+def default_run_dir(sc: Scenario) -> Path:
+    stamp = datetime.now().strftime("%Y%m%d-%H%M%S-%f")[:-3]
+    return Path(sc.logger.out_dir) / stamp
+
+
+def summarise(la: Launcher) -> int:
+    o, sc = la.outcome, la.sc
+    ok = not o.died and not o.interrupted
+    n_targets = len(sc.task.targets)
+    print("summary:")
+    if n_targets:
+        reached = sum(1 for r in o.results if r.success and r.goal_id.startswith("task-"))
+        print(f"  targets reached: {reached}/{n_targets}")
+        if o.task is not None:
+            names = sc.task.targets and [f"joint_{i + 1}" for i in range(len(o.task.execution_error))]
+            errs = ", ".join(f"{n} {e:+.4f}" for n, e in zip(names or [], o.task.execution_error, strict=False))
+            print(f"  final error per joint [rad]: {errs}")
+            ok = ok and o.task.success and reached == n_targets
+        else:
+            print("  task: not finished")
+            ok = ok and sc.duration is not None and o.physics_done
+    ph = o.health.get("physics", {})
+    if ph:
+        print(f"  sim time {ph.get('sim_time', '?')} s, real-time factor {ph.get('real_time_factor', '?')}, "
+              f"clock {sc.clock.mode}, seed {sc.seed}")
+    for name, h in sorted(o.health.items()):
+        bad = int(h.get("rejected", "0") or 0) + int(h.get("errors", "0") or 0)
+        if bad:
+            print(f"  {name}: {h.get('rejected')} rejected, {h.get('errors')} errors (last: {h.get('last_error', '')})")
+    rrd = la.run_dir / "recording.rrd"
+    if "logger" in sc.services:
+        summary = la.run_dir / "record_summary.json"
+        if summary.exists():
+            counts = json.loads(summary.read_text())
+            rec = sum(v.get("recorded", 0) for v in counts.values())
+            recv = sum(v.get("received", 0) for v in counts.values())
+            lost = {k: v for k, v in counts.items() if v.get("received") != v.get("recorded")}
+            mismatch = f"; MISMATCH on {sorted(lost)}" if lost else ""
+            print(f"  recorded {rec} of {recv} messages on {len(counts)} keys{mismatch}")
+            ok = ok and not lost
+        else:
+            print("  recording summary missing")
+            ok = False
+        print(f"  recording: {rrd}")
+    print(f"  logs: {la.run_dir}/")
+    for name, rc in o.died:
+        print(f"  service {name} died (exit code {rc})")
+    print("result: " + ("OK" if ok else "FAILED"))
+    return 0 if ok else 1
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    from hilsim.cli import _parse_set
+
+    overrides = _parse_set(args.set)
+    if args.clock:
+        overrides["clock.mode"] = args.clock
+    if args.duration is not None:
+        overrides["duration"] = args.duration
+    if args.seed is not None:
+        overrides["seed"] = args.seed
+    sc = load_scenario(args.scenario, overrides)
+    if args.no_logger:
+        sc.services = [s for s in sc.services if s != "logger"]
+    run_dir = Path(args.out) if args.out else default_run_dir(sc)
+    la = Launcher(sc, run_dir, router=args.router)
+    print(f"hilsim up {sc.name}: {len(sc.services)} services, clock {sc.clock.mode}, seed {sc.seed}, run dir {run_dir}")
+
+    def on_signal(signum: int, _frame: Any) -> None:
+        la.outcome.interrupted = True
+        la.changed.set()
+        raise KeyboardInterrupt
+
+    old = signal.signal(signal.SIGTERM, on_signal)
+    try:
+        la.start()
+        if la.wait_ready():
+            la.follow()
+    except KeyboardInterrupt:
+        la.outcome.interrupted = True
+        print("interrupted: stopping services…", flush=True)
+    finally:
+        signal.signal(signal.SIGTERM, old)
+        try:
+            la.stop()
+        except KeyboardInterrupt:
+            la.kill_all()
+    return summarise(la)
+
+
+def cmd_router(args: argparse.Namespace) -> int:
+    r = transport.open_router(args.listen)
+    print(f"zenoh router listening on {args.listen} (Ctrl-C to stop)", flush=True)
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    try:
+        stop.wait()
+    except KeyboardInterrupt:
+        pass
+    r.close()
+    return 0

@@ -1,0 +1,156 @@
+"""``hilsim topic list|echo|hz``: look at a running simulation the way ``ros2 topic`` does.
+
+Connects as a Zenoh peer to ``--connect`` (default: ``HILSIM_ZENOH_CONNECT`` or the
+launcher's well-known ``tcp/127.0.0.1:7447``), decodes payloads by key through
+:func:`hilsim.keys.message_type`, and never publishes anything.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import threading
+import time
+from collections import defaultdict, deque
+from typing import Any
+
+import yaml
+import zenoh
+
+from hilsim import msgs, transport
+from hilsim.config import ZenohConfig
+from hilsim.keys import DEFAULT_PREFIX, UnknownKey, message_type
+
+
+def _session(args: argparse.Namespace) -> zenoh.Session:
+    connect = args.connect or os.environ.get("HILSIM_ZENOH_CONNECT") or f"tcp/127.0.0.1:{transport.DEFAULT_ROUTER_PORT}"
+    return transport.open_session(ZenohConfig(connect=[e.strip() for e in connect.split(",")]))
+
+
+def _stamp_of(msg: Any) -> float | None:
+    h = getattr(msg, "header", None)
+    if h is not None:
+        return msgs.seconds(h.stamp)
+    for attr in ("clock", "stamp"):
+        t = getattr(msg, attr, None)
+        if isinstance(t, msgs.Time):
+            return msgs.seconds(t)
+    return None
+
+
+def cmd_list(args: argparse.Namespace) -> int:
+    prefix = args.prefix or os.environ.get("HILSIM_PREFIX", DEFAULT_PREFIX)
+    counts: dict[str, int] = defaultdict(int)
+    lock = threading.Lock()
+
+    def on_sample(s: zenoh.Sample) -> None:
+        with lock:
+            counts[str(s.key_expr)] += 1
+
+    listen = args.duration or 1.0
+    with _session(args) as ses:
+        alive = sorted(str(r.ok.key_expr) for r in ses.liveliness().get(f"{prefix}/**", timeout=2.0) if r.ok)
+        sub = ses.declare_subscriber(f"{prefix}/**", on_sample)
+        time.sleep(listen)
+        sub.undeclare()
+    if not alive and not counts:
+        print(f"no hilsim services or traffic under {prefix}/ (is a simulation running? try --connect)")
+        return 1
+    for a in alive:
+        print(f"{a}  [service]")
+    for key in sorted(counts):
+        try:
+            t = msgs.type_name(message_type(key))
+        except UnknownKey:
+            t = "?"
+        print(f"{key}  [{t}]  {counts[key] / listen:.1f} msg/s")
+    return 0
+
+
+def cmd_echo(args: argparse.Namespace) -> int:
+    try:
+        cls = message_type(args.key)
+    except UnknownKey as e:
+        print(f"error: {e.args[0]}")
+        return 2
+    done = threading.Event()
+    n = 0
+    lock = threading.Lock()
+
+    def on_sample(s: zenoh.Sample) -> None:
+        nonlocal n
+        with lock:
+            if done.is_set():
+                return
+            try:
+                m = msgs.decode(cls, s.payload.to_bytes())
+                out = msgs.to_dict(m)
+                text = json.dumps(out) if args.json else yaml.safe_dump(out, sort_keys=False) + "---"
+            except msgs.BadMessage as e:
+                text = json.dumps({"error": str(e)}) if args.json else f"# bad payload on {s.key_expr}: {e}\n---"
+            print(text, flush=True)
+            n += 1
+            if args.count is not None and n >= args.count:
+                done.set()
+
+    with _session(args) as ses:
+        sub = ses.declare_subscriber(args.key, on_sample)
+        try:
+            done.wait(args.duration)
+        except KeyboardInterrupt:
+            pass
+        sub.undeclare()
+    return 0 if (args.count is None or n >= args.count) else 1
+
+
+def cmd_hz(args: argparse.Namespace) -> int:
+    try:
+        cls = message_type(args.key)
+    except UnknownKey:
+        cls = None
+    arrivals: deque[float] = deque(maxlen=args.window)
+    stamps: deque[float] = deque(maxlen=args.window)
+    lock = threading.Lock()
+
+    def on_sample(s: zenoh.Sample) -> None:
+        now = time.perf_counter()
+        st = None
+        if cls is not None:
+            try:
+                st = _stamp_of(msgs.decode(cls, s.payload.to_bytes()))
+            except msgs.BadMessage:
+                pass
+        with lock:
+            arrivals.append(now)
+            if st is not None:
+                stamps.append(st)
+
+    stop = threading.Event()
+    t_end = time.monotonic() + args.duration if args.duration else math.inf
+    printed = 0
+    with _session(args) as ses:
+        sub = ses.declare_subscriber(args.key, on_sample)
+        try:
+            while not stop.wait(1.0):
+                with lock:
+                    a, s = list(arrivals), list(stamps)
+                if len(a) >= 2:
+                    d = [b - c for b, c in zip(a[1:], a, strict=False)]
+                    mean = sum(d) / len(d)
+                    sd = math.sqrt(sum((x - mean) ** 2 for x in d) / len(d))
+                    line = (f"average rate: {1 / mean:.2f} Hz (wall)  min {min(d) * 1e3:.3f} ms  "
+                            f"max {max(d) * 1e3:.3f} ms  std {sd * 1e3:.3f} ms  window {len(a)}")
+                    if len(s) >= 2 and s[-1] > s[0]:
+                        line += f"  |  {(len(s) - 1) / (s[-1] - s[0]):.2f} Hz (sim time)"
+                    print(line, flush=True)
+                    printed += 1
+                else:
+                    print("no new messages", flush=True)
+                if time.monotonic() >= t_end:
+                    break
+        except KeyboardInterrupt:
+            pass
+        sub.undeclare()
+    return 0 if printed else 1

@@ -1,0 +1,227 @@
+"""Physics service: MuJoCo owns sim time and the robot's true state.
+
+Reads:
+  ``<prefix>/<robot>/joint_commands``  sensor_msgs/JointState (effort, or position/velocity per actuator mode)
+  ``<prefix>/<robot>/sync/<service>``  rosgraph_msgs/Clock, lockstep acknowledgements
+  ``<prefix>/<robot>/alive/*``         liveliness of the lockstep participants
+Writes (every step, stamped with the step's sim time):
+  ``<prefix>/<robot>/truth/imu``          sensor_msgs/Imu at ``physics.truth_imu_site`` (if set)
+  ``<prefix>/<robot>/truth/joint_states`` sensor_msgs/JointState (position, velocity, applied effort)
+  ``<prefix>/clock``                      rosgraph_msgs/Clock
+
+Lockstep (default): step k+1 happens only once every participant acknowledged step k (see
+docs/keys.md). The step is taken in the thread that delivers the last acknowledgement, which
+avoids a thread hand-off per step. Realtime: steps are paced by the wall clock, and a step
+that finishes after its deadline counts as an overrun.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+import zenoh
+
+from hilsim import msgs
+from hilsim.service import LEVEL_ERROR, Service
+from hilsim.world import World
+
+
+class PhysicsService(Service):
+    name = "physics"
+
+    def setup(self) -> None:
+        sc = self.sc
+        self.world = World(sc)
+        self.n = len(self.world.joint_names)
+        self.participants = sc.lockstep_participants() if sc.clock.mode == "lockstep" else []
+        self.decim = sc.control_decimation
+        self.acked: dict[str, int] = {p: -1 for p in self.participants}
+        self.present: set[str] = set()
+        self.started = False
+        self.done = False
+        self.end_ns = round(sc.duration * 1e9) if sc.duration else None
+        self.last_progress = time.monotonic()
+        self.waiting_reported = False
+        self.pub_imu = self.publisher(self.keys.truth("imu")) if self.world.imu_site else None
+        self.pub_js = self.publisher(self.keys.truth("joint_states"))
+        self.pub_clock = self.publisher(self.keys.clock)
+        self.subscribe(self.keys.topic("joint_commands"), msgs.JointState, self._on_command, n_joints=self.n)
+        for p in self.participants:
+            if p != "controller":
+                self.subscribe(self.keys.sync(p), msgs.Clock, self._on_sync)
+        self._declared.append(
+            self.session.liveliness().declare_subscriber(self.keys.all_alive, self._on_alive, history=True)
+        )
+        self.wall_start = 0.0
+        self.steps_done = 0
+        self.jitter_ns: list[int] = []
+
+    # ------------------------------------------------------------------ inputs
+    def _on_alive(self, sample: zenoh.Sample) -> None:
+        svc = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self.lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                if svc not in self.present and svc in self.participants:
+                    self.log.info("participant %s is here", svc)
+                self.present.add(svc)
+            else:
+                self.present.discard(svc)
+                if svc in self.participants and not self.done:
+                    self.state = "fault"
+                    self.fault(f"lockstep participant {svc} left the simulation at t={self.sim_ns / 1e9:.3f}s; "
+                               f"sim time is paused until it comes back")
+
+    def _on_command(self, cmd: msgs.JointState, key: str) -> None:
+        self.world.command(cmd)
+        if "controller" in self.acked:
+            self._ack("controller", msgs.ns_of(cmd.header.stamp))
+
+    def _on_sync(self, clk: msgs.Clock, key: str) -> None:
+        self._ack(key.rsplit("/", 1)[-1], msgs.ns_of(clk.clock))
+
+    def _ack(self, who: str, ns: int) -> None:
+        if who not in self.acked:
+            return
+        self.acked[who] = max(self.acked[who], ns)
+        if self.started and not self.done and self._all_acked():
+            self._advance()
+
+    def _all_acked(self) -> bool:
+        return not self._missing()
+
+    # ------------------------------------------------------------------ stepping
+    def _publish_step(self) -> None:
+        w = self.world
+        self.sim_ns = w.time_ns
+        if self.pub_imu is not None:
+            imu = w.imu()
+            assert imu is not None
+            self.pub_imu.put(imu)
+        self.pub_js.put(w.joint_states())
+        self.pub_clock.put(msgs.Clock(clock=msgs.stamp(w.time_ns)))
+
+    def _advance(self) -> None:
+        """Step once and publish; in lockstep also keep going while nothing needs waiting for."""
+        if self.end_ns is not None and self.world.time_ns >= self.end_ns:
+            self._finish()
+            return
+        self.world.step()
+        self.steps_done += 1
+        self.last_progress = time.monotonic()
+        self.waiting_reported = False
+        self._publish_step()
+
+    def _finish(self) -> None:
+        if not self.done:
+            self.done = True
+            self.state = "done"
+            self.log.info("reached the scenario duration (%.3f s sim)", self.world.time_ns / 1e9)
+            self.publish_health_async()
+
+    def publish_health_async(self) -> None:
+        threading.Thread(target=self.publish_health, daemon=True).start()
+
+    def health_values(self) -> dict[str, Any]:
+        wall = max(time.monotonic() - self.wall_start, 1e-9) if self.wall_start else 0.0
+        return {
+            "sim_time": f"{self.world.time_ns / 1e9:.3f}",
+            "steps": self.steps_done,
+            "real_time_factor": f"{self.world.time_ns / 1e9 / wall:.3f}" if wall else "0",
+            "clock_mode": self.sc.clock.mode,
+            "waiting_for": ",".join(self._missing()),
+        }
+
+    def _missing(self) -> list[str]:
+        """Participants that still owe an acknowledgement for the current step."""
+        t = self.world.time_ns
+        off_beat = self.world.step_index % self.decim != 0  # the controller answers at control steps only
+        return [p for p, ns in self.acked.items() if ns < t and not (p == "controller" and off_beat)]
+
+    def _wait_for_participants(self) -> bool:
+        deadline = time.monotonic() + 120.0
+        while not self.stop_event.is_set():
+            with self.lock:
+                missing = [p for p in self.participants if p not in self.present]
+            if not missing:
+                return True
+            if time.monotonic() > deadline:
+                self.state = "fault"
+                self.fault(f"lockstep participants never appeared: {', '.join(missing)}")
+                return False
+            self.stop_event.wait(0.01)
+        return False
+
+    def loop(self) -> None:
+        if self.participants:
+            self.log.info("lockstep: waiting for %s", ", ".join(self.participants))
+            if not self._wait_for_participants():
+                return
+        self.wall_start = time.monotonic()
+        with self.lock:
+            self.started = True
+            self._publish_step()  # step 0: the state before any command
+            if self.participants and self._all_acked():
+                self._advance()
+        if self.sc.clock.mode == "realtime":
+            self._realtime_loop()
+            return
+        if not self.participants:
+            # lockstep with nobody to wait for: run free, as fast as the step allows
+            while not self.stop_event.is_set() and not self.done:
+                with self.lock:
+                    self._advance()
+        while not self.stop_event.wait(0.2):
+            with self.lock:
+                stalled = time.monotonic() - self.last_progress
+                if not self.done and stalled > self.sc.clock.ack_timeout and not self.waiting_reported:
+                    self.waiting_reported = True
+                    self.fault(f"no lockstep acknowledgement from {', '.join(self._missing())} "
+                               f"for step t={self.world.time_ns / 1e9:.3f}s after {stalled:.1f}s")
+                if self.state == "fault" and all(p in self.present for p in self.participants) and not self.done:
+                    self.state = "running"
+                    self.log.info("all participants present again; lockstep resumes")
+                    if self._all_acked():
+                        self._advance()
+
+    def _realtime_loop(self) -> None:
+        dt_ns = self.sc.dt_ns
+        t0 = time.perf_counter_ns()
+        k = 0
+        while not self.stop_event.is_set():
+            k += 1
+            deadline = t0 + k * dt_ns
+            # sleep most of the way, then spin: time.sleep alone overshoots by ~60 µs
+            while True:
+                now = time.perf_counter_ns()
+                remaining = deadline - now
+                if remaining <= 0:
+                    break
+                if remaining > 300_000:
+                    time.sleep((remaining - 200_000) / 1e9)
+            self.jitter_ns.append(now - deadline)
+            with self.lock:
+                if self.done:
+                    break
+                self._advance()
+            if time.perf_counter_ns() > deadline + dt_ns:
+                self.overruns += 1
+        if self.done:
+            self.stop_event.wait()
+
+    def teardown(self) -> None:
+        if self.jitter_ns:
+            import numpy as np
+
+            j = np.abs(np.array(self.jitter_ns)) / 1e3
+            self.log.info("realtime tick jitter: p50 %.1f µs, p99 %.1f µs, overruns %d of %d steps",
+                          np.percentile(j, 50), np.percentile(j, 99), self.overruns, len(j))
+
+    def health(self) -> msgs.DiagnosticArray:
+        h = super().health()
+        if self.state == "done":
+            h.status[0].level = 0
+        elif self.state == "fault":
+            h.status[0].level = LEVEL_ERROR
+        return h
