@@ -189,7 +189,7 @@ class PhysicsService(Service):
         dt_ns = self.sc.dt_ns
         t0 = time.perf_counter_ns()
         k = 0
-        while not self.stop_event.is_set():
+        while not self.stop_event.is_set() and not self.done:
             k += 1
             deadline = t0 + k * dt_ns
             # sleep most of the way, then spin: time.sleep alone overshoots by ~60 µs
@@ -200,11 +200,11 @@ class PhysicsService(Service):
                     break
                 if remaining > 300_000:
                     time.sleep((remaining - 200_000) / 1e9)
-            self.jitter_ns.append(now - deadline)
             with self.lock:
+                self._advance()
                 if self.done:
                     break
-                self._advance()
+            self.jitter_ns.append(now - deadline)
             if time.perf_counter_ns() > deadline + dt_ns:
                 self.overruns += 1
         if self.done:

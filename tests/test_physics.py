@@ -1,0 +1,86 @@
+"""Physics service alone: lockstep waits for every participant; bad commands are rejected."""
+
+from __future__ import annotations
+
+import threading
+import time
+from typing import Any
+
+import zenoh
+
+from hilsim import msgs, transport
+from hilsim.keys import Keys
+from hilsim.services.physics import PhysicsService
+from hilsim.world import World
+
+
+def test_world_holds_still_with_gravity_compensation(scenario: Any) -> None:
+    w = World(scenario("arm"))
+    for _ in range(500):
+        w.step()
+    assert abs(w.positions()).max() < 1e-9
+    assert w.joint_names == [f"joint_{i}" for i in range(1, 7)]
+    assert list(w.effort_limit) == [12, 15, 12, 5, 4, 3]
+
+
+def test_lockstep_waits_for_every_participant(scenario: Any, session: zenoh.Session, run_service: Any) -> None:
+    sc = scenario("arm", {"services": ["physics", "sensors", "controller"], "clock.ack_timeout": 1.0})
+    keys = Keys(sc.prefix, sc.robot)
+    clocks: list[int] = []
+    got = threading.Event()
+
+    def on_clock(s: zenoh.Sample) -> None:
+        clocks.append(msgs.ns_of(msgs.decode(msgs.Clock, s.payload.to_bytes()).clock))
+        got.set()
+
+    sub = session.declare_subscriber(keys.clock, on_clock)
+    sync = transport.publisher(session, keys.sync("sensors"))
+    cmd = transport.publisher(session, keys.topic("joint_commands"))
+    tokens = [session.liveliness().declare_token(keys.alive(n)) for n in ("sensors", "controller")]
+    svc = PhysicsService(sc)
+    with run_service(svc):
+        assert got.wait(10), "physics never published step 0"
+        time.sleep(0.3)
+        assert clocks == [0], "physics stepped without acknowledgements"
+        # only the controller answers: still waiting for the sensors
+        names = [f"joint_{i}" for i in range(1, 7)]
+        cmd.put(msgs.encode(msgs.JointState(header=msgs.header(0), name=names, effort=[0.0] * 6)))
+        time.sleep(0.3)
+        assert clocks == [0]
+        for k in range(5):
+            got.clear()
+            sync.put(msgs.encode(msgs.Clock(clock=msgs.stamp(k * sc.dt_ns))))
+            if k:
+                cmd.put(msgs.encode(msgs.JointState(header=msgs.header(k * sc.dt_ns), name=names, effort=[0.5] * 6)))
+            assert got.wait(5)
+            time.sleep(0.05)
+        assert clocks == [k * sc.dt_ns for k in range(6)]
+        # the commanded effort moved the arm
+        assert svc.world.velocities()[0] > 0
+        # malformed commands: rejected and counted, no step taken, still serving
+        cmd.put(b"\x00\x01\x00\x00garbage")
+        cmd.put(msgs.encode(msgs.JointState(header=msgs.header(0), name=names[:3], effort=[1.0] * 3)))
+        cmd.put(msgs.encode(msgs.JointState(header=msgs.header(0), name=names, effort=[float("nan")] * 6)))
+        time.sleep(0.5)
+        assert sum(svc.rejected.values()) == 3
+        assert clocks[-1] == 5 * sc.dt_ns
+        # a silent participant is reported as a fault, not a hang
+        time.sleep(1.5)
+        assert svc.errors >= 1 and "no lockstep acknowledgement" in svc.last_error
+    sub.undeclare()
+    for t in tokens:
+        t.undeclare()
+
+
+def test_realtime_paces_to_the_wall_clock(scenario: Any, run_service: Any) -> None:
+    sc = scenario("arm", {"services": ["physics"], "clock.mode": "realtime", "duration": 0.5})
+    svc = PhysicsService(sc)
+    t0 = time.monotonic()
+    with run_service(svc):
+        while svc.state != "done" and time.monotonic() - t0 < 10:
+            time.sleep(0.01)
+        wall = time.monotonic() - t0
+    assert svc.state in ("done", "stopped")
+    assert svc.steps_done == 500
+    assert wall >= 0.45
+    assert len(svc.jitter_ns) == 500
