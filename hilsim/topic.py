@@ -50,11 +50,24 @@ def cmd_list(args: argparse.Namespace) -> int:
             counts[str(s.key_expr)] += 1
 
     listen = args.duration or 1.0
+    tokens: set[str] = set()
+
+    def on_token(s: zenoh.Sample) -> None:
+        with lock:
+            if s.kind == zenoh.SampleKind.PUT:
+                tokens.add(str(s.key_expr))
+            else:
+                tokens.discard(str(s.key_expr))
+
     with _session(args) as ses:
-        alive = sorted(str(r.ok.key_expr) for r in ses.liveliness().get(f"{prefix}/**", timeout=2.0) if r.ok)
+        # a subscriber with history, not a one-shot get: right after connecting, a get can
+        # run before the router has told this session about the other peers
+        live = ses.liveliness().declare_subscriber(f"{prefix}/**", on_token, history=True)
         sub = ses.declare_subscriber(f"{prefix}/**", on_sample)
         time.sleep(listen)
         sub.undeclare()
+        live.undeclare()
+    alive = sorted(tokens)
     if not alive and not counts:
         print(f"no hilsim services or traffic under {prefix}/ (is a simulation running? try --connect)")
         return 1

@@ -1,0 +1,210 @@
+"""Joint controller service: follows trajectories with one PID per joint.
+
+Reads (``<prefix>/<robot>/…``):
+  ``joint_states`` (sensor_msgs/JointState, measured; one control step per message),
+  ``joint_trajectory`` (trajectory_msgs/JointTrajectory).
+Writes:
+  ``joint_commands`` (sensor_msgs/JointState) stamped like the joint_states it answers — the
+  ``effort`` of the PIDs with ``physics.actuator: effort``; with ``position``/``velocity``
+  actuators the reference ``position`` and ``velocity`` are forwarded instead. In lockstep mode
+  this message is the controller's acknowledgement of the step (no ``sync`` message);
+  ``controller/reference`` (sensor_msgs/JointState: reference position and velocity), same stamp.
+Serves:
+  ``controller/set_parameters`` (SetParameters ``<joint>.<kp|ki|kd|i_limit|output_limit|feedforward>``
+  → SetParametersResult): all-or-nothing, effective at the next control step.
+
+Setpoint: the first measured position until a trajectory arrives; a trajectory replaces the
+current one at its start time (``header.stamp``; zero = on receipt) and its last point is held
+after its end; an empty trajectory means hold the current measured position.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from hilsim import control, msgs
+from hilsim.config import Scenario
+from hilsim.service import Service
+
+
+class ControllerService(Service):
+    name = "controller"
+
+    def __init__(self, scenario: Scenario) -> None:
+        super().__init__(scenario)
+        where = str(scenario.source) if scenario.source else ""
+        self.joints = control.joint_table(scenario.world.model)
+        self.names = list(self.joints.names)
+        self.n = self.joints.n
+        self.effort_mode = scenario.physics.actuator == "effort"
+        gains = control.gains_for(scenario.controller.gains, self.names, where)
+        self.pids = [
+            control.Pid(g, float(self.joints.effort_lower[i]), float(self.joints.effort_upper[i]))
+            for i, g in enumerate(gains)
+        ]
+        # Fixed control period: the encoders publish at controller.rate_hz (checked by the sensors).
+        self.dt = 1.0 / scenario.controller.rate_hz
+        self.hold_timeout_ns = round(scenario.controller.hold_timeout * 1e9)
+        self._order: list[int] | None = None  # measured -> model order, when the names differ
+        self._order_names: list[str] = list(self.names)
+        self.hold: np.ndarray | None = None  # setpoint without a trajectory
+        self.traj: control.TrajectorySampler | None = None  # being followed
+        self.next_traj: control.TrajectorySampler | None = None  # accepted, starts later
+        self._pending: tuple[msgs.JointTrajectory, str] | None = None  # arrived before any measurement
+        self.pos = np.zeros(self.n)
+        self.vel = np.zeros(self.n)
+        self.ref_pos = np.zeros(self.n)
+        self.ref_vel = np.zeros(self.n)
+        self._zero = np.zeros(self.n)
+        self.last_ns: int | None = None
+        self.tracking_error = 0.0
+        self.max_tracking_error = 0.0
+        self.gaps = 0
+        self.steps = 0
+
+    # ------------------------------------------------------------------ wiring
+    def setup(self) -> None:
+        self.cmd_pub = self.publisher(self.keys.topic("joint_commands"))
+        self.ref_pub = self.publisher(self.keys.topic("controller/reference"))
+        self.subscribe(self.keys.topic("joint_states"), msgs.JointState, self.on_joint_states, n_joints=self.n)
+        # No n_joints here: a trajectory may name a subset of the joints.
+        self.subscribe(self.keys.topic("joint_trajectory"), msgs.JointTrajectory, self.on_trajectory)
+        self.queryable(
+            self.keys.topic("controller/set_parameters"),
+            msgs.SetParameters,
+            self.on_set_parameters,
+            reject=lambda reason: msgs.SetParametersResult(successful=False, reason=reason),
+        )
+
+    # ------------------------------------------------------------------ control step
+    def _measure(self, msg: msgs.JointState, key: str, stamp: int) -> bool:
+        """Copy the measurement into self.pos/self.vel in model order; False if unusable."""
+        if not msg.position:
+            return self._reject(key, "JointState without positions")
+        if msg.name != self._order_names:
+            if sorted(msg.name) != sorted(self.names):
+                return self._reject(key, f"JointState names {list(msg.name)} are not the joints {self.names}")
+            self._order_names = list(msg.name)
+            self._order = None if self._order_names == self.names else [self._order_names.index(n) for n in self.names]
+        pos = np.asarray(msg.position, float)
+        if self._order is not None:
+            pos = pos[self._order]
+        if msg.velocity:
+            vel = np.asarray(msg.velocity, float)
+            if self._order is not None:
+                vel = vel[self._order]
+        elif self.last_ns is not None and stamp > self.last_ns:
+            # No velocity reported (e.g. a position-only drive): backward difference.
+            vel = (pos - self.pos) / ((stamp - self.last_ns) * 1e-9)
+        else:
+            vel = self._zero
+        self.pos, self.vel = pos, vel
+        return True
+
+    def on_joint_states(self, msg: msgs.JointState, key: str) -> None:
+        stamp = msgs.ns_of(msg.header.stamp)
+        if not self._measure(msg, key, stamp):
+            return
+        if self.last_ns is not None and stamp - self.last_ns > self.hold_timeout_ns:
+            self.gaps += 1
+            self.warn(f"no joint_states for {(stamp - self.last_ns) * 1e-9:.3f} s of sim time")
+        self.last_ns = stamp
+        self.sim_ns = stamp
+        if self.hold is None:
+            self.hold = self.pos.copy()  # hold where the arm is until told otherwise
+            if self._pending is not None:
+                self._accept(*self._pending)
+                self._pending = None
+        self._reference(stamp)
+        err = self.ref_pos - self.pos
+        self.tracking_error = float(np.max(np.abs(err)))
+        if self.traj is not None or self.next_traj is not None:
+            self.max_tracking_error = max(self.max_tracking_error, self.tracking_error)
+        header = msgs.header(stamp)
+        ref = msgs.JointState(
+            header=header, name=self.names, position=self.ref_pos.tolist(), velocity=self.ref_vel.tolist()
+        )
+        if self.effort_mode:
+            u = [
+                pid.update(rp, rv, p, v, self.dt)
+                for pid, rp, rv, p, v in zip(
+                    self.pids, ref.position, ref.velocity, self.pos.tolist(), self.vel.tolist(), strict=True
+                )
+            ]
+            self.cmd_pub.put(msgs.JointState(header=header, name=self.names, effort=u))
+        else:
+            self.cmd_pub.put(ref)  # position/velocity actuators track the reference themselves
+        self.ref_pub.put(ref)
+        self.steps += 1
+
+    def _reference(self, stamp: int) -> None:
+        if self.next_traj is not None and stamp >= self.next_traj.start_ns:
+            self.traj, self.next_traj = self.next_traj, None
+        if self.traj is not None:
+            self.ref_pos, self.ref_vel = self.traj.sample(stamp)
+        else:
+            assert self.hold is not None
+            self.ref_pos, self.ref_vel = self.hold, self._zero
+
+    # ------------------------------------------------------------------ trajectories
+    def on_trajectory(self, msg: msgs.JointTrajectory, key: str) -> None:
+        if self.hold is None:
+            self._pending = (msg, key)  # the setpoint to start from is not known yet
+            return
+        self._accept(msg, key)
+
+    def _accept(self, msg: msgs.JointTrajectory, key: str) -> None:
+        if not msg.points:
+            # ROS convention: an empty trajectory stops the motion where the arm is now.
+            self.traj = self.next_traj = None
+            self.hold = self.pos.copy()
+            return
+        start = msgs.ns_of(msg.header.stamp) or self.sim_ns
+        # Continue from where the current reference will be when the new one starts.
+        base = self.traj.sample(start)[0] if self.traj is not None else self.hold
+        try:
+            t = control.TrajectorySampler(msg, self.names, start, base, self.joints.lower, self.joints.upper)
+        except control.TrajectoryError as e:
+            self._reject(key, str(e))
+            return
+        self.next_traj = t
+        self.max_tracking_error = 0.0
+        if self.traj is None:
+            # Before its start, hold the current setpoint; afterwards the last point (see _reference).
+            self.hold = np.array(base, float)
+
+    # ------------------------------------------------------------------ live gains
+    def on_set_parameters(self, req: msgs.SetParameters) -> msgs.SetParametersResult:
+        changes = []
+        for p in req.parameters:
+            r = control.check_parameter(p.name, p.value, self.names)
+            if isinstance(r, str):
+                return msgs.SetParametersResult(successful=False, reason=r)
+            changes.append((r[0], r[1], p.value))
+        for j, field, value in changes:
+            self.pids[j].set(field, value)
+        if changes:
+            self.log.info("gains changed: %s", ", ".join(f"{p.name}={p.value:g}" for p in req.parameters))
+        return msgs.SetParametersResult(successful=True, reason=f"{len(changes)} parameter(s) set")
+
+    # ------------------------------------------------------------------ reporting
+    def _reject(self, key: str, reason: str) -> bool:
+        self.rejected[key] += 1
+        self.warn(f"rejected payload on {key}: {reason}")
+        return False
+
+    def health_values(self) -> dict[str, Any]:
+        t = self.next_traj or self.traj
+        active = t is not None and not t.done(self.sim_ns)
+        progress = self.traj.progress(self.sim_ns) if self.traj is not None else 0.0
+        return {
+            "trajectory_active": "yes" if active else "no",
+            "trajectory_progress": f"{progress:.3f}",
+            "tracking_error": f"{self.tracking_error:.6f}",
+            "max_tracking_error": f"{self.max_tracking_error:.6f}",
+            "control_steps": self.steps,
+            "joint_states_gaps": self.gaps,
+            "actuator": self.sc.physics.actuator,
+        }

@@ -1,0 +1,107 @@
+"""Sensor emulator service: turns physics ground truth into what real sensors would report.
+
+Reads (``<prefix>/<robot>/…``):
+  ``truth/joint_states`` (sensor_msgs/JointState), ``truth/imu`` (sensor_msgs/Imu) — the truth
+  topics of the configured sensors (:mod:`hilsim.sensing`).
+Writes:
+  ``joint_states`` (encoders), ``imu`` — each stamped with the truth stamp, at the sensor's rate
+  (the physics steps ``k`` with ``k % decimation == 0``);
+  ``sync/sensors`` (lockstep): the acknowledgement of step ``t_k`` once ``truth/joint_states``
+  of ``t_k`` is handled (physics publishes ``truth/imu`` before it, so every truth of the step
+  has been handled by then).
+
+Noise comes from generators seeded by ``seed`` and the sensor name: the same scenario and the
+same truth give the same outputs, bit for bit.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from typing import Any
+
+from hilsim import msgs
+from hilsim.config import ConfigError, Scenario
+from hilsim.sensing import Sensor, make_sensor
+from hilsim.service import Publisher, Service
+
+# Physics publishes this truth last before the clock: handling it completes the step.
+ACK_TRUTH = "joint_states"
+
+
+class SensorService(Service):
+    name = "sensors"
+
+    def __init__(self, scenario: Scenario) -> None:
+        super().__init__(scenario)
+        where = f"{scenario.source}: " if scenario.source else ""
+        self.sensors: list[Sensor] = [
+            make_sensor(n, cfg, seed=scenario.seed, dt_ns=scenario.dt_ns, where=where)
+            for n, cfg in scenario.sensors.items()
+        ]
+        outputs: dict[str, str] = {}
+        for s in self.sensors:
+            if not s.enabled:
+                continue
+            if s.output_topic in outputs:
+                raise ConfigError(
+                    f"{where}sensors.{s.name}: writes {s.output_topic} like sensors.{outputs[s.output_topic]}; "
+                    "disable one of them"
+                )
+            outputs[s.output_topic] = s.name
+            # The controller runs once per joint_states message, so the encoders set its rate.
+            if s.output_topic == "joint_states" and "controller" in scenario.services:
+                if abs(s.rate_hz - scenario.controller.rate_hz) > 1e-9:
+                    raise ConfigError(
+                        f"{where}sensors.{s.name}.rate_hz: {s.rate_hz:g} Hz must equal controller.rate_hz "
+                        f"({scenario.controller.rate_hz:g} Hz): the controller runs on every joint_states message"
+                    )
+        self._by_truth: dict[str, list[tuple[Sensor, Publisher | None]]] = defaultdict(list)
+        self._joint_names: list[str] | None = None
+
+    def setup(self) -> None:
+        topics = {s.truth_topic: s.truth_type for s in self.sensors}
+        topics.setdefault(ACK_TRUTH, msgs.JointState)  # the ack needs it even without encoders
+        for s in self.sensors:
+            pub = self.publisher(self.keys.topic(s.output_topic)) if s.enabled else None
+            self._by_truth[s.truth_topic].append((s, pub))
+        for topic, cls in topics.items():
+            self.subscribe(self.keys.truth(topic), cls, self._make_handler(topic))
+
+    def _make_handler(self, topic: str) -> Any:
+        sensors = self._by_truth.get(topic, [])
+        ack = topic == ACK_TRUTH and self.lockstep
+
+        def handle(msg: Any, key: str) -> None:
+            stamp = msgs.ns_of(msg.header.stamp)
+            self.sim_ns = max(self.sim_ns, stamp)
+            if topic == "joint_states" and not self._check_joints(msg, key):
+                return  # rejected: no ack either, physics reports the missing acknowledgement
+            for s, pub in sensors:
+                out = s.sample(msg, stamp) if pub is not None else None
+                if out is not None:
+                    pub.put(out)
+            if ack:
+                self.ack(stamp)
+
+        return handle
+
+    def _check_joints(self, msg: msgs.JointState, key: str) -> bool:
+        """The joints of the truth must not change during a run (names fixed by the first message)."""
+        if not msg.position:
+            return self._reject(key, "JointState without positions")
+        if self._joint_names is None:
+            self._joint_names = list(msg.name)
+        elif msg.name != self._joint_names:
+            return self._reject(key, f"JointState names {list(msg.name)} differ from {self._joint_names}")
+        return True
+
+    def _reject(self, key: str, reason: str) -> bool:
+        self.rejected[key] += 1
+        self.warn(f"rejected payload on {key}: {reason}")
+        return False
+
+    def health_values(self) -> dict[str, Any]:
+        return {
+            f"sensor:{s.name}": (f"{s.type_name} {s.rate_hz:g} Hz, {s.published} out" if s.enabled else "disabled")
+            for s in self.sensors
+        }
