@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -100,7 +100,8 @@ LINKS: dict[str, list[Prim]] = {
         Prim("base_link_body", "cylinder", 1.00, fromto=(0, 0, 0.0, 0, 0, 0.080), radius=0.065, rgba=GREY)],
     "shoulder_link": [
         Prim("shoulder_link_column", "cylinder", 0.45, fromto=(0, 0, -0.015, 0, 0, 0.060), radius=0.045, rgba=WHITE),
-        Prim("shoulder_link_pivot", "cylinder", 0.15, fromto=(0, -0.045, 0.080, 0, 0.045, 0.080), radius=0.035, rgba=WHITE)],
+        Prim("shoulder_link_pivot", "cylinder", 0.15, fromto=(0, -0.045, 0.080, 0, 0.045, 0.080),
+             radius=0.035, rgba=WHITE)],
     "arm_link": [
         Prim("arm_link_beam", "capsule", 0.70, fromto=(0.035, 0, 0, 0.175, 0, 0), radius=0.026, rgba=WHITE)],
     "elbow_link": [
@@ -169,9 +170,9 @@ def link_inertial(prims):
     """Mass, COM and inertia tensor about the COM (link frame axes)."""
     M = sum(p.mass for p in prims)
     frames = [prim_frame(p) for p in prims]
-    com = sum(p.mass * c for p, (c, _, _) in zip(prims, frames)) / M
+    com = sum(p.mass * c for p, (c, _, _) in zip(prims, frames, strict=False)) / M
     I = np.zeros((3, 3))
-    for p, (c, R, L) in zip(prims, frames):
+    for p, (c, R, L) in zip(prims, frames, strict=False):
         d = c - com
         I += R @ prim_local_inertia(p, L) @ R.T                       # rotate into link frame
         I += p.mass * (np.dot(d, d) * np.eye(3) - np.outer(d, d))     # parallel-axis theorem
@@ -184,8 +185,10 @@ def link_inertial(prims):
 # ----------------------------------------------------------------------------
 
 def xy_to_R(xaxis, yaxis):
-    x = np.array(xaxis, float); y = np.array(yaxis, float)
-    x /= np.linalg.norm(x); y /= np.linalg.norm(y)
+    x = np.array(xaxis, float)
+    y = np.array(yaxis, float)
+    x /= np.linalg.norm(x)
+    y /= np.linalg.norm(y)
     assert abs(np.dot(x, y)) < 1e-12
     return np.column_stack([x, y, np.cross(x, y)])
 
@@ -295,7 +298,8 @@ def write_urdf(path):
         L.append(f'    <child link="{j.child}"/>')
         L.append(f'    <origin xyz="{fmt(j.xyz)}" rpy="{fmt_rad(rpy)}"/>')
         L.append(f'    <axis xyz="{fmt(j.axis)}"/>')
-        L.append(f'    <limit lower="{fmt(j.lower)}" upper="{fmt(j.upper)}" effort="{fmt(j.effort)}" velocity="{fmt(j.velocity)}"/>')
+        L.append(f'    <limit lower="{fmt(j.lower)}" upper="{fmt(j.upper)}" '
+                 f'effort="{fmt(j.effort)}" velocity="{fmt(j.velocity)}"/>')
         L.append(f'    <dynamics damping="{fmt(j.damping)}" friction="0"/>')
         L.append('  </joint>')
     # tool frame as a fixed child link (massless frames are common in URDF)

@@ -13,6 +13,7 @@ Exits non-zero if any check fails.
 """
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import sys
@@ -133,7 +134,7 @@ def urdf_fk(qmap):
 
 # limits / effort / velocity identical in both formats
 for i, n in enumerate(JN):
-    lim = ujoints[[c for c, j in ujoints.items() if j["name"] == n][0]]["limit"]
+    lim = ujoints[next(c for c, j in ujoints.items() if j["name"] == n)]["limit"]
     jr = arm.jnt_range[arm.joint(n).id]
     ok = (abs(float(lim.get("lower")) - jr[0]) < 1e-12 and abs(float(lim.get("upper")) - jr[1]) < 1e-12
           and abs(float(lim.get("effort")) - arm.actuator_ctrlrange[i, 1]) < 1e-12)
@@ -150,7 +151,7 @@ for k in range(50):
     for i, n in enumerate(JN):
         du.qpos[urdf.jnt_qposadr[urdf.joint(n).id]] = q[i]
     mujoco.mj_kinematics(urdf, du)
-    T = urdf_fk(dict(zip(JN, q)))
+    T = urdf_fk(dict(zip(JN, q, strict=False)))
     for n in LINKS:
         p_ref, R_ref = da.body(n).xpos, da.body(n).xmat.reshape(3, 3)
         e_np = max(e_np, np.abs(T[n][0] - p_ref).max(), np.abs(T[n][1] - R_ref).max())
@@ -212,15 +213,15 @@ def tool(q):
 
 print("6. targets (tabletop.xml)")
 lo, hi = world.jnt_range[:, 0], world.jnt_range[:, 1]
-for n, q in [("home", home)] + list(zip(names, targets)):
+for n, q in [("home", home), *list(zip(names, targets, strict=False))]:
     inlim = bool(np.all(q >= lo) and np.all(q <= hi))
     c = arm_contacts(q)
     t = tool(q)
     check(inlim and not c and t[2] > 0, f"{n:5s} q={q.tolist()} tool=({t[0]:.3f}, {t[1]:.3f}, {t[2]:.3f}) "
                                          f"in-limits={inlim} contacts={sorted(c)}")
 print("  straight joint-space lines, 100 points, contacts involving arm geoms:")
-pairs = list(zip(names, targets))
-seq = list(zip(pairs, pairs[1:])) + [(pairs[-1], pairs[0])] + [(("home", home), p) for p in pairs]
+pairs = list(zip(names, targets, strict=False))
+seq = list(itertools.pairwise(pairs)) + [(pairs[-1], pairs[0])] + [(("home", home), p) for p in pairs]
 n_colliding_consecutive = 0
 for k, ((na, qa), (nb, qb)) in enumerate(seq):
     hits, geoms = [], set()
@@ -248,7 +249,7 @@ def pd(m, d, qref):
     d.ctrl[:] = np.clip(u, m.actuator_ctrlrange[:, 0], m.actuator_ctrlrange[:, 1])
 
 
-for n, q in [("home", home)] + list(zip(names, targets)):
+for n, q in [("home", home), *list(zip(names, targets, strict=False))]:
     # (a) hold: start at rest at the target, 3 s
     d = mujoco.MjData(world)
     d.qpos[:] = q
@@ -287,7 +288,7 @@ for n, q in [("home", home)] + list(zip(names, targets)):
         mujoco.mj_step(world, d)
     print(f"  info {n:5s}: PD without gravity compensation sags by {np.abs(d.qpos - q).max():.3f} rad")
 # (b) smooth move home -> target (quintic, 2 s) then hold 1 s (these straight lines are collision-free)
-for n, q in zip(names, targets):
+for n, q in zip(names, targets, strict=False):
     d = mujoco.MjData(world)
     d.qpos[:] = home
     mujoco.mj_forward(world, d)

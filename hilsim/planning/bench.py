@@ -1,0 +1,130 @@
+"""``hilsim bench plan``: every planner on the shipped scenes, beside plain OMPL RRT* in the same run.
+
+Scenes are in ``config/scenes/scenes.yaml`` (free space, the table with its obstacle, a narrow
+passage); each has start/goal queries. Every planner solves every query once per seed with the
+same deterministic iteration budget (``iterations`` of ``config/planners.yaml``). Reported per
+scene and planner: success rate, median planning time, median path length and median summed
+turning angle of the successful paths, and the last two as ratios to RRT* (the baseline).
+
+Seeds: the improved RRT* draws from a generator seeded per run; OMPL planners share OMPL's
+process-wide generator (seeded once), so their runs differ by their position in the sequence.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from hilsim.config import CONFIG_DIR, ConfigError
+from hilsim.planning.collision import ArmModel
+from hilsim.planning.library import PlannerLibrary, Problem
+from hilsim.planning.objectives import path_length, summed_turning_angle
+
+SCENES = CONFIG_DIR / "scenes" / "scenes.yaml"
+BASELINE = "rrtstar"
+PLANNERS = ("rrtstar", "improved_rrtstar", "informed_rrtstar", "rrtconnect")
+
+
+def load_scenes(path: Path = SCENES) -> dict[str, dict[str, Any]]:
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as e:
+        raise ConfigError(f"{path}: cannot read scenes: {e}") from None
+    scenes = data.get("scenes") if isinstance(data, dict) else None
+    if not isinstance(scenes, dict) or not scenes:
+        raise ConfigError(f"{path}: expected 'scenes: {{name: {{model, queries}}}}'")
+    out = {}
+    for name, s in scenes.items():
+        try:
+            model = (path.parent / s["model"]).resolve()
+            queries = [(np.array(q["start"], float), np.array(q["goal"], float)) for q in s["queries"]]
+        except (KeyError, TypeError, ValueError) as e:
+            raise ConfigError(f"{path}: scenes.{name}: expected model and queries with start/goal ({e})") from None
+        out[name] = {"model": model, "queries": queries}
+    return out
+
+
+def run_bench(
+    seeds: int,
+    planners: tuple[str, ...] = PLANNERS,
+    clearance: float = 0.005,
+    time_cap: float = 30.0,
+    scenes: dict[str, dict[str, Any]] | None = None,
+    library: PlannerLibrary | None = None,
+) -> dict[str, Any]:
+    lib = library or PlannerLibrary.load()
+    scenes = scenes or load_scenes()
+    rows = []
+    for sname, scene in scenes.items():
+        arm = ArmModel(scene["model"], clearance)
+        for q_start, q_goal in scene["queries"]:
+            for bad in (arm.why_invalid(q_start), arm.why_invalid(q_goal)):
+                if bad is not None:
+                    raise ConfigError(f"scene {sname}: a query is invalid: {bad[1]}")
+        for pname in planners:
+            times, lengths, turns, ok, runs = [], [], [], 0, 0
+            for seed in range(seeds):
+                for qi, (q_start, q_goal) in enumerate(scene["queries"]):
+                    pb = Problem(arm, q_start, q_goal, seed=1000 * seed + qi, max_iterations=lib.iterations,
+                                 time_limit=time_cap, resolution=lib.resolution)
+                    res = lib.create(pname).solve(pb)
+                    runs += 1
+                    times.append(res.planning_time)
+                    if res.path is not None:
+                        ok += 1
+                        lengths.append(path_length(res.path))
+                        turns.append(summed_turning_angle(res.path))
+            rows.append({
+                "scene": sname,
+                "planner": pname,
+                "runs": runs,
+                "success_rate": ok / runs,
+                "median_time_s": statistics.median(times),
+                "median_length_rad": statistics.median(lengths) if lengths else None,
+                "median_turn_rad": statistics.median(turns) if turns else None,
+            })
+    base = {r["scene"]: r for r in rows if r["planner"] == BASELINE}
+    for r in rows:
+        b = base.get(r["scene"])
+        for key, out in (("median_length_rad", "length_vs_rrtstar"), ("median_turn_rad", "turn_vs_rrtstar")):
+            ok = b is not None and r[key] is not None and b[key]
+            r[out] = r[key] / b[key] if ok else None
+    return {"seeds": seeds, "iterations": lib.iterations, "baseline": BASELINE, "results": rows}
+
+
+def format_report(rep: dict[str, Any]) -> str:
+    def f(v: Any, fmt: str) -> str:
+        return "—" if v is None else format(v, fmt)
+
+    lines = [
+        f"seeds {rep['seeds']}, budget {rep['iterations']} iterations per query, baseline {rep['baseline']}",
+        "",
+        "| scene | planner | success | median time [s] | median length [rad] | median turn [rad] "
+        "| length / RRT* | turn / RRT* |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rep["results"]:
+        lines.append(
+            f"| {r['scene']} | {r['planner']} | {100 * r['success_rate']:.0f} % | {f(r['median_time_s'], '.3f')} "
+            f"| {f(r['median_length_rad'], '.2f')} | {f(r['median_turn_rad'], '.2f')} "
+            f"| {f(r['length_vs_rrtstar'], '.2f')} | {f(r['turn_vs_rrtstar'], '.2f')} |"
+        )
+    return "\n".join(lines)
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from hilsim.planning import quiet_ompl_at_exit
+
+    quiet_ompl_at_exit()
+    if args.seeds < 1:
+        print("hilsim bench plan: --seeds must be at least 1")
+        return 2
+    rep = run_bench(args.seeds)
+    print(json.dumps(rep, indent=2) if args.json else format_report(rep))
+    return 0

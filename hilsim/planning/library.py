@@ -1,0 +1,293 @@
+"""The planner library: planners chosen by name from ``config/planners.yaml`` or plug-ins.
+
+Every planner implements :class:`Planner`: ``solve(problem) -> PlanOutcome`` on a
+:class:`Problem` (arm model with collision checking, start, goal, budget). Three kinds exist:
+
+- ``kind: ompl`` — an OMPL geometric planner by class name (``RRTstar``, ``InformedRRTstar``,
+  ``RRTConnect``, ``BITstar``, ``SORRTstar``, ``AORRTC``, …); each YAML parameter ``foo_bar``
+  is applied through the planner's ``setFooBar`` method;
+- ``kind: improved_rrtstar`` — the paper's improved RRT* (:mod:`hilsim.planning.improved`);
+- ``kind: plugin`` / any name not in the YAML — a factory registered in the Python entry-point
+  group ``hilsim.planners``: ``factory(name: str, params: dict) -> Planner``. A package adds
+  a planner with e.g. ``[project.entry-points."hilsim.planners"] my_rrt = "pkg.mod:make"``,
+  without touching the service.
+
+Budgets: with ``max_iterations`` set (lockstep mode), planners stop on an iteration count,
+which is deterministic; ``time_limit`` is then only a wall-clock safety cap, reported when hit.
+Without it they stop on wall time.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+import yaml
+
+from hilsim.config import CONFIG_DIR
+from hilsim.planning.collision import ArmModel
+
+ENTRY_POINT_GROUP = "hilsim.planners"
+DEFAULT_LIBRARY = CONFIG_DIR / "planners.yaml"
+
+
+class UnknownPlanner(LookupError):
+    """A planner name that neither the library file nor an entry point provides."""
+
+
+class PlannerConfigError(ValueError):
+    """A library entry that cannot be built (unknown class, unknown parameter)."""
+
+
+@dataclass
+class Problem:
+    arm: ArmModel
+    start: np.ndarray
+    goal: np.ndarray
+    seed: int = 0
+    max_iterations: int | None = None  # deterministic budget; None = stop on wall time
+    time_limit: float = 1.0  # wall seconds (a safety cap when max_iterations is set)
+    resolution: float = 0.01  # rad between collision checks along a motion
+
+
+@dataclass
+class PlanOutcome:
+    path: np.ndarray | None  # waypoints × joints, start and goal included; None = no solution
+    message: str = ""
+    iterations: int = 0
+    planning_time: float = 0.0
+    wall_cap_hit: bool = False
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def success(self) -> bool:
+        return self.path is not None
+
+
+class Planner(Protocol):
+    name: str
+
+    def solve(self, problem: Problem) -> PlanOutcome: ...
+
+
+class Budget:
+    """Termination shared by all planners: iterations (deterministic) or wall time.
+
+    With an iteration budget, an anytime planner stops at ``max_iterations`` once it has a
+    solution, and keeps searching up to ``extend × max_iterations`` while it has none.
+    """
+
+    def __init__(self, pb: Problem, extend: int = 4) -> None:
+        self.max_it = pb.max_iterations
+        self.hard_it = None if pb.max_iterations is None else pb.max_iterations * extend
+        self.time_limit = pb.time_limit
+        self.t0 = time.perf_counter()
+        self.iterations = 0
+        self.wall_cap_hit = False
+
+    def elapsed(self) -> float:
+        return time.perf_counter() - self.t0
+
+    def done(self, solved: bool) -> bool:
+        if self.elapsed() >= self.time_limit:
+            self.wall_cap_hit = self.max_it is not None
+            return True
+        if self.max_it is None:
+            return False
+        return self.iterations >= (self.max_it if solved else self.hard_it)
+
+    def why_failed(self) -> str:
+        if self.wall_cap_hit:
+            return f"planner hit the wall-clock cap of {self.time_limit:g} s after {self.iterations} iterations"
+        if self.max_it is None:
+            return f"planner ran out of time ({self.time_limit:g} s) without a solution"
+        return f"no solution within {self.iterations} iterations"
+
+
+# ---------------------------------------------------------------------------------- OMPL
+_ompl_seeded: int | None = None
+
+
+def seed_ompl(seed: int) -> None:
+    """Seed OMPL's global RNG once per process (OMPL cannot re-seed after sampling started),
+    before any planner exists; the RNG of every planner created later derives from it."""
+    global _ompl_seeded
+    from ompl import util as ou
+
+    if _ompl_seeded is None:
+        ou.setLogLevel(ou.LOG_WARN)
+        ou.RNG.setSeed(int(seed) & 0x7FFFFFFF or 1)
+        _ompl_seeded = int(seed)
+
+
+def _setter_name(param: str) -> str:
+    return "set" + "".join(p[:1].upper() + p[1:] for p in param.split("_"))
+
+
+class OmplPlanner:
+    """An OMPL geometric planner minimising path length, with the MuJoCo validity checker."""
+
+    def __init__(self, name: str, cls_name: str, params: dict[str, Any] | None = None) -> None:
+        from ompl import geometric as og
+
+        if not hasattr(og, cls_name):
+            avail = sorted(n for n in dir(og) if n[0].isupper() and n not in ("PathGeometric", "PathSimplifier"))
+            raise PlannerConfigError(
+                f"planner {name!r}: OMPL has no geometric planner {cls_name!r}; available: {avail}"
+            )
+        self.name = name
+        self.cls_name = cls_name
+        self.params = dict(params or {})
+        self._cls = getattr(og, cls_name)
+        for p in self.params:
+            if not hasattr(self._cls, _setter_name(p)):
+                raise PlannerConfigError(f"planner {name!r}: {cls_name} has no parameter {p!r} (no {_setter_name(p)})")
+
+    def solve(self, pb: Problem) -> PlanOutcome:
+        from ompl import base as ob
+
+        seed_ompl(pb.seed)
+        arm, n = pb.arm, pb.arm.n
+        space = ob.RealVectorStateSpace(n)
+        bounds = ob.RealVectorBounds(n)
+        for i in range(n):
+            bounds.setLow(i, float(arm.lower[i]))
+            bounds.setHigh(i, float(arm.upper[i]))
+        space.setBounds(bounds)
+        si = ob.SpaceInformation(space)
+        si.setStateValidityChecker(lambda s: arm.is_valid(np.fromiter((s[i] for i in range(n)), float, n)))
+        si.setStateValidityCheckingResolution(pb.resolution / space.getMaximumExtent())
+        si.setup()
+        start, goal = space.allocState(), space.allocState()
+        for i in range(n):
+            start[i] = float(pb.start[i])
+            goal[i] = float(pb.goal[i])
+        pdef = ob.ProblemDefinition(si)
+        pdef.setStartAndGoalStates(start, goal, 1e-4)
+        pdef.setOptimizationObjective(ob.PathLengthOptimizationObjective(si))
+        planner = self._cls(si)
+        for p, v in self.params.items():
+            getattr(planner, _setter_name(p))(v)
+        planner.setProblemDefinition(pdef)
+        planner.setup()
+        budget = Budget(pb)
+        chunk_end = [0]
+
+        def stop() -> bool:
+            # OMPL calls this once per iteration of its main loop: counting calls is a
+            # deterministic termination condition.
+            budget.iterations += 1
+            if budget.elapsed() >= budget.time_limit:
+                budget.wall_cap_hit = budget.max_it is not None
+                return True
+            return budget.max_it is not None and budget.iterations >= chunk_end[0]
+
+        # OMPL's RRT* reports its solution only when solve() returns, so with an iteration budget
+        # we solve in chunks of max_iterations (the tree is kept) until a solution exists.
+        status = None
+        for _ in range(1 if budget.max_it is None else 4):
+            chunk_end[0] = budget.iterations + (budget.max_it or 0)
+            status = planner.solve(ob.PlannerTerminationCondition(stop))
+            if pdef.hasExactSolution() or budget.elapsed() >= budget.time_limit:
+                break
+        elapsed = budget.elapsed()
+        if not pdef.hasExactSolution():
+            return PlanOutcome(None, f"{self.name}: {budget.why_failed()} ({status})", budget.iterations, elapsed,
+                               budget.wall_cap_hit)
+        path = pdef.getSolutionPath()
+        pts = np.array([[path.getState(k)[i] for i in range(n)] for k in range(path.getStateCount())])
+        if np.max(np.abs(pts[-1] - pb.goal)) > 0:
+            pts = np.vstack([pts, pb.goal])  # within the 1e-4 goal threshold: end exactly on the goal
+        pts[0] = pb.start
+        return PlanOutcome(pts, "ok", budget.iterations, elapsed, budget.wall_cap_hit)
+
+
+# ---------------------------------------------------------------------------------- library
+Factory = Callable[[str, dict[str, Any]], Planner]
+
+
+def plugin_factories() -> dict[str, importlib.metadata.EntryPoint]:
+    return {ep.name: ep for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP)}
+
+
+class PlannerLibrary:
+    """Planner specs from a YAML file (``planners:`` mapping) plus entry-point plug-ins."""
+
+    def __init__(self, specs: dict[str, dict[str, Any]], settings: dict[str, Any] | None = None) -> None:
+        self.specs = specs
+        settings = settings or {}
+        self.limits: dict[str, Any] = settings.get("limits") or {}
+        try:
+            self.iterations = int(settings.get("iterations", 1000))
+            self.wall_cap_factor = float(settings.get("wall_cap_factor", 10.0))
+            self.resolution = float(settings.get("resolution", 0.01))
+        except (TypeError, ValueError) as e:
+            raise PlannerConfigError(f"planner library: iterations / wall_cap_factor / resolution: {e}") from None
+        if self.iterations < 1 or self.wall_cap_factor <= 0 or self.resolution <= 0:
+            raise PlannerConfigError("planner library: iterations, wall_cap_factor and resolution must be positive")
+
+    @classmethod
+    def load(cls, path: str | Path | None = None) -> PlannerLibrary:
+        p = Path(path) if path else DEFAULT_LIBRARY
+        try:
+            data = yaml.safe_load(p.read_text()) or {}
+        except (OSError, yaml.YAMLError) as e:
+            raise PlannerConfigError(f"{p}: cannot read the planner library: {e}") from None
+        specs = data.get("planners")
+        if not isinstance(specs, dict) or not all(isinstance(v, dict) for v in specs.values()):
+            raise PlannerConfigError(f"{p}: 'planners' must map names to {{kind, class, params}} entries")
+        return cls(specs, data)
+
+    def names(self) -> list[str]:
+        return sorted(set(self.specs) | set(plugin_factories()))
+
+    def create(self, name: str, overrides: dict[str, Any] | None = None) -> Planner:
+        spec = self.specs.get(name)
+        plugins = plugin_factories()
+        if spec is None and name not in plugins:
+            raise UnknownPlanner(f"unknown planner {name!r}; available: {', '.join(self.names())}")
+        params = dict((spec or {}).get("params") or {})
+        params.update(overrides or {})
+        kind = (spec or {}).get("kind", "plugin")
+        if kind == "ompl":
+            return OmplPlanner(name, str(spec["class"]), params)
+        if kind == "improved_rrtstar":
+            from hilsim.planning.improved import ImprovedRRTStar
+
+            return ImprovedRRTStar(name, params)
+        if kind == "plugin":
+            ep = plugins.get(str((spec or {}).get("entry_point", name)))
+            if ep is None:
+                raise UnknownPlanner(f"planner {name!r}: no entry point in group {ENTRY_POINT_GROUP!r}")
+            try:
+                factory = ep.load()
+            except (ImportError, AttributeError) as e:
+                raise PlannerConfigError(f"planner {name!r}: cannot load entry point {ep.value}: {e}") from None
+            return factory(name, params)
+        raise PlannerConfigError(f"planner {name!r}: unknown kind {kind!r} (ompl, improved_rrtstar, plugin)")
+
+    def joint_limits(self, n: int, model_velocity: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
+        """Per-joint (velocity, acceleration, jerk) limits for trajectories: from ``limits:`` in the
+        library, the velocity capped by the model's own limit when it has one."""
+        def vec(key: str, default: float) -> np.ndarray:
+            v = self.limits.get(key, default)
+            a = np.array(v if isinstance(v, list) else [v] * n, dtype=float)
+            if a.shape != (n,) or not np.all(np.isfinite(a)) or np.any(a <= 0):
+                raise PlannerConfigError(f"limits.{key}: expected a positive number or {n} positive numbers")
+            return a
+
+        v = vec("velocity", 1.0)
+        if model_velocity is not None:
+            v = np.minimum(v, model_velocity)
+        return v, vec("acceleration", 2.0), vec("jerk", 10.0)
+
+
+def k_nearest_count(n_nodes: int, dim: int, rewire_factor: float) -> int:
+    """OMPL's k-nearest RRT* neighbourhood size: k_rrt · log(n), k_rrt = rewire · e · (1 + 1/d)."""
+    return max(1, math.ceil(rewire_factor * math.e * (1.0 + 1.0 / dim) * math.log(n_nodes + 1)))

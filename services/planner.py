@@ -1,0 +1,443 @@
+"""Planner service: move goals → collision-free path (OMPL / improved RRT*) → ruckig trajectory → execution.
+
+Reads:
+- ``<prefix>/clock`` (rosgraph_msgs/Clock): sim time; planning starts on a tick, and in lockstep
+  mode the tick is acknowledged only once the trajectory is out (planning takes no sim time);
+- ``joint_states`` (sensor_msgs/JointState, 6 joints): start state of a plan, execution monitoring.
+
+Writes:
+- ``joint_trajectory`` (trajectory_msgs/JointTrajectory) for the joint trajectory controller,
+  stamped to start ``START_DELAY`` after the tick it was planned on;
+- ``planner/path`` (the geometric path, for the logger), ``planner/feedback`` (state ``planning`` /
+  ``executing`` / ``settling``, progress, 10 Hz sim), ``planner/result`` (MoveResult);
+- ``sync/planner`` (lockstep acknowledgement) through the base class.
+
+Serves ``planner/goal`` (MoveGoal → GoalResponse, accepted or rejected with the reason) and
+``planner/cancel`` (CancelRequest → GoalResponse). A new goal preempts the active one.
+
+The scenario task (``task.targets``) is run by the service itself: goals ``task-1`` … ``task-N`` in
+order, each starting on the tick after the previous result, then a MoveResult ``task`` saying
+how many targets were reached (``hilsim up`` ends the run on it).
+
+Threads: Zenoh callbacks run under ``self.lock`` and only queue work; one worker thread plans
+(with its own MuJoCo model) so goal and cancel queries are answered while it plans.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from hilsim import msgs
+from hilsim.config import Scenario
+from hilsim.planning import quiet_ompl_at_exit
+from hilsim.planning.collision import ArmModel
+from hilsim.planning.ik import IKError, solve_ik
+from hilsim.planning.library import PlannerConfigError, PlannerLibrary, PlanOutcome, Problem, UnknownPlanner
+from hilsim.planning.trajectory import TimedTrajectory, TrajectoryError, path_msg, time_parameterize, to_msg, truncate
+from hilsim.service import Service
+
+START_DELAY_NS = 20_000_000  # trajectory starts 20 ms (sim) after the tick it was planned on
+FEEDBACK_PERIOD_NS = 100_000_000  # 10 Hz sim
+
+
+@dataclass
+class Goal:
+    goal_id: str
+    target: np.ndarray
+    planner: str
+    planning_time: float
+    execute: bool = True
+    task: bool = False
+    state: str = "queued"  # queued | planning | executing | settling | done
+    canceled: bool = False
+    start_ns: int = 0
+    duration_ns: int = 0
+    deadline_ns: int = 0
+    settle_since: int | None = None
+    last_feedback_ns: int = -FEEDBACK_PERIOD_NS
+    traj: TimedTrajectory | None = None
+    traj_msg: msgs.JointTrajectory = field(default_factory=msgs.JointTrajectory)
+    planning_wall: float = 0.0
+    invalid: tuple[int, str] | None = None  # a task target that fails validation: reported in turn
+
+
+class PlannerService(Service):
+    name = "planner"
+
+    def __init__(self, scenario: Scenario) -> None:
+        super().__init__(scenario)
+        extra: dict[str, Any] = scenario.planner.model_extra or {}
+        self.library = PlannerLibrary.load(extra.get("library"))
+        self.iterations = int(extra.get("iterations", self.library.iterations))
+        self.default_planner = scenario.planner.planner
+        self.library.create(self.default_planner)  # an unknown default is a configuration error at start
+        # one model for the query handlers (validation, IK), one for the planning worker
+        self.arm = ArmModel(scenario.world.model, scenario.planner.clearance)
+        self.plan_arm = ArmModel(scenario.world.model, scenario.planner.clearance, self.arm.joint_names)
+        self.n = self.arm.n
+        self.vmax, self.amax, self.jmax = self.library.joint_limits(self.n, self.arm.velocity_limits())
+        self.q: np.ndarray | None = None  # latest measured joint positions (model order)
+        self.last_target: np.ndarray | None = None  # target of the last goal reached
+        self.active: Goal | None = None
+        self.pending: list[Goal] = []
+        self.task_targets = [np.asarray(t, float) for t in scenario.task.targets]
+        self.task_index = 0  # next task target to start
+        self.task_reached = 0
+        self.task_errors: list[float] = []
+        self.task_started = False
+        self.goal_counter = 0
+        self.plans = 0
+        self.goals_rejected = 0
+        self.last_planning_time = 0.0
+        self._jobs: queue.Queue[tuple[Goal, int] | None] = queue.Queue()
+        self._worker: threading.Thread | None = None
+
+    # ------------------------------------------------------------------ setup
+    def setup(self) -> None:
+        k = self.keys
+        self.pub_traj = self.publisher(k.topic("joint_trajectory"))
+        self.pub_path = self.publisher(k.topic("planner/path"))
+        self.pub_feedback = self.publisher(k.topic("planner/feedback"))
+        self.pub_result = self.publisher(k.topic("planner/result"))
+        self.subscribe(k.clock, msgs.Clock, self.on_clock)
+        self.subscribe(k.topic("joint_states"), msgs.JointState, self.on_joint_states, n_joints=self.n)
+        self.queryable(k.topic("planner/goal"), msgs.MoveGoal, self.on_goal, n_joints=self.n, reject=self._reject)
+        self.queryable(k.topic("planner/cancel"), msgs.CancelRequest, self.on_cancel, reject=self._reject)
+        self._worker = threading.Thread(target=self._work, daemon=True, name="planner-worker")
+        self._worker.start()
+
+    def teardown(self) -> None:
+        self._jobs.put(None)
+        if self._worker is not None:
+            self._worker.join(timeout=30)
+
+    def run(self) -> int:
+        rc = super().run()
+        if threading.current_thread() is threading.main_thread():  # the service's own process
+            quiet_ompl_at_exit()
+        return rc
+
+    def health_values(self) -> dict[str, Any]:
+        return {
+            "goal": self.active.goal_id if self.active else "",
+            "goal_state": self.active.state if self.active else "idle",
+            "plans": self.plans,
+            "goals_rejected": self.goals_rejected,
+            "last_planning_time_s": round(self.last_planning_time, 4),
+        }
+
+    # ------------------------------------------------------------------ goal validation
+    def _reject(self, reason: str, goal_id: str = "") -> msgs.GoalResponse:
+        self.goals_rejected += 1
+        return msgs.GoalResponse(goal_id=goal_id, accepted=False, reason=reason)
+
+    def _target_of(self, g: msgs.MoveGoal) -> tuple[np.ndarray | None, str]:
+        """Joint target of a goal (IK for a pose), or (None, reason)."""
+        if g.target_kind == "pose":
+            p = g.pose.position
+            rot = None
+            if g.use_orientation:
+                o = g.pose.orientation
+                quat = np.array([o.w, o.x, o.y, o.z])
+                if abs(np.linalg.norm(quat) - 1.0) > 1e-3:
+                    return None, f"INVALID_GOAL: orientation quaternion is not unit (norm {np.linalg.norm(quat):.4f})"
+                import mujoco
+
+                mat = np.empty(9)
+                mujoco.mju_quat2Mat(mat, quat)
+                rot = mat.reshape(3, 3)
+            try:
+                q = solve_ik(self.arm, np.array([p.x, p.y, p.z]), rot, self.q, seed=self.sc.seed)
+            except IKError as e:
+                return None, f"NO_IK_SOLUTION: {e}"
+            return q, ""
+        q = np.array(g.joint_positions, float)
+        if g.joint_names:
+            if sorted(g.joint_names) != sorted(self.arm.joint_names):
+                return None, f"INVALID_GOAL: joint names {list(g.joint_names)} are not {self.arm.joint_names}"
+            q = np.array([q[list(g.joint_names).index(n)] for n in self.arm.joint_names])
+        return q, ""
+
+    def check_target(self, q: np.ndarray) -> tuple[int, str] | None:
+        """(error code, reason) if a joint target is unusable."""
+        if q.shape != (self.n,) or not np.all(np.isfinite(q)):
+            return msgs.INVALID_GOAL, f"INVALID_GOAL: expected {self.n} finite joint positions"
+        bad = self.arm.why_invalid(q)
+        if bad is None:
+            return None
+        kind, reason = bad
+        if kind == "limits":
+            return msgs.GOAL_OUT_OF_LIMITS, f"GOAL_OUT_OF_LIMITS: {reason}"
+        return msgs.GOAL_IN_COLLISION, f"GOAL_IN_COLLISION: {reason}"
+
+    # ------------------------------------------------------------------ queries
+    def on_goal(self, g: msgs.MoveGoal) -> msgs.GoalResponse:
+        self.goal_counter += 1
+        gid = g.goal_id or f"goal-{self.goal_counter}"
+        if gid == "task" or gid.startswith("task-"):
+            return self._reject(f"INVALID_GOAL: goal id {gid!r} is reserved for the scenario task", gid)
+        name = g.planner or self.default_planner
+        try:
+            self.library.create(name)
+        except (UnknownPlanner, PlannerConfigError) as e:
+            return self._reject(f"INVALID_GOAL: {e}", gid)
+        q, reason = self._target_of(g)
+        if q is None:
+            return self._reject(reason, gid)
+        if (bad := self.check_target(q)) is not None:
+            return self._reject(bad[1], gid)
+        goal = Goal(gid, q, name, g.planning_time or self.sc.planner.planning_time, bool(g.execute))
+        self._preempt(f"preempted by goal {gid}")
+        self.pending.append(goal)
+        return msgs.GoalResponse(goal_id=gid, accepted=True, reason="accepted")
+
+    def on_cancel(self, req: msgs.CancelRequest) -> msgs.GoalResponse:
+        goals = ([self.active] if self.active else []) + self.pending
+        for goal in goals:
+            if goal.goal_id == req.goal_id or (req.goal_id == "" and goal is goals[0]):
+                self._cancel(goal, "canceled by request")
+                return msgs.GoalResponse(goal_id=goal.goal_id, accepted=True, reason="canceling")
+        return msgs.GoalResponse(goal_id=req.goal_id, accepted=False, reason=f"no active goal {req.goal_id!r}")
+
+    def _preempt(self, why: str) -> None:
+        for goal in [*self.pending, *([self.active] if self.active else [])]:
+            self._cancel(goal, why)
+
+    def _cancel(self, goal: Goal, why: str) -> None:
+        """Planning: the worker drops the plan. Executing: the trajectory is cut at its next
+        waypoint, where it is at rest, so the arm stops smoothly without leaving the checked path."""
+        goal.canceled = True
+        if goal in self.pending:
+            self.pending.remove(goal)
+            self._finish(goal, False, msgs.CANCELED, why)
+        elif goal.state in ("executing", "settling"):
+            if goal.state == "executing" and goal.traj is not None:
+                t = max(0.0, (self.sim_ns - goal.start_ns) * 1e-9)
+                t_stop = float(goal.traj.knots[np.searchsorted(goal.traj.knots, t)])
+                cut = truncate(goal.traj, t_stop)
+                self.pub_traj.put(to_msg(cut, self.arm.joint_names, goal.start_ns))
+                why = f"{why}; stopping at rest at the next waypoint ({t_stop - t:.2f} s)"
+            self._finish(goal, False, msgs.CANCELED, why)
+        # state 'planning': the worker sees goal.canceled and reports
+
+    # ------------------------------------------------------------------ results / feedback
+    def _error(self, goal: Goal) -> list[float]:
+        return [float(x) for x in np.abs(self.q - goal.target)] if self.q is not None else []
+
+    def _finish(self, goal: Goal, success: bool, code: int, message: str) -> None:
+        goal.state = "done"
+        if success and goal.execute:
+            self.last_target = goal.target
+        err = self._error(goal)
+        self.pub_result.put(
+            msgs.MoveResult(
+                header=msgs.header(self.sim_ns),
+                goal_id=goal.goal_id,
+                success=success,
+                error_code=code,
+                message=message,
+                trajectory=goal.traj_msg,
+                planning_time=goal.planning_wall,
+                execution_error=err,
+                planner=goal.planner,
+            )
+        )
+        if self.active is goal:
+            self.active = None
+        if goal.task:
+            self.task_reached += int(success)
+            if self.task_index < len(self.task_targets):
+                self._queue_task_target()
+            else:
+                self._finish_task(err)
+
+    def _queue_task_target(self) -> None:
+        i = self.task_index
+        self.task_index += 1
+        q = self.task_targets[i]
+        goal = Goal(f"task-{i + 1}", q, self.default_planner, self.sc.planner.planning_time, True, task=True)
+        goal.invalid = self.check_target(q)
+        self.pending.append(goal)
+
+    def _finish_task(self, err: list[float]) -> None:
+        n = len(self.task_targets)
+        self.pub_result.put(
+            msgs.MoveResult(
+                header=msgs.header(self.sim_ns),
+                goal_id="task",
+                success=self.task_reached == n,
+                error_code=msgs.SUCCESS if self.task_reached == n else msgs.FAILURE,
+                message=f"{self.task_reached}/{n} targets reached",
+                execution_error=err,
+                planner=self.default_planner,
+            )
+        )
+        self.log.info("task finished: %d/%d targets reached", self.task_reached, n)
+
+    def _feedback(self, goal: Goal, progress: float, now_ns: int) -> None:
+        goal.last_feedback_ns = now_ns
+        self.pub_feedback.put(
+            msgs.MoveFeedback(header=msgs.header(now_ns), goal_id=goal.goal_id, state=goal.state, progress=progress)
+        )
+
+    # ------------------------------------------------------------------ inputs
+    def on_joint_states(self, js: msgs.JointState, _key: str) -> None:
+        if not js.position:
+            return
+        pos = dict(zip(js.name, js.position, strict=True))
+        try:
+            self.q = np.array([pos[n] for n in self.arm.joint_names])
+        except KeyError as e:
+            self.warn(f"joint_states lacks joint {e}")
+            return
+        self._monitor(msgs.ns_of(js.header.stamp))
+
+    def _monitor(self, now: int) -> None:
+        """Execution monitoring, in sim time of the joint state (deterministic in lockstep)."""
+        goal = self.active
+        if goal is None or goal.state not in ("executing", "settling") or self.q is None:
+            return
+        if now < goal.start_ns:
+            return
+        progress = min(1.0, (now - goal.start_ns) / max(goal.duration_ns, 1))
+        if now >= goal.start_ns + goal.duration_ns:
+            if goal.state == "executing":
+                goal.state = "settling"
+                self._feedback(goal, 1.0, now)
+            if float(np.max(np.abs(self.q - goal.target))) <= self.sc.task.tolerance:
+                if goal.settle_since is None:
+                    goal.settle_since = now
+                if now - goal.settle_since >= round(self.sc.task.settle_time * 1e9):
+                    self._finish(goal, True, msgs.SUCCESS, "target reached")
+                    return
+            else:
+                goal.settle_since = None
+        if now >= goal.deadline_ns:
+            err = np.abs(self.q - goal.target)
+            self._finish(
+                goal, False, msgs.CONTROL_FAILED,
+                f"target not held within {self.sc.task.tolerance} rad: max joint error {float(np.max(err)):.4f} rad",
+            )
+            return
+        if now - goal.last_feedback_ns >= FEEDBACK_PERIOD_NS:
+            self._feedback(goal, progress, now)
+
+    def on_clock(self, c: msgs.Clock, _key: str) -> None:
+        t = msgs.ns_of(c.clock)
+        self.sim_ns = max(self.sim_ns, t)
+        if not self.task_started and self.task_targets:
+            self.task_started = True
+            self._queue_task_target()
+        if self.active is None and self.pending and self.q is not None:
+            goal = self.pending.pop(0)
+            if goal.invalid is not None:
+                self._finish(goal, False, *goal.invalid)
+            else:
+                self.active = goal
+                goal.state = "planning"
+                self._feedback(goal, 0.0, t)
+                self._jobs.put((goal, t))
+                return  # the worker acknowledges t once the trajectory is out
+        if self.lockstep:
+            self.ack(t)
+
+    # ------------------------------------------------------------------ planning worker
+    def _work(self) -> None:
+        while True:
+            job = self._jobs.get()
+            if job is None:
+                return
+            goal, t = job
+            try:
+                self._plan(goal, t)
+            except Exception as e:  # a planner bug must fail the goal, not the service
+                with self.lock:
+                    self.fault(f"planning {goal.goal_id} failed: {type(e).__name__}: {e}", exc=e)
+                    if goal.state == "planning":
+                        self._finish(goal, False, msgs.PLANNING_FAILED, f"{type(e).__name__}: {e}")
+            finally:
+                if self.lockstep:
+                    self.ack(t)
+
+    def _plan(self, goal: Goal, t: int) -> None:
+        with self.lock:
+            start = self.q.copy()  # type: ignore[union-attr]
+        start = np.clip(start, self.arm.lower, self.arm.upper)
+        measured = start
+        with self.lock:
+            anchor = self.last_target
+        if (
+            anchor is not None
+            and float(np.max(np.abs(start - anchor))) <= 2 * self.sc.task.tolerance
+            and not self.plan_arm.is_valid(start)
+        ):
+            # Measured noise / tracking error put the start a hair inside the clearance of the
+            # last target (which was validated): plan from that target; the first waypoint stays
+            # the measured state, a step of at most 2 tolerances.
+            start = anchor
+        planner = self.library.create(goal.planner)
+        if self.lockstep:
+            budget: dict[str, Any] = {
+                "max_iterations": self.iterations,
+                "time_limit": goal.planning_time * self.library.wall_cap_factor,
+            }
+        else:
+            budget = {"max_iterations": None, "time_limit": goal.planning_time}
+        seed = self.sc.seed + self.plans
+        pb = Problem(self.plan_arm, start, goal.target, seed=seed, resolution=self.library.resolution, **budget)
+        w0 = time.perf_counter()
+        if np.max(np.abs(goal.target - start)) < 1e-6:
+            out = PlanOutcome(np.array([start, goal.target]), "already there")
+        elif (why := self.plan_arm.why_invalid(start)) is not None:
+            out = PlanOutcome(None, f"start state invalid: {why[1]}")
+        else:
+            out = planner.solve(pb)
+        self.plans += 1
+        traj = None
+        if out.path is not None and start is not measured:
+            out.path = np.vstack([measured, out.path])
+        if out.path is not None:
+            try:
+                traj = time_parameterize(out.path, self.vmax, self.amax, self.jmax, dt=0.01)
+            except TrajectoryError as e:
+                out.path, out.message = None, str(e)
+        wall = time.perf_counter() - w0
+        with self.lock:
+            self.last_planning_time = wall
+            goal.planning_wall = wall
+            if out.wall_cap_hit:
+                self.warn(f"{goal.goal_id}: planning hit the wall-clock cap ({pb.time_limit:g} s): not deterministic")
+            if goal.canceled or goal.state != "planning":
+                if goal.state == "planning":
+                    self._finish(goal, False, msgs.CANCELED, "canceled while planning")
+                return
+            if out.path is None or traj is None:
+                # the planner ran its budget out without a solution: TIMED_OUT; anything else: PLANNING_FAILED
+                code = msgs.TIMED_OUT if out.path is None and out.iterations > 0 else msgs.PLANNING_FAILED
+                self._finish(goal, False, code, f"planning failed: {out.message}")
+                return
+            start_ns = t + START_DELAY_NS if self.lockstep else self.sim_ns + START_DELAY_NS
+            goal.traj = traj
+            goal.traj_msg = to_msg(traj, self.arm.joint_names, start_ns)
+            self.pub_path.put(path_msg(out.path, self.arm.joint_names, t))
+            if not goal.execute:
+                self._finish(goal, True, msgs.SUCCESS, f"planned ({len(out.path)} waypoints), not executed")
+                return
+            self.pub_traj.put(goal.traj_msg)
+            goal.start_ns = start_ns
+            goal.duration_ns = round(traj.duration * 1e9)
+            timeout = max(self.sc.task.target_timeout, traj.duration + self.sc.task.settle_time + 1.0)
+            goal.deadline_ns = start_ns + round(timeout * 1e9)
+            goal.state = "executing"
+            self._feedback(goal, 0.0, t)
+            self.log.info(
+                "%s: %s planned %d waypoints in %.3f s (%d iterations), trajectory %.2f s",
+                goal.goal_id, goal.planner, len(out.path), wall, out.iterations, traj.duration,
+            )
+
