@@ -12,10 +12,12 @@ truncated payloads, inconsistent array sizes and non-finite numbers with :class:
 
 import dataclasses
 import math
+import threading
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
 from pycdr2 import IdlStruct
+from pycdr2._support import Buffer
 from pycdr2.types import array, float32, float64, int8, int32, sequence, uint8, uint32
 
 T = TypeVar("T", bound=IdlStruct)
@@ -334,8 +336,20 @@ def header(ns: int, frame_id: str = "") -> Header:
 
 
 # ---------------------------------------------------------------- encode / decode / validate
+_local = threading.local()
+
+
+def _buffer() -> Buffer:
+    # pycdr2 encodes every message of a type through one shared buffer by default: threads of
+    # one process (zenoh callbacks, health, workers) would corrupt each other's bytes.
+    buf = getattr(_local, "buf", None)
+    if buf is None:
+        buf = _local.buf = Buffer()
+    return buf
+
+
 def encode(msg: IdlStruct) -> bytes:
-    return msg.serialize()
+    return msg.serialize(buffer=_buffer())
 
 
 def decode(cls: type[T], payload: bytes, *, n_joints: int | None = None) -> T:
@@ -347,7 +361,7 @@ def decode(cls: type[T], payload: bytes, *, n_joints: int | None = None) -> T:
         msg = cls.deserialize(bytes(payload))
     except Exception as e:  # pycdr2 raises struct.error, UnicodeDecodeError, IndexError, …
         raise BadMessage(f"not a valid {cls.__name__} CDR payload ({len(payload)} bytes): {e}") from e
-    expected = len(msg.serialize())
+    expected = len(encode(msg))
     # More than alignment padding left over means the payload was another (longer) message.
     if not expected <= len(payload) < expected + 4:
         raise BadMessage(f"payload has {len(payload)} bytes, a {cls.__name__} of this content has {expected}")
@@ -429,3 +443,13 @@ def to_dict(msg: Any) -> Any:
 
 def type_name(cls: type) -> str:
     return cls.__dict__.get("__idl_typename__", cls.__name__).replace("::", "/")
+
+
+def _prepare_all() -> None:
+    """Build pycdr2's per-type machinery now: its lazy first-use set-up is not thread-safe."""
+    for obj in list(globals().values()):
+        if isinstance(obj, type) and issubclass(obj, IdlStruct) and obj is not IdlStruct:
+            obj.deserialize(encode(obj()))
+
+
+_prepare_all()

@@ -241,6 +241,19 @@ class Service:
     def request_stop(self, *_: Any) -> None:
         self.stop_event.set()
 
+    def attach(self, session: Any) -> None:
+        """Declare everything on ``session``: a Zenoh session, or an in-process
+        :class:`hilsim.inproc.Bus` session (benchmarks, tests). The liveliness token comes last,
+        so whoever sees it knows the inputs exist."""
+        self.session = session
+        self._health_pub = self.publisher(self.keys.health(self.name))
+        self._log_pub = self.publisher(self.keys.log(self.name))
+        if self.lockstep:
+            self._sync_pub = self.publisher(self.keys.sync(self.name))
+        self.setup()
+        self._declared.append(session.liveliness().declare_token(self.keys.alive(self.name)))
+        self.state = "running"
+
     def run(self) -> int:
         """Run the service until stopped; returns the process exit code."""
         if threading.current_thread() is threading.main_thread():
@@ -253,13 +266,7 @@ class Service:
             return 2
         rc = 0
         try:
-            self._health_pub = self.publisher(self.keys.health(self.name))
-            self._log_pub = self.publisher(self.keys.log(self.name))
-            if self.lockstep:
-                self._sync_pub = self.publisher(self.keys.sync(self.name))
-            self.setup()
-            self._declared.append(self.session.liveliness().declare_token(self.keys.alive(self.name)))
-            self.state = "running"
+            self.attach(self.session)
             self.log.info("ready")
             threading.Thread(target=self._health_thread, daemon=True, name="health").start()
             self.loop()

@@ -128,7 +128,8 @@ def test_killed_service_is_reported_and_nothing_hangs(tmp_path: Path) -> None:
     ep = f"tcp/127.0.0.1:{transport.free_port()}"
     router = transport.open_router(ep)
     lines: list[str] = []
-    p = hilsim_up("arm", "--router", ep, "--out", str(tmp_path / "run"), "--set", "logger.enabled=true")
+    # no targets: the system runs (holding position) until the controller is killed
+    p = hilsim_up("arm", "--router", ep, "--out", str(tmp_path / "run"), "--set", "task.targets=[]")
     try:
         ready = wait_line(p, "ready:", 120, lines)
         pids = {part.split(" (pid ")[0].strip(): int(part.split("(pid ")[1].rstrip(")\n"))

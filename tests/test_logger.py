@@ -1,0 +1,234 @@
+"""The logger service (Rerun recorder) and `hilsim view`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from hilsim import msgs, recording, transport
+from hilsim.keys import Keys
+
+N_STEPS = 300
+JOINTS = [f"joint_{i}" for i in range(1, 7)]
+DT_NS = 1_000_000
+
+
+def _wait(cond: Any, timeout: float, what: str) -> None:
+    end = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > end:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.01)
+
+
+def _js(t: int, k: int) -> msgs.JointState:
+    q = [0.3 * np.sin(0.01 * k + i) for i in range(6)]
+    return msgs.JointState(
+        header=msgs.header(t), name=list(JOINTS), position=q, velocity=[0.1 * i for i in range(6)], effort=[0.5] * 6
+    )
+
+
+def _trajectory(t: int, n: int) -> msgs.JointTrajectory:
+    pts = [
+        msgs.JointTrajectoryPoint(
+            positions=[0.05 * j * (i + 1) / 6 for i in range(6)], time_from_start=msgs.duration(0.1 * j)
+        )
+        for j in range(n)
+    ]
+    return msgs.JointTrajectory(header=msgs.header(t), joint_names=list(JOINTS), points=pts)
+
+
+def test_logger_records_every_message(
+    scenario: Any, session: Any, run_service: Any, tmp_path: Path, capsys: Any
+) -> None:
+    from hilsim.services.logger import LoggerService
+
+    run_dir = tmp_path / "run"
+    sc = scenario("arm", {"logger.run_dir": str(run_dir)})
+    keys = Keys(sc.prefix, sc.robot)
+    svc = LoggerService(sc)
+    st = run_service(svc)
+    topics = {
+        "truth_js": keys.truth("joint_states"),
+        "truth_imu": keys.truth("imu"),
+        "clock": keys.clock,
+        "js": keys.topic("joint_states"),
+        "imu": keys.topic("imu"),
+        "cmd": keys.topic("joint_commands"),
+        "sync": keys.sync("sensors"),
+        "health": keys.health("physics"),
+        "log": keys.log("physics"),
+        "traj": keys.topic("joint_trajectory"),
+        "path": keys.topic("planner/path"),
+    }
+    sent: dict[str, int] = dict.fromkeys(topics.values(), 0)
+    n_garbage = 5
+    with st:
+        pubs = {name: transport.publisher(session, key) for name, key in topics.items()}
+        try:
+            _wait(lambda: all(p.matching_status.matching for p in pubs.values()), 10, "the logger's subscriber")
+
+            # Encoded before publishing: in this one test process, encoding while the logger's worker
+            # decodes would race on pycdr2's per-class serialization buffer (separate processes in real runs).
+            batch: list[tuple[str, bytes]] = []
+            for k in range(N_STEPS):
+                t = k * DT_NS
+                batch.append(("truth_imu", msgs.encode(msgs.Imu(header=msgs.header(t)))))
+                batch.append(("truth_js", msgs.encode(_js(t, k))))
+                batch.append(("clock", msgs.encode(msgs.Clock(clock=msgs.stamp(t)))))
+                batch.append(("js", msgs.encode(_js(t, k))))
+                batch.append(
+                    ("cmd", msgs.encode(msgs.JointState(header=msgs.header(t), name=JOINTS, effort=[0.1] * 6)))
+                )
+                batch.append(("sync", msgs.encode(msgs.Clock(clock=msgs.stamp(t)))))
+                if k % 5 == 0:
+                    imu = msgs.Imu(header=msgs.header(t), linear_acceleration=msgs.Vector3(z=9.81))
+                    batch.append(("imu", msgs.encode(imu)))
+                if k % 100 == 0:
+                    status = msgs.DiagnosticStatus(
+                        level=0, name="physics", message="running", values=[msgs.KeyValue("steps", str(k))]
+                    )
+                    batch.append(("health", msgs.encode(msgs.DiagnosticArray(header=msgs.header(t), status=[status]))))
+                    log = msgs.Log(stamp=msgs.stamp(t), level=30, name="physics", msg=f"step {k}")
+                    batch.append(("log", msgs.encode(log)))
+                if k == 150:  # garbage in the middle: rejected, recorded as text, and the service carries on
+                    batch += [("js", bytes([g]) * (3 + g)) for g in range(n_garbage)]
+                    batch.append(("path", msgs.encode(_trajectory(t, 8))))
+                    batch.append(("traj", msgs.encode(_trajectory(t + 20 * DT_NS, 10))))
+            for name, payload in batch:
+                pubs[name].put(payload)
+                sent[topics[name]] += 1
+            total = sum(sent.values())
+            _wait(lambda: sum(svc.counts_in[k] for k in sent) == total, 15, "every message to arrive")
+            assert svc.state == "running"
+        finally:
+            for p in pubs.values():
+                p.undeclare()
+    assert st.rc == 0
+
+    # counts: everything received was recorded; garbage counted as rejected
+    summary = json.loads((run_dir / "record_summary.json").read_text())
+    for key, n in sent.items():
+        assert summary[key]["received"] == n, key
+    for key, c in summary.items():
+        assert c["recorded"] == c["received"], key
+    assert summary[keys.topic("joint_states")]["rejected"] == n_garbage
+    assert sum(c["rejected"] for c in summary.values()) == n_garbage, summary
+    out = capsys.readouterr().out
+    assert f"recorded {keys.clock}: received {N_STEPS} recorded {N_STEPS}" in out
+    assert "recorded total:" in out
+    assert (run_dir / "scenario.yaml").is_file()
+
+    # the file: valid, and holding what was sent
+    rrd = run_dir / "recording.rrd"
+    recording.verify_rrd(rrd)
+    rows = recording.entity_rows(rrd)
+    for j in JOINTS:
+        for q in ("position", "velocity", "effort"):
+            assert rows[f"/joints/{j}/{q}/truth"] == N_STEPS, (j, q)
+            assert rows[f"/joints/{j}/{q}/measured"] == N_STEPS, (j, q)  # including those after the garbage
+        assert rows[f"/joints/{j}/effort/command"] == N_STEPS
+        assert rows[f"/joints/{j}/position/planned"] == 10
+        assert rows[f"/robot/joint_transforms/{j}"] == N_STEPS // 10  # 3D pose every 10 ms of sim time
+    assert rows["/clock"] == N_STEPS
+    assert rows["/imu/truth/angular_velocity/x"] == N_STEPS
+    assert rows["/imu/measured/linear_acceleration/z"] == N_STEPS // 5
+    assert rows["/health/physics/level"] == rows["/health/physics/steps"] == N_STEPS // 100
+    assert rows["/log/physics"] == N_STEPS // 100
+    assert sum(n for e, n in rows.items() if e.startswith("/rejected/")) == n_garbage
+    assert rows["/joint_trajectory/tool_path"] >= 1 and rows["/planner/path/joint_space"] == 1
+    from rerun.chunk import RrdReader  # rerun is imported after the logger switched analytics off
+
+    assert RrdReader(rrd).blueprints(), "the default viewer layout is stored with the recording"
+    model = [e for e in rows if e.startswith("/robot/") and "visual_geometries" in e]
+    for link in ("base_link", "shoulder_link", "hand_link"):
+        assert any(f"/{link}/" in e for e in model), link
+
+
+def test_tool_kinematics_matches_mujoco() -> None:
+    """Tool path forward kinematics from the URDF agrees with MuJoCo loading the same URDF."""
+    import mujoco
+
+    from hilsim.config import MODELS_DIR
+    from hilsim.services.logger import ToolKinematics, UrdfTree
+
+    urdf = MODELS_DIR / "arm" / "arm.urdf"
+    kin = ToolKinematics(UrdfTree.from_file_path(urdf))
+    assert kin.tool == "tool_link"
+    m = mujoco.MjModel.from_xml_path(str(urdf))
+    d = mujoco.MjData(m)
+    names = [m.joint(i).name for i in range(m.njnt)]
+    rng = np.random.default_rng(0)
+    q = rng.uniform(-1.0, 1.0, size=(5, len(names)))
+    ours = kin.positions(names, q)
+    base = m.body("base_link").id
+    for row, p in zip(q, ours, strict=True):
+        d.qpos[:] = row
+        mujoco.mj_kinematics(m, d)
+        # relative to the root link (MuJoCo may place the URDF root anywhere in its world)
+        want = d.xmat[base].reshape(3, 3).T @ (d.xpos[m.body("tool_link").id] - d.xpos[base])
+        np.testing.assert_allclose(p, want, atol=1e-9)
+
+
+def test_latest_recording(tmp_path: Path) -> None:
+    runs = tmp_path / "runs"
+    with pytest.raises(recording.RecordingError, match="does not exist"):
+        recording.latest_recording(runs)
+    (runs / "a").mkdir(parents=True)
+    with pytest.raises(recording.RecordingError, match="no recordings in"):
+        recording.latest_recording(runs)
+    old, new = runs / "a" / "recording.rrd", runs / "b" / "recording.rrd"
+    new.parent.mkdir()
+    old.write_bytes(b"x")
+    new.write_bytes(b"x")
+    os.utime(old, (1_000_000, 1_000_000))
+    assert recording.latest_recording(runs) == new
+
+
+def test_view_errors(tmp_path: Path, capsys: Any, monkeypatch: Any) -> None:
+    rc = recording.cmd_view(argparse.Namespace(rrd=None, runs=str(tmp_path / "runs")))
+    err = capsys.readouterr().err
+    assert rc == 1 and err.startswith("hilsim view: no recordings") and err.count("\n") == 1
+    rc = recording.cmd_view(argparse.Namespace(rrd=str(tmp_path / "missing.rrd"), runs="runs"))
+    assert rc == 1 and "missing.rrd: no such recording" in capsys.readouterr().err
+    # headless: prints the path and the command instead of starting a viewer
+    rrd = tmp_path / "runs" / "r1" / "recording.rrd"
+    rrd.parent.mkdir(parents=True)
+    rrd.write_bytes(b"x")
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    rc = recording.cmd_view(argparse.Namespace(rrd=None, runs=str(tmp_path / "runs")))
+    err = capsys.readouterr().err
+    assert rc == 1 and "no display" in err and f"{recording.rerun_executable()} --bind 127.0.0.1 {rrd}" in err
+
+
+def test_verify_rejects_a_broken_file(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.rrd"
+    bad.write_bytes(b"not a recording at all")
+    with pytest.raises(recording.RecordingError, match="rrd verify failed"):
+        recording.verify_rrd(bad)
+
+
+def test_rerun_analytics_off_in_a_private_config(tmp_path: Path, monkeypatch: Any) -> None:
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    env = recording.rerun_env()
+    assert Path(env["XDG_CONFIG_HOME"]).is_relative_to(tmp_path)
+    r = subprocess.run(
+        [recording.rerun_executable(), "analytics", "config"],
+        env={**os.environ, **env},
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=True,
+    )
+    cfg = json.loads(r.stdout)
+    assert cfg["analytics_enabled"] is False
+    assert cfg["config_file_path"].startswith(env["XDG_CONFIG_HOME"])
