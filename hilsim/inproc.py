@@ -25,11 +25,11 @@ class _Payload:
         return self.data
 
 
-@dataclass
 class _Sample:
-    key_expr: str
-    payload: _Payload
-    kind: Any = zenoh.SampleKind.PUT
+    def __init__(self, key_expr: str, payload: _Payload) -> None:
+        self.key_expr = key_expr
+        self.payload = payload
+        self.kind = zenoh.SampleKind.PUT
 
 
 class _Decl:

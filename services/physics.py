@@ -21,6 +21,7 @@ import threading
 import time
 from typing import Any
 
+import numpy as np
 import zenoh
 
 from hilsim import msgs
@@ -131,7 +132,14 @@ class PhysicsService(Service):
             "real_time_factor": f"{self.world.time_ns / 1e9 / wall:.3f}" if wall else "0",
             "clock_mode": self.sc.clock.mode,
             "waiting_for": ",".join(self._missing()),
+            **self._jitter_figures(),
         }
+
+    def _jitter_figures(self) -> dict[str, str]:
+        if not self.jitter_ns:
+            return {}
+        j = np.abs(np.asarray(self.jitter_ns)) / 1e3
+        return {"jitter_p50_us": f"{np.percentile(j, 50):.1f}", "jitter_p99_us": f"{np.percentile(j, 99):.1f}"}
 
     def _missing(self) -> list[str]:
         """Participants that still owe an acknowledgement for the current step."""
@@ -212,11 +220,9 @@ class PhysicsService(Service):
 
     def teardown(self) -> None:
         if self.jitter_ns:
-            import numpy as np
-
-            j = np.abs(np.array(self.jitter_ns)) / 1e3
-            self.log.info("realtime tick jitter: p50 %.1f µs, p99 %.1f µs, overruns %d of %d steps",
-                          np.percentile(j, 50), np.percentile(j, 99), self.overruns, len(j))
+            f = self._jitter_figures()
+            self.log.info("realtime tick jitter: p50 %s µs, p99 %s µs, overruns %d of %d steps",
+                          f["jitter_p50_us"], f["jitter_p99_us"], self.overruns, len(self.jitter_ns))
 
     def health(self) -> msgs.DiagnosticArray:
         h = super().health()

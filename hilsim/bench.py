@@ -1,0 +1,158 @@
+"""``hilsim bench loop``: how fast the distributed arm pipeline runs, against limits measured in the same run.
+
+Three lockstep figures, each the real-time factor (sim seconds per wall second) of the arm
+holding position under 1 kHz PID control with its sensors:
+- ``distributed``: ``hilsim up arm`` — five processes over Zenoh, logger recording;
+- ``in_process``: the *same service code* (physics, sensors, controller, planner) wired through
+  :class:`hilsim.inproc.Bus` in one process — CDR encoding kept, Zenoh and processes removed;
+- ``bare``: MuJoCo and the PID arrays alone, no messages at all.
+Ratios are distributed / in_process and distributed / bare: compare ratios, not absolute times.
+
+Then ``realtime``: the same pipeline with ``--clock realtime`` for ``--realtime-seconds``;
+physics reports its tick jitter (p50, p99) and the share of missed deadlines.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from pathlib import Path
+from tempfile import TemporaryDirectory
+from typing import Any
+
+import numpy as np
+
+from hilsim.config import Scenario, load_scenario
+
+
+def _scenario(sim_seconds: float, **more: Any) -> Scenario:
+    o: dict[str, Any] = {"task.targets": [], "duration": sim_seconds}
+    o.update(more)
+    return load_scenario("arm", o)
+
+
+def bench_bare(sim_seconds: float) -> float:
+    """MuJoCo + PID arrays in one loop: the floor of any implementation."""
+    from hilsim import control
+    from hilsim.world import World
+
+    sc = _scenario(sim_seconds)
+    w = World(sc)
+    gains = control.gains_for(sc.controller.gains, w.joint_names)
+    pids = [control.Pid(g, -float(w.effort_limit[i]), float(w.effort_limit[i])) for i, g in enumerate(gains)]
+    ref = w.positions()
+    steps = round(sim_seconds / sc.clock.dt)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        q, v = w.positions(), w.velocities()
+        u = [p.update(r, 0.0, a, b, sc.clock.dt) for p, r, a, b in zip(pids, ref, q, v, strict=True)]
+        w.command_array(np.array(u))
+        w.step()
+    return sim_seconds / (time.perf_counter() - t0)
+
+
+def bench_in_process(sim_seconds: float) -> float:
+    """The services' own code, one process, no transport."""
+    from hilsim.inproc import Bus
+    from hilsim.registry import service_class
+
+    sc = _scenario(sim_seconds, services=["physics", "sensors", "controller", "planner"])
+    bus = Bus()
+    svcs = {n: service_class(n)(sc) for n in ("sensors", "controller", "planner", "physics")}
+    for s in svcs.values():
+        s.attach(bus.session())
+    phys = svcs["physics"]
+    t0 = time.perf_counter()
+    with phys.lock:
+        phys.started = True
+        phys.wall_start = time.monotonic()
+        phys._publish_step()
+    bus.drain(until=lambda: phys.done)
+    wall = time.perf_counter() - t0
+    if not phys.done:
+        raise RuntimeError(f"in-process pipeline stalled at t={phys.world.time_ns / 1e9:.3f}s "
+                           f"waiting for {phys._missing()}")
+    for s in svcs.values():
+        s.request_stop()
+        s.teardown()
+    return sim_seconds / wall
+
+
+def _launch(sc: Scenario, run_dir: Path) -> dict[str, str]:
+    from hilsim.launcher import Launcher, open_default_router
+
+    ep, router = open_default_router()
+    la = Launcher(sc, run_dir, router=ep, quiet=True)
+    try:
+        la.start()
+        if not la.wait_ready():
+            raise RuntimeError(f"services did not start; see {run_dir}")
+        la.follow(wall_timeout=600)
+    finally:
+        la.stop()
+        router.close()
+    if la.outcome.died:
+        raise RuntimeError(f"service died during the benchmark: {la.outcome.died}; see {run_dir}")
+    if not la.outcome.physics_done:
+        raise RuntimeError(f"the run did not reach its duration; see {run_dir}")
+    return la.outcome.health.get("physics", {})
+
+
+def bench_distributed(sim_seconds: float, tmp: Path) -> float:
+    h = _launch(_scenario(sim_seconds), tmp / "distributed")
+    return float(h["real_time_factor"])
+
+
+def bench_realtime(seconds: float, tmp: Path) -> dict[str, float]:
+    h = _launch(_scenario(seconds, **{"clock.mode": "realtime"}), tmp / "realtime")
+    return {
+        "jitter_p50_ms": float(h["jitter_p50_us"]) / 1e3,
+        "jitter_p99_ms": float(h["jitter_p99_us"]) / 1e3,
+        "missed_pct": 100.0 * float(h["overruns"]) / max(float(h["steps"]), 1.0),
+        "steps": float(h["steps"]),
+    }
+
+
+def cmd_loop(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=logging.WARNING)
+    sim = args.sim_seconds
+    res: dict[str, Any] = {"sim_seconds": sim, "control_hz": 1000}
+
+    def say(text: str) -> None:
+        if not args.json:
+            print(text, flush=True)
+
+    say(f"hilsim bench loop: arm, 1 kHz physics and control, {sim:g} s sim per lockstep run")
+    say("  bare (MuJoCo + PID, no messages) …")
+    res["bare_rtf"] = bench_bare(sim)
+    say(f"    {res['bare_rtf']:.2f}x real time")
+    say("  in-process (same service code, no Zenoh) …")
+    res["in_process_rtf"] = bench_in_process(sim)
+    say(f"    {res['in_process_rtf']:.2f}x real time")
+    with TemporaryDirectory(prefix="hilsim-bench-") as d:
+        say("  distributed (5 processes over Zenoh, logging on) …")
+        res["distributed_rtf"] = bench_distributed(sim, Path(d))
+        say(f"    {res['distributed_rtf']:.2f}x real time")
+        if args.realtime_seconds > 0:
+            say(f"  realtime mode for {args.realtime_seconds:g} s …")
+            res["realtime"] = bench_realtime(args.realtime_seconds, Path(d))
+    res["ratio_distributed_vs_in_process"] = res["distributed_rtf"] / res["in_process_rtf"]
+    res["ratio_distributed_vs_bare"] = res["distributed_rtf"] / res["bare_rtf"]
+    if args.json:
+        print(json.dumps(res, indent=2))
+        return 0
+    print()
+    print("| pipeline | real-time factor | vs in-process | vs bare |")
+    print("|---|---|---|---|")
+    for k in ("bare", "in_process", "distributed"):
+        v = res[f"{k}_rtf"]
+        print(f"| {k} | {v:.2f}x | {v / res['in_process_rtf']:.3f} | {v / res['bare_rtf']:.3f} |")
+    if "realtime" in res:
+        r = res["realtime"]
+        print(f"\nrealtime 1 kHz, {args.realtime_seconds:g} s: tick jitter p50 {r['jitter_p50_ms']:.3f} ms, "
+              f"p99 {r['jitter_p99_ms']:.3f} ms, missed deadlines {r['missed_pct']:.3f} % of {r['steps']:.0f} steps")
+    goal = "met" if res["distributed_rtf"] >= 5 else "NOT met"
+    print(f"goal >= 5x real time distributed: {goal}")
+    return 0
