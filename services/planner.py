@@ -39,7 +39,14 @@ from hilsim.planning import quiet_ompl_at_exit
 from hilsim.planning.collision import ArmModel
 from hilsim.planning.ik import IKError, solve_ik
 from hilsim.planning.library import PlannerConfigError, PlannerLibrary, PlanOutcome, Problem, UnknownPlanner
-from hilsim.planning.trajectory import TimedTrajectory, TrajectoryError, path_msg, time_parameterize, to_msg, truncate
+from hilsim.planning.trajectory import (
+    TimedTrajectory,
+    TrajectoryError,
+    path_msg,
+    stop_on_segment,
+    time_parameterize,
+    to_msg,
+)
 from hilsim.service import Service
 
 START_DELAY_NS = 20_000_000  # trajectory starts 20 ms (sim) after the tick it was planned on
@@ -218,11 +225,12 @@ class PlannerService(Service):
             self._finish(goal, False, msgs.CANCELED, why)
         elif goal.state in ("executing", "settling"):
             if goal.state == "executing" and goal.traj is not None:
-                t = max(0.0, (self.sim_ns - goal.start_ns) * 1e-9)
-                t_stop = float(goal.traj.knots[np.searchsorted(goal.traj.knots, t)])
-                cut = truncate(goal.traj, t_stop)
-                self.pub_traj.put(to_msg(cut, self.arm.joint_names, goal.start_ns))
-                why = f"{why}; stopping at rest at the next waypoint ({t_stop - t:.2f} s)"
+                # brake from the reference state one step ahead, on the segment being travelled
+                now_ns = self.sim_ns + self.sc.dt_ns
+                t = max(0.0, (now_ns - goal.start_ns) * 1e-9)
+                stop = stop_on_segment(goal.traj, t, self.vmax, self.amax, self.jmax)
+                self.pub_traj.put(to_msg(stop, self.arm.joint_names, goal.start_ns + round(t * 1e9)))
+                why = f"{why}; braking to rest in {stop.duration:.2f} s"
             self._finish(goal, False, msgs.CANCELED, why)
         # state 'planning': the worker sees goal.canceled and reports
 

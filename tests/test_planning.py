@@ -192,3 +192,26 @@ def test_bench_reports_against_baseline() -> None:
     if rows["rrtstar"]["success_rate"]:
         assert rows["rrtstar"]["turn_vs_rrtstar"] == pytest.approx(1.0)
     assert "| table_obstacle | improved_rrtstar |" in bench.format_report(rep)
+
+
+def test_stop_on_segment_brakes_on_the_checked_segment() -> None:
+    from hilsim.planning.trajectory import stop_on_segment, time_parameterize
+
+    path = np.array([[0.0] * 6, [1.0, 0.5, 0, 0, 0, 0], [1.0, 0.5, 0.8, 0, 0, 0]])
+    vmax, amax, jmax = np.full(6, 1.0), np.full(6, 2.0), np.full(6, 10.0)
+    traj = time_parameterize(path, vmax, amax, jmax)
+    t = float(traj.knots[1]) * 0.4  # mid first segment, moving fast
+    k = int(np.searchsorted(traj.t, t))
+    stop = stop_on_segment(traj, t, vmax, amax, jmax)
+    # starts where the arm is, with its velocity; ends at rest well before the waypoint
+    assert np.allclose(stop.q[0], traj.q[k]) and np.allclose(stop.qd[0], traj.qd[k])
+    assert np.allclose(stop.qd[-1], 0.0)
+    assert stop.duration < traj.knots[1] - t
+    # every sample lies on the first segment, beyond the start point, and limits hold
+    u = path[1] / np.linalg.norm(path[1])
+    for q in stop.q:
+        assert np.allclose(q, u * (q @ u), atol=1e-9)
+    assert np.all(np.abs(stop.qd) <= vmax + 1e-9) and np.all(np.abs(stop.qdd) <= amax + 1e-6)
+    # right before a waypoint, braking would overshoot: it stops at the waypoint instead
+    late = stop_on_segment(traj, float(traj.knots[1]) - 0.02, vmax, amax, jmax)
+    assert np.allclose(late.q[-1], path[1])

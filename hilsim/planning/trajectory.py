@@ -17,7 +17,7 @@ import itertools
 from dataclasses import dataclass
 
 import numpy as np
-from ruckig import InputParameter, Result, Ruckig, Trajectory
+from ruckig import ControlInterface, InputParameter, Result, Ruckig, Trajectory
 
 from hilsim import msgs
 
@@ -109,6 +109,69 @@ def truncate(traj: TimedTrajectory, t_end: float) -> TimedTrajectory:
     """The trajectory up to and including time ``t_end`` (a knot, so it ends at rest)."""
     k = int(np.searchsorted(traj.t, t_end + 1e-9))
     return TimedTrajectory(traj.t[:k], traj.q[:k], traj.qd[:k], traj.qdd[:k], traj.knots[traj.knots <= t_end + 1e-9])
+
+
+def _projected(u: np.ndarray, lim: np.ndarray) -> float:
+    """Largest rate along unit direction ``u`` that keeps every joint within ``lim``."""
+    au = np.abs(u)
+    with np.errstate(divide="ignore"):
+        return float(np.min(np.where(au > 1e-12, lim / au, np.inf)))
+
+
+def stop_on_segment(
+    traj: TimedTrajectory, t: float, vmax: np.ndarray, amax: np.ndarray, jmax: np.ndarray, dt: float = 0.01
+) -> TimedTrajectory:
+    """A jerk-limited stop from the state of ``traj`` at time ``t``, on the segment being travelled.
+
+    Each segment is a 1-D motion ``a + u·s``; braking ``s`` to rest with ruckig's velocity
+    interface keeps the arm on the same collision-checked segment. If braking would run past the
+    segment's end, the original trajectory already stops sooner: it is cut at that waypoint.
+    Times of the result start at 0 = ``t``.
+    """
+    i = int(np.searchsorted(traj.knots, t, side="right"))
+    if i >= len(traj.knots) or t <= 0:
+        k = min(int(np.searchsorted(traj.t, t)), len(traj.t) - 1)
+        return TimedTrajectory(np.zeros(1), traj.q[k:k + 1], np.zeros_like(traj.q[k:k + 1]),
+                               np.zeros_like(traj.q[k:k + 1]), np.zeros(1))
+    k0 = int(np.searchsorted(traj.t, traj.knots[i - 1] - 1e-9))
+    k1 = int(np.searchsorted(traj.t, traj.knots[i] - 1e-9))
+    a, b = traj.q[k0], traj.q[k1]
+    length = float(np.linalg.norm(b - a))
+    k = min(int(np.searchsorted(traj.t, t)), k1)
+    if length < 1e-9:
+        return _shift(truncate(traj, traj.knots[i]), k)
+    u = (b - a) / length
+    inp = InputParameter(1)
+    inp.control_interface = ControlInterface.Velocity
+    inp.current_position = [float((traj.q[k] - a) @ u)]
+    inp.current_velocity = [float(traj.qd[k] @ u)]
+    inp.current_acceleration = [float(traj.qdd[k] @ u)]
+    inp.target_velocity = [0.0]
+    inp.target_acceleration = [0.0]
+    inp.max_velocity = [_projected(u, vmax)]
+    inp.max_acceleration = [_projected(u, amax)]
+    inp.max_jerk = [_projected(u, jmax)]
+    prof = Trajectory(1)
+    if Ruckig(1).calculate(inp, prof) not in (Result.Working, Result.Finished):
+        return _shift(truncate(traj, traj.knots[i]), k)
+    dur = float(prof.duration)
+    if prof.at_time(dur)[0][0] > length:
+        return _shift(truncate(traj, traj.knots[i]), k)
+    n = max(1, int(np.ceil(dur / dt - 1e-9)))
+    ts = [0.0] + [dur if j == n else j * dt for j in range(1, n + 1)]
+    qs, qds, qdds = [], [], []
+    for tau in ts:
+        p, v, acc = prof.at_time(tau)
+        qs.append(a + u * min(max(p[0], 0.0), length))
+        qds.append(u * (0.0 if tau == dur else v[0]))
+        qdds.append(u * (0.0 if tau == dur else acc[0]))
+    return TimedTrajectory(np.array(ts), np.array(qs), np.array(qds), np.array(qdds), np.array([dur]))
+
+
+def _shift(traj: TimedTrajectory, k: int) -> TimedTrajectory:
+    """The part of ``traj`` from sample ``k`` on, with time restarting at 0."""
+    t0 = traj.t[k]
+    return TimedTrajectory(traj.t[k:] - t0, traj.q[k:], traj.qd[k:], traj.qdd[k:], traj.knots[traj.knots >= t0] - t0)
 
 
 def to_msg(traj: TimedTrajectory, joint_names: list[str], start_ns: int) -> msgs.JointTrajectory:
