@@ -17,6 +17,7 @@ import zenoh
 
 from hilsim import msgs, transport
 from hilsim.keys import Keys
+from hilsim.planning.client import MoveClient
 
 pytestmark = pytest.mark.e2e
 REPO = Path(__file__).resolve().parent.parent
@@ -147,6 +148,28 @@ def test_killed_service_is_reported_and_nothing_hangs(tmp_path: Path) -> None:
         hz = subprocess.run([*HILSIM, "topic", "hz", "hilsim/clock", "--connect", ep, "--duration", "2"],
                             capture_output=True, text=True, timeout=60)
         assert "average rate" in hz.stdout, hz.stdout + hz.stderr
+
+        # the move action on the running system: accepted, feedback, result; rejected with a reason
+        goal = subprocess.run([*HILSIM, "goal", "arm", "--joints", "0.866", "-0.789", "-0.399", "0", "-0.382", "0",
+                               "--connect", ep, "--timeout", "120"], capture_output=True, text=True, timeout=180)
+        assert goal.returncode == 0, goal.stdout + goal.stderr
+        assert "accepted" in goal.stdout and "executing" in goal.stdout and "succeeded" in goal.stdout, goal.stdout
+        bad_goal = subprocess.run([*HILSIM, "goal", "arm", "--joints", "9", "0", "0", "0", "0", "0", "--connect", ep],
+                                  capture_output=True, text=True, timeout=60)
+        assert bad_goal.returncode == 1, bad_goal.stdout
+        assert "rejected" in bad_goal.stdout and "limit" in bad_goal.stdout, bad_goal.stdout
+        cses = transport.open_session(transport.ZenohConfig(connect=[ep]))
+        client = MoveClient(cses, Keys())
+        try:
+            right = [-0.866, -0.789, -0.399, 0.0, -0.382, 0.0]
+            assert client.send(msgs.MoveGoal(goal_id="e2e-cancel", joint_positions=right)).accepted
+            assert client.wait_for_state("e2e-cancel", "executing", 120)
+            assert client.cancel("e2e-cancel").accepted
+            res = client.wait("e2e-cancel", 30)
+            assert res is not None and res.error_code == msgs.CANCELED, res
+        finally:
+            client.close()
+            cses.close()
 
         # bad input on a live key: rejected and counted, physics keeps stepping
         ses = transport.open_session(transport.ZenohConfig(connect=[ep]))

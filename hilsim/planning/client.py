@@ -105,6 +105,23 @@ class MoveClient:
                     return None
                 self._cond.wait(min(left, 0.1))
 
+    def wait_for_state(self, goal_id: str, state: str, timeout: float) -> bool:
+        """Block until feedback of ``goal_id`` reports ``state`` (e.g. ``executing``); False on
+        timeout or if the goal ended first. Feedback seen here is not passed to :meth:`wait`."""
+        deadline = time.monotonic() + timeout
+        with self._lock:
+            fq = self._feedback[goal_id]
+            while True:
+                while not fq.empty():
+                    if fq.get_nowait().state == state:
+                        return True
+                if goal_id in self._results:
+                    return False
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                self._cond.wait(min(left, 0.1))
+
     def close(self) -> None:
         for s in self._subs:
             s.undeclare()
