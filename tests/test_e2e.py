@@ -174,16 +174,20 @@ def test_killed_service_is_reported_and_nothing_hangs(tmp_path: Path) -> None:
         # bad input on a live key: rejected and counted, physics keeps stepping
         ses = transport.open_session(transport.ZenohConfig(connect=[ep]))
         health: dict[str, str] = {}
-        ev = threading.Event()
+        ev, connected = threading.Event(), threading.Event()
 
         def on_health(s: zenoh.Sample) -> None:
             st = msgs.decode(msgs.DiagnosticArray, s.payload.to_bytes()).status[0]
             health.update({kv.key: kv.value for kv in st.values})
+            connected.set()
             if int(health.get("rejected", 0)) >= 3:
                 ev.set()
 
         sub = ses.declare_subscriber("hilsim/arm/health/physics", on_health)
         pub = ses.declare_publisher("hilsim/arm/joint_commands")
+        # a fresh session first learns who subscribes; a put before that reaches nobody
+        assert connected.wait(10)
+        time.sleep(0.5)
         bad = msgs.JointState(header=msgs.header(0), name=["joint_1"], effort=[float("nan")])
         for payload in (b"garbage", msgs.encode(bad), msgs.encode(msgs.JointState(name=["a", "b"], effort=[1.0]))[:-5]):
             pub.put(payload)
