@@ -40,6 +40,7 @@ class MoveClient:
         self._results: dict[str, msgs.MoveResult] = {}
         self._feedback: defaultdict[str, queue.Queue[msgs.MoveFeedback]] = defaultdict(queue.Queue)
         self._cond = threading.Condition(self._lock)
+        self._planner_seen = False
         self._subs = [
             session.declare_subscriber(keys.topic("planner/feedback"), self._on_feedback),
             session.declare_subscriber(keys.topic("planner/result"), self._on_result),
@@ -63,7 +64,25 @@ class MoveClient:
             self._results[r.goal_id] = r
             self._cond.notify_all()
 
+    def wait_for_planner(self, timeout: float) -> bool:
+        """Wait until the planner's liveliness token is seen. A session that has just opened
+        does not yet know the planner's queryable: a query sent then reaches nobody. The token
+        is declared after the queryable, so seeing it means the query will be routed."""
+        seen = threading.Event()
+
+        def on_token(s: zenoh.Sample) -> None:
+            if s.kind == zenoh.SampleKind.PUT:
+                seen.set()
+
+        sub = self.session.liveliness().declare_subscriber(self.keys.alive("planner"), on_token, history=True)
+        try:
+            return seen.wait(timeout)
+        finally:
+            sub.undeclare()
+
     def _query(self, topic: str, payload: bytes, goal_id: str) -> msgs.GoalResponse:
+        if not self._planner_seen:
+            self._planner_seen = self.wait_for_planner(min(self.query_timeout, 10.0))
         replies = self.session.get(self.keys.topic(topic), payload=payload, timeout=self.query_timeout)
         for reply in replies:
             if reply.ok is not None:
