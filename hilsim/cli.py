@@ -5,6 +5,7 @@
     hilsim topic list | echo KEY [--count N] [--json] | hz KEY
     hilsim view [RRD]
     hilsim goal ROBOT --joints J1 … | --pose X Y Z [R P Y]
+    hilsim gains ROBOT JOINT.GAIN=VALUE …
     hilsim plan evaluate --targets FILE [--criterion length|smoothness|weighted]
     hilsim bench loop|plan [--json]
     hilsim router [--listen ENDPOINT]
@@ -109,6 +110,13 @@ def build_parser() -> argparse.ArgumentParser:
     goal.add_argument("--connect")
     goal.add_argument("--prefix", default=None)
     goal.set_defaults(func=_lazy("hilsim.planning.client", "cmd_goal"))
+
+    gains = sub.add_parser("gains", help="change controller gains of a running simulation, live")
+    gains.add_argument("robot")
+    gains.add_argument("assignments", nargs="+", metavar="JOINT.GAIN=VALUE", help="e.g. joint_2.kp=80 joint_2.kd=4")
+    gains.add_argument("--connect")
+    gains.add_argument("--prefix", default=None)
+    gains.set_defaults(func=_lazy("hilsim.params", "cmd_gains"))
 
     plan = sub.add_parser("plan", help="planning tools")
     psub = plan.add_subparsers(dest="plan_cmd", required=True)

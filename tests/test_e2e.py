@@ -149,6 +149,14 @@ def test_killed_service_is_reported_and_nothing_hangs(tmp_path: Path) -> None:
                             capture_output=True, text=True, timeout=60)
         assert "average rate" in hz.stdout, hz.stdout + hz.stderr
 
+        # live gains, no restart
+        g = subprocess.run([*HILSIM, "gains", "arm", "joint_2.kp=120", "joint_2.kd=6", "--connect", ep],
+                           capture_output=True, text=True, timeout=60)
+        assert g.returncode == 0 and g.stdout.startswith("set:"), g.stdout + g.stderr
+        g = subprocess.run([*HILSIM, "gains", "arm", "joint_9.kp=1", "--connect", ep],
+                           capture_output=True, text=True, timeout=60)
+        assert g.returncode == 1 and "joint_9" in g.stdout, g.stdout
+
         # the move action on the running system: accepted, feedback, result; rejected with a reason
         goal = subprocess.run([*HILSIM, "goal", "arm", "--joints", "0.866", "-0.789", "-0.399", "0", "-0.382", "0",
                                "--connect", ep, "--timeout", "120"], capture_output=True, text=True, timeout=180)

@@ -68,17 +68,9 @@ class MoveClient:
         """Wait until the planner's liveliness token is seen. A session that has just opened
         does not yet know the planner's queryable: a query sent then reaches nobody. The token
         is declared after the queryable, so seeing it means the query will be routed."""
-        seen = threading.Event()
+        from hilsim.params import wait_for_service
 
-        def on_token(s: zenoh.Sample) -> None:
-            if s.kind == zenoh.SampleKind.PUT:
-                seen.set()
-
-        sub = self.session.liveliness().declare_subscriber(self.keys.alive("planner"), on_token, history=True)
-        try:
-            return seen.wait(timeout)
-        finally:
-            sub.undeclare()
+        return wait_for_service(self.session, self.keys, "planner", timeout)
 
     def _query(self, topic: str, payload: bytes, goal_id: str) -> msgs.GoalResponse:
         if not self._planner_seen:
