@@ -67,6 +67,7 @@ import zenoh
 
 from hilsim import msgs
 from hilsim.config import Scenario, write_scenario
+from hilsim.geometry import rpy_to_matrix
 from hilsim.keys import UnknownKey, message_type
 from hilsim.recording import RECORDING_NAME, SUMMARY_NAME, disable_analytics
 from hilsim.service import Service
@@ -105,18 +106,6 @@ def _log_level(level: int) -> str:
 
 
 # ---------------------------------------------------------------- kinematics (tool paths)
-def _rpy_matrix(r: float, p: float, y: float) -> np.ndarray:
-    cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
-    # URDF: fixed-axis roll, pitch, yaw = Rz(yaw) @ Ry(pitch) @ Rx(roll)
-    return np.array(
-        [
-            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-            [-sp, cp * sr, cp * cr],
-        ]
-    )
-
-
 def _axis_angle(axis: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Rotation matrices (N, 3, 3) about a unit axis by angles q (N,)."""
     x, y, z = axis
@@ -161,7 +150,7 @@ class ToolKinematics:
         rot = np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
         pos = np.zeros((n, 3))
         for j in self.chain:
-            o_rot = _rpy_matrix(*j.origin_rpy)
+            o_rot = rpy_to_matrix(*j.origin_rpy)
             pos = pos + rot @ np.asarray(j.origin_xyz)
             rot = rot @ o_rot
             if j.joint_type == "fixed" or j.name not in col:

@@ -4,10 +4,12 @@ leak checks (no session or child process may outlive its test)."""
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
+import psutil
 import pytest
 import zenoh
 
@@ -53,7 +55,7 @@ class ServiceThread:
     def __init__(self, svc: Any) -> None:
         self.svc = svc
         self.rc: int | None = None
-        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread = threading.Thread(target=self._run, daemon=True, name=f"svc:{svc.name}")
 
     def _run(self) -> None:
         self.rc = self.svc.run()
@@ -75,3 +77,22 @@ class ServiceThread:
 @pytest.fixture
 def run_service() -> Callable[[Any], ServiceThread]:
     return ServiceThread
+
+
+@pytest.fixture(autouse=True)
+def no_leaks() -> Iterator[None]:
+    """Fail a test that leaves a child process or a service thread running after it ends."""
+    before = {t.ident for t in threading.enumerate()}
+    yield
+    me = psutil.Process()
+    deadline = time.monotonic() + 5.0
+    while True:
+        kids = [k for k in me.children(recursive=True) if k.is_running() and k.status() != psutil.STATUS_ZOMBIE]
+        if not kids or time.monotonic() > deadline:
+            break
+        time.sleep(0.1)
+    for k in kids:
+        k.kill()
+    assert not kids, f"test left processes running: {[(k.pid, ' '.join(k.cmdline()[-4:])) for k in kids]}"
+    leaked = [t for t in threading.enumerate() if t.ident not in before and t.name.startswith("svc:")]
+    assert not leaked, f"test left service threads running: {[t.name for t in leaked]}"

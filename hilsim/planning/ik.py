@@ -12,23 +12,14 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
+from hilsim.geometry import rpy_to_matrix
 from hilsim.planning.collision import ArmModel
+
+__all__ = ["IKError", "rpy_to_matrix", "solve_ik"]
 
 
 class IKError(ValueError):
     """No collision-free configuration reaches the pose."""
-
-
-def rpy_to_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """Rotation matrix of fixed-axis roll (x), pitch (y), yaw (z): R = Rz·Ry·Rx."""
-    cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
-    return np.array(
-        [
-            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
-            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
-            [-sp, cp * sr, cp * cr],
-        ]
-    )
 
 
 def _rot_error(r_target: np.ndarray, r: np.ndarray) -> np.ndarray:

@@ -1,0 +1,17 @@
+"""Small rigid-body helpers shared by services (kept in one place, no transport)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def rpy_to_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """Rotation matrix of fixed-axis roll (x), pitch (y), yaw (z), as URDF uses: R = Rz·Ry·Rx."""
+    cr, sr, cp, sp, cy, sy = np.cos(roll), np.sin(roll), np.cos(pitch), np.sin(pitch), np.cos(yaw), np.sin(yaw)
+    return np.array(
+        [
+            [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr],
+            [sy * cp, sy * sp * sr + cy * cr, sy * sp * cr - cy * sr],
+            [-sp, cp * sr, cp * cr],
+        ]
+    )
