@@ -12,6 +12,7 @@ truncated payloads, inconsistent array sizes and non-finite numbers with :class:
 
 import dataclasses
 import math
+import sys
 import threading
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
@@ -19,6 +20,8 @@ from typing import Any, TypeVar
 from pycdr2 import IdlStruct
 from pycdr2._support import Buffer
 from pycdr2.types import array, float32, float64, int8, int32, sequence, uint8, uint32
+
+from hilsim import fastcdr
 
 T = TypeVar("T", bound=IdlStruct)
 
@@ -349,6 +352,14 @@ def _buffer() -> Buffer:
 
 
 def encode(msg: IdlStruct) -> bytes:
+    fast = _FAST_ENCODE.get(type(msg))
+    if fast is not None:
+        return fast(msg)
+    return msg.serialize(buffer=_buffer())
+
+
+def encode_reference(msg: IdlStruct) -> bytes:
+    """pycdr2's encoding, bypassing the fast path (the reference the fast path is tested against)."""
     return msg.serialize(buffer=_buffer())
 
 
@@ -358,14 +369,22 @@ def decode(cls: type[T], payload: bytes, *, n_joints: int | None = None) -> T:
     ``n_joints``: for JointState / JointTrajectory, the number of joints expected.
     """
     data = bytes(payload)
-    buf = Buffer(data, align_offset=4)  # the 4-byte encapsulation header precedes the body
+    if len(data) < 4:
+        # pycdr2 would read an empty buffer as all zeros
+        raise BadMessage(f"payload of {len(data)} bytes has no CDR encapsulation header")
+    fast = _FAST_DECODE.get(cls)
     try:
-        msg = cls.__idl__.deserialize(buf)  # type: ignore[attr-defined]
-    except Exception as e:  # pycdr2 raises struct.error, UnicodeDecodeError, IndexError, …
+        if fast is not None and data[:4] == _LE:
+            msg, used = fast(data)
+        else:
+            buf = Buffer(data, align_offset=4)  # the 4-byte encapsulation header precedes the body
+            msg = cls.__idl__.deserialize(buf)  # type: ignore[attr-defined]
+            used = buf.tell()
+    except Exception as e:  # struct.error, UnicodeDecodeError, IndexError, ValueError, …
         raise BadMessage(f"not a valid {cls.__name__} CDR payload ({len(data)} bytes): {e}") from e
     # More than alignment padding left over means the payload was another (longer) message.
-    if len(data) - buf.tell() >= 4:
-        raise BadMessage(f"payload has {len(data)} bytes, a {cls.__name__} of this content has {buf.tell()}")
+    if len(data) - used >= 4:
+        raise BadMessage(f"payload has {len(data)} bytes, a {cls.__name__} of this content has {used}")
     validate(msg, n_joints=n_joints)
     return msg
 
@@ -456,11 +475,15 @@ def type_name(cls: type) -> str:
     return cls.__dict__.get("__idl_typename__", cls.__name__).replace("::", "/")
 
 
+_LE = fastcdr.HEADER_LE
+_FAST_ENCODE, _FAST_DECODE = fastcdr.build(sys.modules[__name__])
+
+
 def _prepare_all() -> None:
     """Build pycdr2's per-type machinery now: its lazy first-use set-up is not thread-safe."""
     for obj in list(globals().values()):
         if isinstance(obj, type) and issubclass(obj, IdlStruct) and obj is not IdlStruct:
-            obj.deserialize(encode(obj()))
+            obj.deserialize(encode_reference(obj()))
 
 
 _prepare_all()

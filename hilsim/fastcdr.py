@@ -1,0 +1,189 @@
+"""Hand-unrolled CDR for the few message types that cross the wire every physics step.
+
+pycdr2 stays the definition of every type and the codec for everything else; it is pure
+Python and walks a type tree per message, which made encoding and decoding the largest share
+of the lockstep loop's CPU time (see docs/performance.md). For ``rosgraph_msgs/Clock``,
+``sensor_msgs/JointState`` and ``sensor_msgs/Imu`` these functions produce and accept exactly
+the bytes pycdr2 does (XCDR1, little-endian, 4-byte encapsulation header; alignment counted
+from the end of the header) — ``tests/test_fastcdr.py`` holds them to that, byte for byte.
+
+Decoders return ``(message, bytes consumed)`` and raise ``ValueError`` (or ``struct.error``)
+on anything malformed; :func:`hilsim.msgs.decode` turns that into ``BadMessage``.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Callable
+from typing import Any
+
+HEADER_LE = b"\x00\x01\x00\x00"
+_U32 = struct.Struct("<I")
+_TIME = struct.Struct("<iI")
+_D4 = struct.Struct("<4d")
+_D3 = struct.Struct("<3d")
+_D9 = struct.Struct("<9d")
+
+
+# ---------------------------------------------------------------- writing
+def _pad(buf: bytearray, n: int) -> None:
+    p = -(len(buf) - 4) % n
+    if p:
+        buf += b"\0" * p
+
+
+def _w_u32(buf: bytearray, v: int) -> None:
+    _pad(buf, 4)
+    buf += _U32.pack(v)
+
+
+def _w_str(buf: bytearray, s: str) -> None:
+    b = s.encode()
+    _w_u32(buf, len(b) + 1)
+    buf += b
+    buf += b"\0"
+
+
+def _w_header(buf: bytearray, h: Any) -> None:
+    buf += _TIME.pack(h.stamp.sec, h.stamp.nanosec)
+    _w_str(buf, h.frame_id)
+
+
+def _w_dseq(buf: bytearray, xs: Any) -> None:
+    n = len(xs)
+    _w_u32(buf, n)
+    if n:
+        _pad(buf, 8)
+        buf += struct.pack(f"<{n}d", *xs)
+
+
+def _w_darr(buf: bytearray, xs: Any, s: struct.Struct) -> None:
+    _pad(buf, 8)
+    buf += s.pack(*xs)
+
+
+# ---------------------------------------------------------------- reading
+class _Reader:
+    __slots__ = ("data", "pos")
+
+    def __init__(self, data: bytes) -> None:
+        if data[:4] != HEADER_LE:
+            raise ValueError("not little-endian XCDR1")
+        self.data = data
+        self.pos = 4
+
+    def align(self, n: int) -> None:
+        self.pos += -(self.pos - 4) % n
+
+    def u32(self) -> int:
+        self.align(4)
+        v = _U32.unpack_from(self.data, self.pos)[0]
+        self.pos += 4
+        return int(v)
+
+    def string(self) -> str:
+        n = self.u32()
+        end = self.pos + n
+        if n < 1 or end > len(self.data) or self.data[end - 1] != 0:
+            raise ValueError(f"bad string of length {n} at byte {self.pos}")
+        s = self.data[self.pos:end - 1].decode()
+        self.pos = end
+        return s
+
+    def time(self) -> tuple[int, int]:
+        v = _TIME.unpack_from(self.data, self.pos)
+        self.pos += 8
+        return v
+
+    def dseq(self) -> list[float]:
+        n = self.u32()
+        if not n:
+            return []
+        self.align(8)
+        if self.pos + 8 * n > len(self.data):
+            raise ValueError(f"sequence of {n} doubles runs past the end")
+        v = list(struct.unpack_from(f"<{n}d", self.data, self.pos))
+        self.pos += 8 * n
+        return v
+
+    def darr(self, s: struct.Struct) -> tuple[float, ...]:
+        self.align(8)
+        v = s.unpack_from(self.data, self.pos)
+        self.pos += s.size
+        return v
+
+    def strseq(self) -> list[str]:
+        n = self.u32()
+        if n > len(self.data):
+            raise ValueError(f"sequence of {n} strings in {len(self.data)} bytes")
+        return [self.string() for _ in range(n)]
+
+
+# ---------------------------------------------------------------- the hot types
+def build(m: Any) -> tuple[dict[type, Callable[[Any], bytes]], dict[type, Callable[[bytes], tuple[Any, int]]]]:
+    """Encoders and decoders keyed by the message classes of module ``m`` (hilsim.msgs)."""
+
+    def enc_clock(msg: Any) -> bytes:
+        return HEADER_LE + _TIME.pack(msg.clock.sec, msg.clock.nanosec)
+
+    def dec_clock(data: bytes) -> tuple[Any, int]:
+        r = _Reader(data)
+        sec, ns = r.time()
+        return m.Clock(clock=m.Time(sec=sec, nanosec=ns)), r.pos
+
+    def header(r: _Reader) -> Any:
+        sec, ns = r.time()
+        return m.Header(stamp=m.Time(sec=sec, nanosec=ns), frame_id=r.string())
+
+    def enc_joint_state(msg: Any) -> bytes:
+        buf = bytearray(HEADER_LE)
+        _w_header(buf, msg.header)
+        _w_u32(buf, len(msg.name))
+        for s in msg.name:
+            _w_str(buf, s)
+        _w_dseq(buf, msg.position)
+        _w_dseq(buf, msg.velocity)
+        _w_dseq(buf, msg.effort)
+        return bytes(buf)
+
+    def dec_joint_state(data: bytes) -> tuple[Any, int]:
+        r = _Reader(data)
+        h = header(r)
+        msg = m.JointState(header=h, name=r.strseq(), position=r.dseq(), velocity=r.dseq(), effort=r.dseq())
+        return msg, r.pos
+
+    def enc_imu(msg: Any) -> bytes:
+        buf = bytearray(HEADER_LE)
+        _w_header(buf, msg.header)
+        o = msg.orientation
+        _w_darr(buf, (o.x, o.y, o.z, o.w), _D4)
+        _w_darr(buf, msg.orientation_covariance, _D9)
+        for v, cov in ((msg.angular_velocity, msg.angular_velocity_covariance),
+                       (msg.linear_acceleration, msg.linear_acceleration_covariance)):
+            _w_darr(buf, (v.x, v.y, v.z), _D3)
+            _w_darr(buf, cov, _D9)
+        return bytes(buf)
+
+    def dec_imu(data: bytes) -> tuple[Any, int]:
+        r = _Reader(data)
+        h = header(r)
+        q = r.darr(_D4)
+        oc = list(r.darr(_D9))
+        av = r.darr(_D3)
+        avc = list(r.darr(_D9))
+        la = r.darr(_D3)
+        lac = list(r.darr(_D9))
+        msg = m.Imu(
+            header=h,
+            orientation=m.Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]),
+            orientation_covariance=oc,
+            angular_velocity=m.Vector3(x=av[0], y=av[1], z=av[2]),
+            angular_velocity_covariance=avc,
+            linear_acceleration=m.Vector3(x=la[0], y=la[1], z=la[2]),
+            linear_acceleration_covariance=lac,
+        )
+        return msg, r.pos
+
+    encoders = {m.Clock: enc_clock, m.JointState: enc_joint_state, m.Imu: enc_imu}
+    decoders = {m.Clock: dec_clock, m.JointState: dec_joint_state, m.Imu: dec_imu}
+    return encoders, decoders
