@@ -6,9 +6,10 @@ Reads (``<prefix>/<robot>/…``):
 Writes:
   ``joint_states`` (encoders), ``imu`` — each stamped with the truth stamp, at the sensor's rate
   (the physics steps ``k`` with ``k % decimation == 0``);
-  ``sync/sensors`` (lockstep): the acknowledgement of step ``t_k`` once ``truth/joint_states``
-  of ``t_k`` is handled (physics publishes ``truth/imu`` before it, so every truth of the step
-  has been handled by then).
+  ``sync/sensors`` (lockstep, only in scenarios without a controller, whose command would
+  otherwise be the proof): the acknowledgement of step ``t_k`` once ``truth/joint_states`` of
+  ``t_k`` is handled (physics publishes ``truth/imu`` before it, so every truth of the step has
+  been handled by then).
 
 Noise comes from generators seeded by ``seed`` and the sensor name: the same scenario and the
 same truth give the same outputs, bit for bit.

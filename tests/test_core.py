@@ -67,7 +67,9 @@ def test_trajectory_validation() -> None:
 def test_scenario_loads_and_resolves_paths() -> None:
     sc = load_scenario("arm")
     assert sc.world.model.is_absolute() and sc.world.model.exists()
-    assert sc.lockstep_participants() == ["sensors", "controller", "planner"]
+    assert sc.lockstep_participants() == ["controller", "planner"]
+    sc.services = ["physics", "sensors", "planner"]
+    assert sc.lockstep_participants() == ["sensors", "planner"]
     assert sc.dt_ns == 1_000_000 and sc.control_decimation == 1
     assert len(sc.task.targets) == 3
 

@@ -24,7 +24,8 @@ def test_world_holds_still_with_gravity_compensation(scenario: Any) -> None:
 
 
 def test_lockstep_waits_for_every_participant(scenario: Any, session: zenoh.Session, run_service: Any) -> None:
-    sc = scenario("arm", {"services": ["physics", "sensors", "controller"], "clock.ack_timeout": 1.0})
+    sc = scenario("arm", {"services": ["physics", "sensors", "controller", "planner"], "clock.ack_timeout": 1.0})
+    assert sc.lockstep_participants() == ["controller", "planner"]
     keys = Keys(sc.prefix, sc.robot)
     clocks: list[int] = []
     got = threading.Event()
@@ -34,15 +35,15 @@ def test_lockstep_waits_for_every_participant(scenario: Any, session: zenoh.Sess
         got.set()
 
     sub = session.declare_subscriber(keys.clock, on_clock)
-    sync = transport.publisher(session, keys.sync("sensors"))
+    sync = transport.publisher(session, keys.sync("planner"))
     cmd = transport.publisher(session, keys.topic("joint_commands"))
-    tokens = [session.liveliness().declare_token(keys.alive(n)) for n in ("sensors", "controller")]
+    tokens = [session.liveliness().declare_token(keys.alive(n)) for n in ("planner", "controller")]
     svc = PhysicsService(sc)
     with run_service(svc):
         assert got.wait(10), "physics never published step 0"
         time.sleep(0.3)
         assert clocks == [0], "physics stepped without acknowledgements"
-        # only the controller answers: still waiting for the sensors
+        # only the controller answers: still waiting for the planner
         names = [f"joint_{i}" for i in range(1, 7)]
         cmd.put(msgs.encode(msgs.JointState(header=msgs.header(0), name=names, effort=[0.0] * 6)))
         time.sleep(0.3)
