@@ -17,6 +17,8 @@ that finishes after its deadline counts as an overrun.
 
 from __future__ import annotations
 
+import gc
+import os
 import threading
 import time
 from typing import Any
@@ -27,6 +29,9 @@ import zenoh
 from hilsim import msgs
 from hilsim.service import LEVEL_ERROR, Service
 from hilsim.world import World
+
+SPIN_NS = 80_000  # realtime: busy-wait at most this long before a deadline
+REALTIME_PRIORITY = 10  # SCHED_FIFO priority of physics in realtime mode (if permitted)
 
 
 class PhysicsService(Service):
@@ -193,21 +198,40 @@ class PhysicsService(Service):
                     if self._all_acked():
                         self._advance()
 
+    def _raise_priority(self) -> None:
+        """Realtime: ask the kernel for a real-time scheduling class, as HIL setups do; the
+        other services then cannot delay a tick. Without the privilege, say so and go on."""
+        try:
+            # every thread of the process: a Zenoh thread preempted while holding the GIL
+            # would otherwise stall the stepping thread (priority inversion)
+            for tid in sorted(int(t) for t in os.listdir("/proc/self/task")):
+                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(REALTIME_PRIORITY))
+            self.log.info("realtime: running with SCHED_FIFO priority %d", REALTIME_PRIORITY)
+        except (PermissionError, AttributeError, OSError) as e:
+            self.log.warning("realtime: could not get a real-time scheduling class (%s); "
+                             "tick jitter will depend on the machine's load", e)
+
     def _realtime_loop(self) -> None:
+        self._raise_priority()
+        # a full garbage collection can take milliseconds: move what exists now out of its
+        # reach and make young-generation collections rarer
+        gc.freeze()
+        gc.set_threshold(50_000, 50, 100)
         dt_ns = self.sc.dt_ns
         t0 = time.perf_counter_ns()
         k = 0
         while not self.stop_event.is_set() and not self.done:
             k += 1
             deadline = t0 + k * dt_ns
-            # sleep most of the way, then spin: time.sleep alone overshoots by ~60 µs
+            # sleep most of the way, then spin: time.sleep alone overshoots by ~60 µs. The spin
+            # is kept short because on a small machine it takes CPU from the other services.
             while True:
                 now = time.perf_counter_ns()
                 remaining = deadline - now
                 if remaining <= 0:
                     break
-                if remaining > 300_000:
-                    time.sleep((remaining - 200_000) / 1e9)
+                if remaining > SPIN_NS:
+                    time.sleep((remaining - SPIN_NS) / 1e9)
             with self.lock:
                 self._advance()
                 if self.done:
