@@ -90,6 +90,7 @@ class PlannerConfig(BaseModel):
     planner: str = "rrtstar"
     planning_time: float = Field(1.0, gt=0)
     clearance: float = Field(0.005, ge=0)
+    rate_hz: float = Field(100.0, gt=0, description="how often the planner decides (starts goals, monitors)")
 
 
 class TaskConfig(_Model):
@@ -148,6 +149,21 @@ class Scenario(_Model):
                 f"the physics rate ({1 / self.clock.dt:g} Hz)"
             )
         return self
+
+    @model_validator(mode="after")
+    def _planner_rate(self) -> Scenario:
+        ratio = self.controller.rate_hz / self.planner.rate_hz
+        if abs(ratio - round(ratio)) > 1e-6 or round(ratio) < 1:
+            raise ValueError(
+                f"planner.rate_hz ({self.planner.rate_hz:g}) must divide controller.rate_hz "
+                f"({self.controller.rate_hz:g}): the planner decides on joint_states of its own steps"
+            )
+        return self
+
+    @property
+    def planner_decimation(self) -> int:
+        """Physics steps per planner decision (the planner acknowledges only those steps)."""
+        return round(1.0 / (self.planner.rate_hz * self.clock.dt))
 
     @property
     def dt_ns(self) -> int:

@@ -35,6 +35,7 @@ from hilsim.keys import Keys
 
 STOP_ORDER = ("physics", "planner", "controller", "sensors", "logger")
 START_ORDER = ("logger", "controller", "sensors", "planner", "physics")
+LOGGER_NICE = 10
 
 
 def _pdeathsig() -> None:
@@ -45,6 +46,13 @@ def _pdeathsig() -> None:
         libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except OSError:
         pass
+
+
+def _recorder_child() -> None:
+    """The logger runs at a lower CPU priority: it buffers what it receives, so on a small
+    machine the loop's services get the cores first and the logger catches up when idle."""
+    _pdeathsig()
+    os.nice(LOGGER_NICE)
 
 
 @dataclass
@@ -109,7 +117,7 @@ class Launcher:
                     stderr=logf,
                     stdin=subprocess.DEVNULL,
                     env=env,
-                    preexec_fn=_pdeathsig,
+                    preexec_fn=_recorder_child if name == "logger" else _pdeathsig,
                 )
             self.children[name] = Child(name, proc, log_path)
             if name == "logger":

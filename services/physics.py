@@ -42,7 +42,7 @@ class PhysicsService(Service):
         self.world = World(sc)
         self.n = len(self.world.joint_names)
         self.participants = sc.lockstep_participants() if sc.clock.mode == "lockstep" else []
-        self.decim = sc.control_decimation
+        self.periods = {"controller": sc.control_decimation, "planner": sc.planner_decimation}
         self.acked: dict[str, int] = {p: -1 for p in self.participants}
         self.present: set[str] = set()
         self.started = False
@@ -148,9 +148,9 @@ class PhysicsService(Service):
 
     def _missing(self) -> list[str]:
         """Participants that still owe an acknowledgement for the current step."""
-        t = self.world.time_ns
-        off_beat = self.world.step_index % self.decim != 0  # the controller answers at control steps only
-        return [p for p, ns in self.acked.items() if ns < t and not (p == "controller" and off_beat)]
+        t, k = self.world.time_ns, self.world.step_index
+        # the controller answers at control steps only, the planner at its own decision steps
+        return [p for p, ns in self.acked.items() if ns < t and k % self.periods.get(p, 1) == 0]
 
     def _wait_for_participants(self) -> bool:
         deadline = time.monotonic() + 120.0

@@ -1,9 +1,11 @@
 """Planner service: move goals → collision-free path (OMPL / improved RRT*) → ruckig trajectory → execution.
 
 Reads:
-- ``<prefix>/clock`` (rosgraph_msgs/Clock): sim time; planning starts on a tick, and in lockstep
-  mode the tick is acknowledged only once the trajectory is out (planning takes no sim time);
-- ``joint_states`` (sensor_msgs/JointState, 6 joints): start state of a plan, execution monitoring.
+- ``joint_states`` (sensor_msgs/JointState, 6 joints): sim time, the start state of a plan and
+  execution monitoring. Every ``planner.rate_hz`` step's joint state is a *decision tick*: goals
+  start there, and in lockstep mode the tick is acknowledged only once the trajectory is out
+  (planning takes no sim time). Deciding on the joint state itself, not on the clock, means a
+  plan always starts from the state of its own step: reproducible bit for bit.
 
 Writes:
 - ``joint_trajectory`` (trajectory_msgs/JointTrajectory) for the joint trajectory controller,
@@ -112,7 +114,6 @@ class PlannerService(Service):
         self.pub_path = self.publisher(k.topic("planner/path"))
         self.pub_feedback = self.publisher(k.topic("planner/feedback"))
         self.pub_result = self.publisher(k.topic("planner/result"))
-        self.subscribe(k.clock, msgs.Clock, self.on_clock)
         self.subscribe(k.topic("joint_states"), msgs.JointState, self.on_joint_states, n_joints=self.n)
         self.queryable(k.topic("planner/goal"), msgs.MoveGoal, self.on_goal, n_joints=self.n, reject=self._reject)
         self.queryable(k.topic("planner/cancel"), msgs.CancelRequest, self.on_cancel, reject=self._reject)
@@ -304,7 +305,10 @@ class PlannerService(Service):
         except KeyError as e:
             self.warn(f"joint_states lacks joint {e}")
             return
-        self._monitor(msgs.ns_of(js.header.stamp))
+        t = msgs.ns_of(js.header.stamp)
+        self._monitor(t)
+        if (t // self.sc.dt_ns) % self.sc.planner_decimation == 0:
+            self.on_tick(t)
 
     def _monitor(self, now: int) -> None:
         """Execution monitoring, in sim time of the joint state (deterministic in lockstep)."""
@@ -336,8 +340,8 @@ class PlannerService(Service):
         if now - goal.last_feedback_ns >= FEEDBACK_PERIOD_NS:
             self._feedback(goal, progress, now)
 
-    def on_clock(self, c: msgs.Clock, _key: str) -> None:
-        t = msgs.ns_of(c.clock)
+    def on_tick(self, t: int) -> None:
+        """A decision step (see the module docstring)."""
         self.sim_ns = max(self.sim_ns, t)
         if not self.task_started and self.task_targets:
             self.task_started = True

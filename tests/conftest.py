@@ -96,3 +96,14 @@ def no_leaks() -> Iterator[None]:
     assert not kids, f"test left processes running: {[(k.pid, ' '.join(k.cmdline()[-4:])) for k in kids]}"
     leaked = [t for t in threading.enumerate() if t.ident not in before and t.name.startswith("svc:")]
     assert not leaked, f"test left service threads running: {[t.name for t in leaked]}"
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    """After the summary: hide the OMPL binding's "nanobind: leaked …" report at interpreter
+    exit, so the test run ends on pytest's own closing line."""
+    import os
+    import sys
+
+    sys.stderr.flush()
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, 2)

@@ -1,6 +1,6 @@
 """The planner service over Zenoh, in lockstep, with the test playing physics and a perfect controller.
 
-The test publishes ``joint_states`` and ``<prefix>/clock`` for each step, waits for the planner's
+The test publishes ``joint_states`` (and the clock) for each step, waits for the planner's
 ``sync/planner`` acknowledgement, and moves the joint state along the latest published trajectory.
 """
 
