@@ -30,7 +30,7 @@ from typing import Any, ClassVar, TypeVar
 import zenoh
 
 from hilsim import msgs, transport
-from hilsim.config import Scenario
+from hilsim.config import ConfigError, Scenario
 from hilsim.keys import Keys
 
 T = TypeVar("T")
@@ -272,6 +272,11 @@ class Service:
             self.loop()
             if self.state == "running":
                 self.state = "stopped"
+        except ConfigError as e:
+            # a bad scenario or model: one line, as everywhere else, not a traceback
+            self.state = "fault"
+            self.log.error("%s", e)
+            rc = 2
         except Exception as e:
             self.state = "fault"
             self.log.exception("stopped by an error: %s", e)

@@ -13,11 +13,11 @@ import mujoco
 import numpy as np
 
 from hilsim import msgs
-from hilsim.config import Scenario
+from hilsim.config import ConfigError, Scenario
 
 
-class ModelError(RuntimeError):
-    """The world model cannot be used as the scenario asks."""
+class ModelError(ConfigError):
+    """The world model cannot be used as the scenario asks (a configuration error)."""
 
 
 def urdf_limits(urdf: Path) -> dict[str, tuple[float, float]]:
@@ -35,14 +35,16 @@ class World:
 
     def __init__(self, sc: Scenario) -> None:
         self.sc = sc
+        where = f"{sc.source}: " if sc.source else ""
         try:
             spec = mujoco.MjSpec.from_file(str(sc.world.model))
         except Exception as e:
-            raise ModelError(f"{sc.world.model}: cannot load MJCF: {e}") from e
+            one_line = " ".join(str(e).split())
+            raise ModelError(f"{where}world.model: cannot load {sc.world.model}: {one_line}") from e
         self.imu_site = sc.physics.truth_imu_site
         if self.imu_site:
             if not any(s.name == self.imu_site for s in spec.sites):
-                raise ModelError(f"physics.truth_imu_site: no site named {self.imu_site!r} in {sc.world.model}")
+                raise ModelError(f"{where}physics.truth_imu_site: no site named {self.imu_site!r} in {sc.world.model}")
             # The IMU is emulated from MuJoCo's own sensors at the site (ground truth, no noise).
             for kind, name in ((mujoco.mjtSensor.mjSENS_ACCELEROMETER, "imu_acc"),
                                (mujoco.mjtSensor.mjSENS_GYRO, "imu_gyro"),
@@ -60,7 +62,7 @@ class World:
         m = self.model
         self.actuators = [m.actuator(i).name for i in range(m.nu)]
         if not self.actuators:
-            raise ModelError(f"{sc.world.model}: the model has no actuators")
+            raise ModelError(f"{where}world.model: {sc.world.model} has no actuators")
         self.joint_ids = [int(m.actuator_trnid[i, 0]) for i in range(m.nu)]
         self.joint_names = [m.joint(j).name for j in self.joint_ids]
         self.qpos_adr = np.array([m.jnt_qposadr[j] for j in self.joint_ids])

@@ -36,6 +36,11 @@ REALTIME_PRIORITY = 10  # SCHED_FIFO priority of physics in realtime mode (if pe
 
 class PhysicsService(Service):
     name = "physics"
+    world: World  # loaded in setup(), inside run()'s error handling
+
+    def __init__(self, scenario: Any) -> None:
+        super().__init__(scenario)
+        self.jitter_ns: list[int] = []
 
     def setup(self) -> None:
         sc = self.sc
@@ -62,7 +67,6 @@ class PhysicsService(Service):
         )
         self.wall_start = 0.0
         self.steps_done = 0
-        self.jitter_ns: list[int] = []
 
     # ------------------------------------------------------------------ inputs
     def _on_alive(self, sample: zenoh.Sample) -> None:
@@ -130,6 +134,8 @@ class PhysicsService(Service):
         threading.Thread(target=self.publish_health, daemon=True).start()
 
     def health_values(self) -> dict[str, Any]:
+        if not hasattr(self, "world"):
+            return {}
         wall = max(time.monotonic() - self.wall_start, 1e-9) if self.wall_start else 0.0
         return {
             "sim_time": f"{self.world.time_ns / 1e9:.3f}",

@@ -85,3 +85,20 @@ def test_realtime_paces_to_the_wall_clock(scenario: Any, run_service: Any) -> No
     assert svc.steps_done == 500
     assert wall >= 0.45
     assert len(svc.jitter_ns) == 500
+
+
+def test_bad_model_is_one_line_and_exit_code_2(tmp_path: Any) -> None:
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    repo = Path(__file__).resolve().parent.parent
+    cfg = tmp_path / "s.yaml"
+    text = (repo / "config" / "arm.yaml").read_text().replace("../models", str(repo / "models"))
+    cfg.write_text(text.replace("truth_imu_site: tool", "truth_imu_site: nowhere"))
+    r = subprocess.run([sys.executable, "-m", "hilsim.cli", "run", "physics", "--config", str(cfg),
+                        "--set", "zenoh.connect=[]"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2, r.stderr
+    errors = [ln for ln in r.stderr.splitlines() if "ERROR" in ln]
+    assert len(errors) == 1 and "Traceback" not in r.stderr, r.stderr
+    assert str(cfg) in errors[0] and "physics.truth_imu_site" in errors[0] and "nowhere" in errors[0]
