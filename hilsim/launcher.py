@@ -344,6 +344,9 @@ def cmd_up(args: argparse.Namespace) -> int:
     try:
         la.start()
         if la.wait_ready():
+            if not sc.task.targets and sc.duration is None:
+                print("no task targets and no --duration: running until Ctrl-C "
+                      f"(send goals with `hilsim goal {sc.robot} --joints …`)", flush=True)
             la.follow()
     except KeyboardInterrupt:
         la.outcome.interrupted = True
