@@ -37,6 +37,10 @@ from hilsim.planning.library import Budget, PlannerConfigError, PlanOutcome, Pro
 from hilsim.planning.objectives import turn_angle
 
 GOAL_EXTEND_CANDIDATES = 5
+# Neighbours considered for choose-parent / rewire: the k nearest within this many ranges.
+# In 6-D with ~1000 nodes few nodes lie within 2 ranges, which left choose-parent (and with it
+# the turn penalty) almost nothing to choose from; 4 ranges shortened the bench paths by 20-40 %.
+NEAR_RADIUS_FACTOR = 4.0
 PARAMS = {"range": 0.6, "goal_bias": 0.1, "w_length": 1.0, "w_turn": 0.3, "rewire_factor": 1.1}
 
 
@@ -131,7 +135,9 @@ class ImprovedRRTStar:
 
         while not budget.done(goal_node >= 0):
             budget.iterations += 1
-            to_goal = rng.random() < bias
+            # once the goal is in the tree, its parent improves through the direct connections
+            # below; sampling the goal again would only add a duplicate goal node
+            to_goal = rng.random() < bias and goal_node < 0
             x_rand = goal if to_goal else rng.uniform(arm.lower, arm.upper)
             d2 = np.sum((X[:size] - x_rand) ** 2, axis=1)
             if to_goal and size > 1:
@@ -150,7 +156,7 @@ class ImprovedRRTStar:
             dn = np.sqrt(np.sum((X[:size] - x_new) ** 2, axis=1))
             k_near = k_nearest_count(size, n, rf)
             near = np.argsort(dn)[:k_near]
-            near = near[dn[near] <= 2 * rmax]
+            near = near[dn[near] <= NEAR_RADIUS_FACTOR * rmax]
             k = insert(x_new, near, nearest)
             if np.array_equal(x_new, goal):
                 if goal_node < 0:
