@@ -48,6 +48,9 @@ class ClockConfig(_Model):
     ack_timeout: float = Field(
         10.0, gt=0, description="wall seconds physics waits for a lockstep ack before publishing a fault"
     )
+    start_delay: float = Field(
+        0.5, ge=0, description="wall seconds between every service being live and step 0 (peers finish connecting)"
+    )
 
 
 class WorldConfig(_Model):

@@ -617,14 +617,17 @@ class LoggerService(Service):
         tmp = self.summary_path.with_suffix(".json.tmp")
         tmp.write_text(json.dumps(summary, indent=1, sort_keys=True) + "\n")
         tmp.replace(self.summary_path)
-        for k in keys:
-            print(f"recorded {k}: received {received[k]} recorded {self.recorded[k]}", flush=True)
         total_in, total_rec = sum(received.values()), sum(self.recorded.values())
-        print(
+        lines = [f"recorded {k}: received {received[k]} recorded {self.recorded[k]}" for k in keys]
+        lines.append(
             f"recorded total: received {total_in} recorded {total_rec} rejected {sum(self.rejected.values())} "
-            f"in {len(keys)} keys -> {self.rrd_path}",
-            flush=True,
+            f"in {len(keys)} keys -> {self.rrd_path}"
         )
+        try:
+            print("\n".join(lines), flush=True)
+        except BrokenPipeError:
+            # whoever read our stdout is gone (a killed launcher); the summary file is written
+            self.log.warning("stdout closed; per-key counts are in %s", self.summary_path)
         if total_in != total_rec:
             self.fault(f"received {total_in} messages but recorded {total_rec}")
 

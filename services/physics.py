@@ -77,8 +77,8 @@ class PhysicsService(Service):
         svc = str(sample.key_expr).rsplit("/", 1)[-1]
         with self.lock:
             if sample.kind == zenoh.SampleKind.PUT:
-                if svc not in self.present and svc in self.participants:
-                    self.log.info("participant %s is here", svc)
+                if svc not in self.present and svc in self.sc.services:
+                    self.log.info("%s is here", svc)
                 self.present.add(svc)
             else:
                 self.present.discard(svc)
@@ -166,25 +166,32 @@ class PhysicsService(Service):
         # the controller answers at control steps only, the planner at its own decision steps
         return [p for p, ns in self.acked.items() if ns < t and k % self.periods.get(p, 1) == 0]
 
-    def _wait_for_participants(self) -> bool:
+    def _wait_for_services(self) -> bool:
+        """Before step 0: every service of the scenario is live, then a short grace.
+
+        A liveliness token proves its owner's subscriptions are known *here*; the other peers
+        (e.g. the sensors publishing to the planner) learn of them over their own links a moment
+        later, and a step-0 message sent before that would be lost and stall the lockstep.
+        """
         deadline = time.monotonic() + 120.0
+        others = [s for s in self.sc.services if s != self.name]
+        if others:
+            self.log.info("waiting for %s", ", ".join(others))
         while not self.stop_event.is_set():
             with self.lock:
-                missing = [p for p in self.participants if p not in self.present]
+                missing = [p for p in others if p not in self.present]
             if not missing:
-                return True
+                return not self.stop_event.wait(self.sc.clock.start_delay)
             if time.monotonic() > deadline:
                 self.state = "fault"
-                self.fault(f"lockstep participants never appeared: {', '.join(missing)}")
+                self.fault(f"services never appeared: {', '.join(missing)}")
                 return False
             self.stop_event.wait(0.01)
         return False
 
     def loop(self) -> None:
-        if self.participants:
-            self.log.info("lockstep: waiting for %s", ", ".join(self.participants))
-            if not self._wait_for_participants():
-                return
+        if not self._wait_for_services():
+            return
         self.wall_start = time.monotonic()
         with self.lock:
             self.started = True

@@ -37,7 +37,7 @@ def test_lockstep_waits_for_every_participant(scenario: Any, session: zenoh.Sess
     sub = session.declare_subscriber(keys.clock, on_clock)
     sync = transport.publisher(session, keys.sync("planner"))
     cmd = transport.publisher(session, keys.topic("joint_commands"))
-    tokens = [session.liveliness().declare_token(keys.alive(n)) for n in ("planner", "controller")]
+    tokens = [session.liveliness().declare_token(keys.alive(n)) for n in ("planner", "controller", "sensors")]
     svc = PhysicsService(sc)
     with run_service(svc):
         assert got.wait(10), "physics never published step 0"
