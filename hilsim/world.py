@@ -15,6 +15,8 @@ import numpy as np
 from hilsim import msgs
 from hilsim.config import ConfigError, Scenario
 
+SERVO_KV = 5.0  # damping of the position servos [N·m·s/rad]
+
 
 class ModelError(ConfigError):
     """The world model cannot be used as the scenario asks (a configuration error)."""
@@ -96,7 +98,8 @@ class World:
             m.actuator_gaintype[i] = mujoco.mjtGain.mjGAIN_FIXED
             m.actuator_biastype[i] = mujoco.mjtBias.mjBIAS_AFFINE
             m.actuator_gainprm[i, 0] = kp
-            m.actuator_biasprm[i, :3] = (0.0, -kp, 0.0) if self.mode == "position" else (0.0, 0.0, -kp)
+            # a position servo needs damping, or it rings around its setpoint
+            m.actuator_biasprm[i, :3] = (0.0, -kp, -SERVO_KV) if self.mode == "position" else (0.0, 0.0, -kp)
             # the command is now a setpoint; the effort limit moves to the force range
             m.actuator_forcelimited[i] = 1
             m.actuator_forcerange[i] = (-self.effort_limit[i], self.effort_limit[i])

@@ -261,3 +261,22 @@ def test_bad_scenario_is_one_line(tmp_path: Path) -> None:
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1, r.stderr
     assert str(bad) in lines[0] and "clock.dt" in lines[0] and "Traceback" not in r.stderr
+
+
+def test_realtime_clock_runs_the_task_at_wall_speed(tmp_path: Path) -> None:
+    p = hilsim_up("arm", "--clock", "realtime", "--no-logger", "--out", str(tmp_path / "run"),
+                  "--router", _router_ep_for_test())
+    t0 = time.monotonic()
+    try:
+        stdout, _ = p.communicate(timeout=300)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+        _ROUTERS.pop().close()
+    wall = time.monotonic() - t0
+    assert p.returncode == 0, stdout
+    assert "targets reached: 3/3" in stdout and "clock realtime" in stdout
+    sim = float(stdout.split("sim time ")[-1].split(" s")[0])
+    assert sim > 5 and wall >= sim  # paced by the wall clock, not faster
+    rtf = float(stdout.split("real-time factor ")[-1].split(",")[0])
+    assert 0.9 <= rtf <= 1.05, stdout

@@ -103,3 +103,15 @@ def test_bad_model_is_one_line_and_exit_code_2(tmp_path: Any) -> None:
     errors = [ln for ln in r.stderr.splitlines() if "ERROR" in ln]
     assert len(errors) == 1 and "Traceback" not in r.stderr, r.stderr
     assert str(cfg) in errors[0] and "physics.truth_imu_site" in errors[0] and "nowhere" in errors[0]
+
+
+def test_position_actuators_track_a_commanded_position(scenario: Any) -> None:
+    w = World(scenario("arm", {"physics.actuator": "position"}))
+    names = w.joint_names
+    target = [0.3, -0.2, 0.1, 0.0, 0.2, 0.0]
+    w.command(msgs.JointState(name=names, position=target))
+    for _ in range(3000):
+        w.step()
+    assert abs(w.positions() - target).max() < 0.01
+    # the effort limit still holds in position mode
+    assert (abs(w.data.actuator_force) <= w.effort_limit + 1e-9).all()
