@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import threading
-import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
 import mujoco
 import numpy as np
 import pytest
+from util import wait_until
 
 from hilsim import msgs, transport
 from hilsim.config import ConfigError
@@ -25,15 +25,6 @@ def js(k: int, pos: list[float] | None = None, vel: list[float] | None = None) -
     return msgs.JointState(
         header=msgs.header(k * DT_NS), name=NAMES, position=pos or [0.0] * 6, velocity=vel or [0.0] * 6
     )
-
-
-def wait_until(cond: Callable[[], bool], timeout: float = 5.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.005)
-    return cond()
 
 
 class Rig:

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import threading
-import time
 from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import pytest
+from util import wait_until
 
 from hilsim import msgs, sensing, transport
 from hilsim.config import ConfigError, SensorConfig
@@ -158,15 +158,6 @@ class Inbox:
     def close(self) -> None:
         for s in self.subs:
             s.undeclare()
-
-
-def wait_until(cond: Callable[[], bool], timeout: float = 5.0) -> bool:
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(0.01)
-    return cond()
 
 
 def test_service_publishes_due_outputs_and_acks(
