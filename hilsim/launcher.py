@@ -274,7 +274,9 @@ def default_run_dir(sc: Scenario) -> Path:
 
 def summarise(la: Launcher) -> int:
     o, sc = la.outcome, la.sc
-    ok = not o.died and not o.interrupted
+    # with no task and no duration, Ctrl-C is how a run ends: not a failure
+    open_ended = not sc.task.targets and sc.duration is None
+    ok = not o.died and (not o.interrupted or open_ended)
     n_targets = len(sc.task.targets)
     print("summary:")
     if n_targets:
@@ -340,7 +342,9 @@ def cmd_up(args: argparse.Namespace) -> int:
         la.changed.set()
         raise KeyboardInterrupt
 
-    old = signal.signal(signal.SIGTERM, on_signal)
+    # explicit for SIGINT too: a launcher started in the background of a script inherits
+    # SIGINT ignored, and Python then never raises KeyboardInterrupt
+    old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         la.start()
         if la.wait_ready():
@@ -352,7 +356,8 @@ def cmd_up(args: argparse.Namespace) -> int:
         la.outcome.interrupted = True
         print("interrupted: stopping services…", flush=True)
     finally:
-        signal.signal(signal.SIGTERM, old)
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
         try:
             la.stop()
         except KeyboardInterrupt:
