@@ -92,10 +92,14 @@ class Keys:
     def all_alive(self) -> str:
         return f"{self.prefix}/{self.robot}/alive/*"
 
+    def scoped(self, expr: str) -> str:
+        """A key expression under this simulation's prefix, e.g. ``scoped("**")``."""
+        return f"{self.prefix}/{expr}"
+
     @property
     def everything(self) -> str:
-        """Wildcard matching every data key of the simulation (robot topics and clock)."""
-        return f"{self.prefix}/**"
+        """Wildcard matching every key of the simulation (all robots, the clock, liveliness)."""
+        return self.scoped("**")
 
 
 def message_type(key: str) -> type:

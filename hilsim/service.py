@@ -22,7 +22,6 @@ import logging
 import signal
 import sys
 import threading
-import time
 from collections import Counter
 from collections.abc import Callable
 from typing import Any, ClassVar, TypeVar
@@ -306,7 +305,3 @@ def setup_logging(name: str, level: int = logging.INFO) -> None:
         format=f"%(asctime)s {name:<10} %(levelname)-7s %(message)s",
         datefmt="%H:%M:%S",
     )
-
-
-def monotonic_ns() -> int:
-    return time.perf_counter_ns()

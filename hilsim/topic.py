@@ -21,7 +21,7 @@ import zenoh
 
 from hilsim import msgs, transport
 from hilsim.config import ZenohConfig
-from hilsim.keys import DEFAULT_PREFIX, UnknownKey, message_type
+from hilsim.keys import DEFAULT_PREFIX, Keys, UnknownKey, message_type
 
 
 def _session(args: argparse.Namespace) -> zenoh.Session:
@@ -62,8 +62,9 @@ def cmd_list(args: argparse.Namespace) -> int:
     with _session(args) as ses:
         # a subscriber with history, not a one-shot get: right after connecting, a get can
         # run before the router has told this session about the other peers
-        live = ses.liveliness().declare_subscriber(f"{prefix}/**", on_token, history=True)
-        sub = ses.declare_subscriber(f"{prefix}/**", on_sample)
+        everything = Keys(prefix).everything
+        live = ses.liveliness().declare_subscriber(everything, on_token, history=True)
+        sub = ses.declare_subscriber(everything, on_sample)
         time.sleep(listen)
         sub.undeclare()
         live.undeclare()

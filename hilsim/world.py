@@ -109,10 +109,6 @@ class World:
     def time_ns(self) -> int:
         return self.step_index * self.sc.dt_ns
 
-    def set_positions(self, q: list[float] | np.ndarray) -> None:
-        self.data.qpos[self.qpos_adr] = q
-        mujoco.mj_forward(self.model, self.data)
-
     def command(self, cmd: msgs.JointState) -> None:
         """Take a joint command (by name); fields used depend on the actuator mode."""
         values = {"effort": cmd.effort, "position": cmd.position, "velocity": cmd.velocity}[self.mode]

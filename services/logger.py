@@ -227,11 +227,11 @@ class LoggerService(Service):
         self._worker = threading.Thread(target=self._work, name="logger-worker", daemon=True)
         self._worker.start()
         for expr in self.sc.logger.record:
-            sub = self.session.declare_subscriber(f"{self.sc.prefix}/{expr}", self._on_sample)
+            sub = self.session.declare_subscriber(self.keys.scoped(expr), self._on_sample)
             self._subs.append(sub)
             self._declared.append(sub)
         self.log.info(
-            "recording %s to %s", ", ".join(f"{self.sc.prefix}/{e}" for e in self.sc.logger.record), self.rrd_path
+            "recording %s to %s", ", ".join(self.keys.scoped(e) for e in self.sc.logger.record), self.rrd_path
         )
 
     def _load_model(self) -> None:
