@@ -283,8 +283,11 @@ def summarise(la: Launcher) -> int:
         reached = sum(1 for r in o.results if r.success and r.goal_id.startswith("task-"))
         print(f"  targets reached: {reached}/{n_targets}")
         if o.task is not None:
-            names = sc.task.targets and [f"joint_{i + 1}" for i in range(len(o.task.execution_error))]
-            errs = ", ".join(f"{n} {e:+.4f}" for n, e in zip(names or [], o.task.execution_error, strict=False))
+            # the joints as the planner named them in its trajectories (index if it sent none)
+            named = next((list(r.trajectory.joint_names) for r in o.results if r.trajectory.joint_names), [])
+            err = o.task.execution_error
+            names = named if len(named) == len(err) else [f"#{i}" for i in range(len(err))]
+            errs = ", ".join(f"{n} {e:+.4f}" for n, e in zip(names, err, strict=True))
             print(f"  final error per joint [rad]: {errs}")
             ok = ok and o.task.success and reached == n_targets
         else:
