@@ -26,9 +26,10 @@ class _Payload:
 
 
 class _Sample:
-    def __init__(self, key_expr: str, payload: _Payload) -> None:
+    def __init__(self, key_expr: str, payload: _Payload, attachment: bytes | None = None) -> None:
         self.key_expr = key_expr
         self.payload = payload
+        self.attachment = None if attachment is None else _Payload(attachment)
         self.kind = zenoh.SampleKind.PUT
 
 
@@ -54,8 +55,8 @@ class _Publisher(_Decl):
         super().__init__()
         self.bus, self.key = bus, key
 
-    def put(self, payload: bytes) -> None:
-        self.bus.queue.append((self.key, bytes(payload)))
+    def put(self, payload: bytes, attachment: bytes | None = None) -> None:
+        self.bus.queue.append((self.key, bytes(payload), attachment))
 
 
 class _Liveliness:
@@ -107,7 +108,7 @@ class Bus:
     """Delivers queued messages to matching subscribers, in publication order."""
 
     def __init__(self) -> None:
-        self.queue: deque[tuple[str, bytes]] = deque()
+        self.queue: deque[tuple[str, bytes, bytes | None]] = deque()
         self.subs: list[tuple[str, Callable[[Any], None]]] = []
         self.live_subs: list[tuple[str, Callable[[Any], None]]] = []
         self.tokens: set[str] = set()
@@ -120,10 +121,10 @@ class Bus:
     def drain(self, until: Callable[[], bool] = lambda: False) -> None:
         q, routes = self.queue, self._routes
         while q and not until():
-            key, data = q.popleft()
+            key, data, att = q.popleft()
             cbs = routes.get(key)
             if cbs is None:
                 cbs = routes[key] = [cb for expr, cb in self.subs if _matches(expr, key)]
             for cb in cbs:
-                cb(_Sample(key, _Payload(data)))
+                cb(_Sample(key, _Payload(data), att))
                 self.delivered += 1

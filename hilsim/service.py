@@ -42,10 +42,14 @@ class Publisher:
     def __init__(self, service: Service, key: str) -> None:
         self.key = key
         self._svc = service
-        self._pub = transport.publisher(service.session, key)
+        # realtime: a subscriber that cannot keep up loses samples rather than delaying us
+        self._pub = transport.publisher(service.session, key, drop_when_congested=service.sc.clock.mode == "realtime")
+        self.gid = transport.new_gid()
+        self.seq = 0
 
     def put(self, msg: Any) -> None:
-        self._pub.put(msgs.encode(msg))
+        self.seq += 1
+        self._pub.put(msgs.encode(msg), attachment=transport.attachment_bytes(self.seq, self.gid))
         self._svc.counts_out[self.key] += 1
 
     def undeclare(self) -> None:

@@ -11,7 +11,12 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import socket
+import struct
+import time
+from dataclasses import dataclass
+from typing import Any
 
 import zenoh
 
@@ -55,12 +60,57 @@ def open_router(endpoint: str) -> zenoh.Session:
         raise ConnectionError(f"cannot start the Zenoh router on {endpoint}: {e}") from e
 
 
-def publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
-    # BLOCK: a slow subscriber (the recorder) must slow the sender, never lose samples.
-    # express: no batching, lockstep latency matters more than throughput.
-    return session.declare_publisher(
-        key,
-        congestion_control=zenoh.CongestionControl.BLOCK,
-        reliability=zenoh.Reliability.RELIABLE,
-        express=True,
-    )
+def publisher(session: zenoh.Session, key: str, *, drop_when_congested: bool = False) -> zenoh.Publisher:
+    """A publisher as every hilsim service declares it.
+
+    Lockstep (``drop_when_congested=False``): BLOCK, a slow subscriber (the recorder) slows the
+    sender and nothing is lost. Realtime (``True``): DROP, a subscriber that cannot keep up
+    loses samples (counted by the receiver from the attachment's sequence numbers) instead of
+    delaying the wall-clock loop. express: no batching, step latency matters more than throughput.
+    """
+    cc = zenoh.CongestionControl.DROP if drop_when_congested else zenoh.CongestionControl.BLOCK
+    return session.declare_publisher(key, congestion_control=cc, reliability=zenoh.Reliability.RELIABLE, express=True)
+
+
+# ---------------------------------------------------------------- sample attachment
+# Every sample a hilsim service publishes carries the attachment rmw_zenoh puts on ROS 2 samples,
+# serialised as zenoh-ext does it (little-endian int64 sequence number, int64 source timestamp
+# [ns, wall clock], the publisher's 16-byte global id as a fixed-size array). Receivers use the
+# sequence number to count lost samples and the id to tell writers apart.
+ATTACHMENT = struct.Struct("<qq16s")
+
+
+def new_gid() -> bytes:
+    """A global id for one publishing entity (random, as rmw_zenoh's are unique per entity)."""
+    return os.urandom(16)
+
+
+@dataclass(frozen=True, slots=True)
+class Attachment:
+    seq: int
+    source_ns: int
+    gid: bytes
+
+    def encode(self) -> bytes:
+        return ATTACHMENT.pack(self.seq, self.source_ns, self.gid)
+
+    @property
+    def writer(self) -> str:
+        """The writer's id as text (hex), as shown in logs and health."""
+        return self.gid.hex()
+
+
+def attachment_bytes(seq: int, gid: bytes) -> bytes:
+    return ATTACHMENT.pack(seq, time.time_ns(), gid)
+
+
+def read_attachment(sample: Any) -> Attachment | None:
+    """The attachment of a received sample, or None if it has none or not in hilsim's layout."""
+    att = getattr(sample, "attachment", None)
+    if att is None:
+        return None
+    raw = att.to_bytes() if hasattr(att, "to_bytes") else bytes(att)
+    if len(raw) != ATTACHMENT.size:
+        return None
+    seq, ns, gid = ATTACHMENT.unpack(raw)
+    return Attachment(seq, ns, gid)
