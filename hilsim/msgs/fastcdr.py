@@ -17,6 +17,10 @@ import struct
 from collections.abc import Callable
 from typing import Any
 
+from hilsim.msgs.builtin import Clock, Header, Time
+from hilsim.msgs.geometry import Quaternion, Vector3
+from hilsim.msgs.sensor import Imu, JointState
+
 HEADER_LE = b"\x00\x01\x00\x00"
 _U32 = struct.Struct("<I")
 _TIME = struct.Struct("<iI")
@@ -120,8 +124,8 @@ class _Reader:
 
 
 # ---------------------------------------------------------------- the hot types
-def build(m: Any) -> tuple[dict[type, Callable[[Any], bytes]], dict[type, Callable[[bytes], tuple[Any, int]]]]:
-    """Encoders and decoders keyed by the message classes of module ``m`` (hilsim.msgs)."""
+def build() -> tuple[dict[type, Callable[[Any], bytes]], dict[type, Callable[[bytes], tuple[Any, int]]]]:
+    """Encoders and decoders keyed by message class."""
 
     def enc_clock(msg: Any) -> bytes:
         return HEADER_LE + _TIME.pack(msg.clock.sec, msg.clock.nanosec)
@@ -129,11 +133,11 @@ def build(m: Any) -> tuple[dict[type, Callable[[Any], bytes]], dict[type, Callab
     def dec_clock(data: bytes) -> tuple[Any, int]:
         r = _Reader(data)
         sec, ns = r.time()
-        return m.Clock(clock=m.Time(sec=sec, nanosec=ns)), r.pos
+        return Clock(clock=Time(sec=sec, nanosec=ns)), r.pos
 
     def header(r: _Reader) -> Any:
         sec, ns = r.time()
-        return m.Header(stamp=m.Time(sec=sec, nanosec=ns), frame_id=r.string())
+        return Header(stamp=Time(sec=sec, nanosec=ns), frame_id=r.string())
 
     def enc_joint_state(msg: Any) -> bytes:
         buf = bytearray(HEADER_LE)
@@ -149,7 +153,7 @@ def build(m: Any) -> tuple[dict[type, Callable[[Any], bytes]], dict[type, Callab
     def dec_joint_state(data: bytes) -> tuple[Any, int]:
         r = _Reader(data)
         h = header(r)
-        msg = m.JointState(header=h, name=r.strseq(), position=r.dseq(), velocity=r.dseq(), effort=r.dseq())
+        msg = JointState(header=h, name=r.strseq(), position=r.dseq(), velocity=r.dseq(), effort=r.dseq())
         return msg, r.pos
 
     def enc_imu(msg: Any) -> bytes:
@@ -173,17 +177,17 @@ def build(m: Any) -> tuple[dict[type, Callable[[Any], bytes]], dict[type, Callab
         avc = list(r.darr(_D9))
         la = r.darr(_D3)
         lac = list(r.darr(_D9))
-        msg = m.Imu(
+        msg = Imu(
             header=h,
-            orientation=m.Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]),
+            orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]),
             orientation_covariance=oc,
-            angular_velocity=m.Vector3(x=av[0], y=av[1], z=av[2]),
+            angular_velocity=Vector3(x=av[0], y=av[1], z=av[2]),
             angular_velocity_covariance=avc,
-            linear_acceleration=m.Vector3(x=la[0], y=la[1], z=la[2]),
+            linear_acceleration=Vector3(x=la[0], y=la[1], z=la[2]),
             linear_acceleration_covariance=lac,
         )
         return msg, r.pos
 
-    encoders = {m.Clock: enc_clock, m.JointState: enc_joint_state, m.Imu: enc_imu}
-    decoders = {m.Clock: dec_clock, m.JointState: dec_joint_state, m.Imu: dec_imu}
+    encoders = {Clock: enc_clock, JointState: enc_joint_state, Imu: enc_imu}
+    decoders = {Clock: dec_clock, JointState: dec_joint_state, Imu: dec_imu}
     return encoders, decoders
