@@ -17,21 +17,8 @@ import argparse
 import logging
 import sys
 from collections.abc import Callable, Sequence
-from typing import Any
 
-from hilsim.config import ConfigError, load_scenario
-
-
-def _parse_set(items: Sequence[str]) -> dict[str, Any]:
-    import yaml
-
-    out: dict[str, Any] = {}
-    for it in items:
-        k, sep, v = it.partition("=")
-        if not sep:
-            raise ConfigError(f"--set {it}: expected FIELD=VALUE, e.g. clock.mode=realtime")
-        out[k.strip()] = yaml.safe_load(v)
-    return out
+from hilsim.config import ConfigError, load_scenario, parse_overrides
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -44,7 +31,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     except UnknownService as e:
         print(f"hilsim run: {e}", file=sys.stderr)
         return 2
-    sc = load_scenario(args.config, _parse_set(args.set))
+    sc = load_scenario(args.config, parse_overrides(args.set))
     return int(cls(sc).run())
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, Literal
 
@@ -218,6 +219,18 @@ def set_dotted(data: dict[str, Any], dotted: str, value: Any) -> None:
         if not isinstance(d, dict):
             raise ConfigError(f"override {dotted}: {p} is not a section")
     d[parts[-1]] = value
+
+
+def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
+    """``--set FIELD=VALUE`` arguments -> overrides for :func:`load_scenario` (values are YAML,
+    so ``seed=3`` is a number and ``clock.mode=realtime`` a string)."""
+    out: dict[str, Any] = {}
+    for it in items:
+        k, sep, v = it.partition("=")
+        if not sep:
+            raise ConfigError(f"--set {it}: expected FIELD=VALUE, e.g. clock.mode=realtime")
+        out[k.strip()] = yaml.safe_load(v)
+    return out
 
 
 def scenario_path(name_or_path: str | Path) -> Path:

@@ -324,9 +324,9 @@ def summarise(la: Launcher) -> int:
 
 
 def cmd_up(args: argparse.Namespace) -> int:
-    from hilsim.cli import _parse_set
+    from hilsim.config import parse_overrides
 
-    overrides = _parse_set(args.set)
+    overrides = parse_overrides(args.set)
     if args.clock:
         overrides["clock.mode"] = args.clock
     if args.duration is not None:

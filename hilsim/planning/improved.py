@@ -33,8 +33,8 @@ from typing import Any
 
 import numpy as np
 
-from hilsim.planning.library import Budget, PlannerConfigError, PlanOutcome, Problem, k_nearest_count
 from hilsim.planning.objectives import turn_angle
+from hilsim.planning.problem import Budget, PlannerConfigError, PlanOutcome, Problem, k_nearest_count
 
 GOAL_EXTEND_CANDIDATES = 5
 # Neighbours considered for choose-parent / rewire: the k nearest within this many ranges.
