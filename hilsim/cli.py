@@ -44,6 +44,13 @@ def _lazy(module: str, func: str) -> Callable[[argparse.Namespace], int]:
     return call
 
 
+def _endpoint_args(p: argparse.ArgumentParser) -> None:
+    """--connect / --prefix of the tools that join a running simulation (hilsim.transport.tool_*)."""
+    p.add_argument("--connect", help="Zenoh endpoint(s), comma-separated "
+                   "(default: HILSIM_ZENOH_CONNECT, else tcp/127.0.0.1:7447)")
+    p.add_argument("--prefix", default=None, help="key prefix (default: HILSIM_PREFIX, else hilsim)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="hilsim", description="Distributed robot simulator over Zenoh.")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -72,8 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
         t = tsub.add_parser(name)
         if name != "list":
             t.add_argument("key", help="full key, e.g. hilsim/arm/joint_states")
-        t.add_argument("--connect", help="Zenoh endpoint (default: the scenario default / HILSIM_ZENOH_CONNECT)")
-        t.add_argument("--prefix", default=None)
+        _endpoint_args(t)
         t.add_argument("--duration", type=float, default=None, help="seconds to listen")
         if name == "echo":
             t.add_argument("--count", type=int, default=None)
@@ -94,15 +100,13 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--pose", type=float, nargs="+", help="x y z [roll pitch yaw]")
     goal.add_argument("--planner", default="")
     goal.add_argument("--timeout", type=float, default=60.0)
-    goal.add_argument("--connect")
-    goal.add_argument("--prefix", default=None)
+    _endpoint_args(goal)
     goal.set_defaults(func=_lazy("hilsim.planning.client", "cmd_goal"))
 
     gains = sub.add_parser("gains", help="change controller gains of a running simulation, live")
     gains.add_argument("robot")
     gains.add_argument("assignments", nargs="+", metavar="JOINT.GAIN=VALUE", help="e.g. joint_2.kp=80 joint_2.kd=4")
-    gains.add_argument("--connect")
-    gains.add_argument("--prefix", default=None)
+    _endpoint_args(gains)
     gains.set_defaults(func=_lazy("hilsim.params", "cmd_gains"))
 
     plan = sub.add_parser("plan", help="planning tools")

@@ -8,34 +8,16 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
-import threading
 
 import zenoh
 
 from hilsim import msgs, transport
-from hilsim.config import ZenohConfig
-from hilsim.keys import DEFAULT_PREFIX, Keys
-
-
-def wait_for_service(session: zenoh.Session, keys: Keys, service: str, timeout: float) -> bool:
-    """True once ``service``'s liveliness token is seen: its queryables are then routable."""
-    seen = threading.Event()
-
-    def on_token(s: zenoh.Sample) -> None:
-        if s.kind == zenoh.SampleKind.PUT:
-            seen.set()
-
-    sub = session.liveliness().declare_subscriber(keys.alive(service), on_token, history=True)
-    try:
-        return seen.wait(timeout)
-    finally:
-        sub.undeclare()
+from hilsim.keys import Keys
 
 
 def set_parameters(session: zenoh.Session, keys: Keys, values: dict[str, float],
                    timeout: float = 10.0) -> msgs.SetParametersResult:
-    if not wait_for_service(session, keys, "controller", timeout):
+    if not transport.wait_for_service(session, keys, "controller", timeout):
         return msgs.SetParametersResult(successful=False, reason="no controller is running")
     req = msgs.SetParameters(parameters=[msgs.Parameter(name=k, value=v) for k, v in values.items()])
     for reply in session.get(keys.topic("controller/set_parameters"), payload=msgs.encode(req), timeout=timeout):
@@ -57,9 +39,8 @@ def cmd_gains(args: argparse.Namespace) -> int:
             print(f"hilsim gains: {item!r}: expected JOINT.GAIN=NUMBER, e.g. joint_2.kp=80")
             return 2
         values[name.strip()] = v
-    connect = args.connect or os.environ.get("HILSIM_ZENOH_CONNECT") or f"tcp/127.0.0.1:{transport.DEFAULT_ROUTER_PORT}"
-    keys = Keys(args.prefix or os.environ.get("HILSIM_PREFIX", DEFAULT_PREFIX), args.robot)
-    with transport.open_session(ZenohConfig(connect=[e.strip() for e in connect.split(",")])) as ses:
+    keys = Keys(transport.tool_prefix(args.prefix), args.robot)
+    with transport.open_tool_session(args.connect) as ses:
         res = set_parameters(ses, keys, values)
     print(("set: " if res.successful else "not set: ") + res.reason)
     return 0 if res.successful else 1

@@ -1,8 +1,8 @@
 """``hilsim topic list|echo|hz``: look at a running simulation the way ``ros2 topic`` does.
 
 Connects as a Zenoh peer to ``--connect`` (default: ``HILSIM_ZENOH_CONNECT`` or the
-launcher's well-known ``tcp/127.0.0.1:7447``), decodes payloads by key through
-:func:`hilsim.keys.message_type`, and never publishes anything.
+launcher's well-known ``tcp/127.0.0.1:7447``, see :func:`hilsim.transport.tool_endpoints`),
+decodes payloads by key through :func:`hilsim.keys.message_type`, and never publishes anything.
 """
 
 from __future__ import annotations
@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import threading
 import time
 from collections import defaultdict, deque
@@ -20,13 +19,11 @@ import yaml
 import zenoh
 
 from hilsim import msgs, transport
-from hilsim.config import ZenohConfig
-from hilsim.keys import DEFAULT_PREFIX, Keys, UnknownKey, message_type
+from hilsim.keys import Keys, UnknownKey, message_type
 
 
 def _session(args: argparse.Namespace) -> zenoh.Session:
-    connect = args.connect or os.environ.get("HILSIM_ZENOH_CONNECT") or f"tcp/127.0.0.1:{transport.DEFAULT_ROUTER_PORT}"
-    return transport.open_session(ZenohConfig(connect=[e.strip() for e in connect.split(",")]))
+    return transport.open_tool_session(args.connect)
 
 
 def _stamp_of(msg: Any) -> float | None:
@@ -41,7 +38,7 @@ def _stamp_of(msg: Any) -> float | None:
 
 
 def cmd_list(args: argparse.Namespace) -> int:
-    prefix = args.prefix or os.environ.get("HILSIM_PREFIX", DEFAULT_PREFIX)
+    prefix = transport.tool_prefix(args.prefix)
     counts: dict[str, int] = defaultdict(int)
     lock = threading.Lock()
 

@@ -14,6 +14,7 @@ import logging
 import os
 import socket
 import struct
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -21,6 +22,7 @@ from typing import Any
 import zenoh
 
 from hilsim.config import ZenohConfig
+from hilsim.keys import DEFAULT_PREFIX, Keys
 
 LOG = logging.getLogger(__name__)
 DEFAULT_ROUTER_PORT = 7447
@@ -114,3 +116,45 @@ def read_attachment(sample: Any) -> Attachment | None:
         return None
     seq, ns, gid = ATTACHMENT.unpack(raw)
     return Attachment(seq, ns, gid)
+
+
+# ---------------------------------------------------------------- command-line tools
+# `hilsim topic`, `gains`, `goal`, … join a running simulation from outside: they resolve where
+# to connect and which prefix to use here, the same way for every tool.
+DEFAULT_CONNECT = f"tcp/127.0.0.1:{DEFAULT_ROUTER_PORT}"  # where `hilsim up` puts its router
+
+
+def tool_endpoints(connect: str | None = None) -> list[str]:
+    """Endpoints a tool connects to: ``--connect``, else ``HILSIM_ZENOH_CONNECT``, else the
+    launcher's well-known :data:`DEFAULT_CONNECT`; comma-separated lists are split."""
+    text = connect or os.environ.get("HILSIM_ZENOH_CONNECT") or DEFAULT_CONNECT
+    return [e.strip() for e in text.split(",") if e.strip()] or [DEFAULT_CONNECT]
+
+
+def tool_prefix(prefix: str | None = None) -> str:
+    """Key prefix a tool uses: ``--prefix``, else ``HILSIM_PREFIX``, else ``hilsim``."""
+    return prefix or os.environ.get("HILSIM_PREFIX") or DEFAULT_PREFIX
+
+
+def open_tool_session(connect: str | None = None) -> zenoh.Session:
+    """A peer session for a tool (see :func:`tool_endpoints`); ConnectionError if it cannot open."""
+    return open_session(ZenohConfig(connect=tool_endpoints(connect)))
+
+
+def wait_for_service(session: zenoh.Session, keys: Keys, service: str, timeout: float) -> bool:
+    """True once ``service``'s liveliness token is seen within ``timeout`` s.
+
+    A session that has just opened does not know the service's queryables yet: a query sent
+    then reaches nobody. Services declare the token after their queryables, so once it is
+    seen, queries are routed."""
+    seen = threading.Event()
+
+    def on_token(s: zenoh.Sample) -> None:
+        if s.kind == zenoh.SampleKind.PUT:
+            seen.set()
+
+    sub = session.liveliness().declare_subscriber(keys.alive(service), on_token, history=True)
+    try:
+        return seen.wait(timeout)
+    finally:
+        sub.undeclare()

@@ -27,7 +27,7 @@ from typing import Any
 
 import zenoh
 
-from hilsim import msgs
+from hilsim import msgs, transport
 from hilsim.keys import Keys
 
 
@@ -68,9 +68,7 @@ class MoveClient:
         """Wait until the planner's liveliness token is seen. A session that has just opened
         does not yet know the planner's queryable: a query sent then reaches nobody. The token
         is declared after the queryable, so seeing it means the query will be routed."""
-        from hilsim.params import wait_for_service
-
-        return wait_for_service(self.session, self.keys, "planner", timeout)
+        return transport.wait_for_service(self.session, self.keys, "planner", timeout)
 
     def _query(self, topic: str, payload: bytes, goal_id: str) -> msgs.GoalResponse:
         if not self._planner_seen:
@@ -160,25 +158,14 @@ def goal_from_args(args: argparse.Namespace) -> msgs.MoveGoal:
 
 def cmd_goal(args: argparse.Namespace) -> int:
     """``hilsim goal ROBOT --joints … | --pose x y z [r p y]``: send, print feedback, print the result."""
-    import os
-
-    from hilsim.config import ZenohConfig
-    from hilsim.keys import DEFAULT_PREFIX
-    from hilsim.transport import open_session
-
     try:
         goal = goal_from_args(args)
     except ValueError as e:
         print(f"hilsim goal: {e}", file=sys.stderr)
         return 2
-    zc = ZenohConfig()
-    if args.connect:
-        zc = ZenohConfig(connect=[args.connect])
-    elif v := os.environ.get("HILSIM_ZENOH_CONNECT"):
-        zc = ZenohConfig(connect=[e.strip() for e in v.split(",") if e.strip()])
-    prefix = args.prefix or os.environ.get("HILSIM_PREFIX") or DEFAULT_PREFIX
+    prefix = transport.tool_prefix(args.prefix)
     try:
-        session = open_session(zc)
+        session = transport.open_tool_session(args.connect)
     except ConnectionError as e:
         print(f"hilsim goal: {e}", file=sys.stderr)
         return 2
