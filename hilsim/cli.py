@@ -115,7 +115,8 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--targets", required=True)
     ev.add_argument("--criterion", choices=["length", "smoothness", "weighted"], default="weighted")
     ev.add_argument("--scenario", default="arm")
-    ev.add_argument("--csv")
+    ev.add_argument("--csv", help="CSV path; the recording goes next to it (default: OUT/plan_evaluate.csv)")
+    ev.add_argument("--out", help="output directory (default runs/<timestamp>-plan-evaluate)")
     ev.add_argument("--execute", action="store_true")
     ev.set_defaults(func=_lazy("hilsim.planning.evaluate", "cmd_evaluate"))
 

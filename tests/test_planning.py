@@ -168,6 +168,24 @@ def test_evaluate_targets_file(tmp_path: Path) -> None:
     assert len((tmp_path / "t.csv").read_text().splitlines()) == 1 + 3 * 6
 
 
+def test_plan_evaluate_writes_into_its_own_run_dir(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from hilsim import cli
+
+    monkeypatch.setattr("hilsim.planning.quiet_ompl_at_exit", lambda: None)  # pytest's own exit keeps stderr
+    monkeypatch.chdir(tmp_path)
+    targets = tmp_path / "targets.yaml"
+    over = [0.0, -0.167, 0.031, 0.0, -1.435, 0.0]
+    targets.write_text(f"start: [0, 0, 0, 0, 0, 0]\ntarget_names: [over]\ntargets: [{over}]\n")
+    assert cli.main(["plan", "evaluate", "--targets", str(targets)]) == 0
+    (run,) = (tmp_path / "runs").glob("*-plan-evaluate")
+    assert sorted(p.name for p in run.iterdir()) == ["plan_evaluate.csv", "plan_evaluate.rrd"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["runs", "targets.yaml"]  # nothing in the working dir
+    # an explicit --csv is taken as it is (the recording goes next to it), --out names the directory
+    sc = load_scenario("arm")
+    assert ev.output_csv(sc, "a/t.csv", None) == Path("a/t.csv") and (tmp_path / "a").is_dir()
+    assert ev.output_csv(sc, None, "b") == Path("b/plan_evaluate.csv") and (tmp_path / "b").is_dir()
+
+
 def test_ik_reaches_pose_with_orientation(arm: ArmModel) -> None:
     down = rpy_to_matrix(0.0, np.pi / 2, 0.0)
     q = solve_ik(arm, np.array([0.17, -0.2, 0.08]), down, np.zeros(6))

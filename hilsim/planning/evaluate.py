@@ -8,7 +8,8 @@ with ruckig (:mod:`hilsim.planning.trajectory`), and per joint ``i``:
 
 The best target minimises ``Σ_i P_i`` (``length``), ``Σ_i A_i`` (``smoothness``), or a weighted
 sum of both, each normalised by its smallest value over the targets (``weighted``, weights 0.5).
-The chosen plan is written to a Rerun recording and can be executed on a running system.
+The table goes to a CSV and the chosen plan to a Rerun recording next to it, by default in a new
+``runs/<timestamp>-plan-evaluate/``; the plan can be executed on a running system.
 
 Targets file (YAML): ``targets: [[q1..q6], …]``, optional ``target_names`` and ``start``
 (or ``home``), e.g. ``models/arm/targets.yaml``.
@@ -29,6 +30,7 @@ from hilsim.config import ConfigError, Scenario, load_scenario
 from hilsim.planning.collision import ArmModel
 from hilsim.planning.library import PlannerLibrary, Problem
 from hilsim.planning.trajectory import TimedTrajectory, time_parameterize
+from hilsim.runs import new_run_dir
 
 CRITERIA = ("length", "smoothness", "weighted")
 
@@ -165,6 +167,18 @@ def log_rerun(path: Path, e: Evaluation, joint_names: list[str]) -> None:
     rec.flush()
 
 
+def output_csv(sc: Scenario, csv: str | None, out: str | None) -> Path:
+    """Where the CSV goes (the recording goes next to it): ``csv`` if given, else
+    ``plan_evaluate.csv`` in ``out`` or in a new ``runs/<timestamp>-plan-evaluate/``."""
+    if csv:
+        path = Path(csv)
+    else:
+        d = Path(out) if out else new_run_dir(sc.logger.out_dir, "plan-evaluate")
+        path = d / "plan_evaluate.csv"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path
+
+
 def cmd_evaluate(args: argparse.Namespace) -> int:
     from hilsim.planning import quiet_ompl_at_exit
 
@@ -180,7 +194,7 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
     for e in evals:
         if not e.ok:
             print(f"{e.name}: {e.message}")
-    csv_path = Path(args.csv) if args.csv else Path("plan_evaluate.csv")
+    csv_path = output_csv(sc, args.csv, args.out)
     write_csv(csv_path, evals, arm.joint_names, best)
     print(f"CSV: {csv_path}")
     if best is None:
