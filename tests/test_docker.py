@@ -47,3 +47,12 @@ def test_dockerfile_copies_what_the_services_need() -> None:
         assert f"COPY {part}" in text, part
         assert (REPO / part).exists()
     assert "WORKDIR /hilsim" in text and 'ENTRYPOINT ["hilsim"]' in text
+
+
+def test_docker_files_mention_only_files_that_exist() -> None:
+    import re
+
+    for f in ("compose.yaml", "Dockerfile"):
+        for name in re.findall(r"[\w./-]+\.(?:ya?ml|py|toml|md)\b", (DOCKER / f).read_text()):
+            exists = (DOCKER / name).exists() or (REPO / name).exists()
+            assert exists, f"docker/{f} mentions {name}, which does not exist"
