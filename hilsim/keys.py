@@ -34,6 +34,7 @@ TOPICS: dict[str, type] = {
     "planner/path": msgs.JointTrajectory,
     "planner/feedback": msgs.MoveFeedback,
     "planner/result": msgs.MoveResult,
+    "task/result": msgs.MoveResult,
 }
 # Keys whose last segment is a service name.
 PER_SERVICE_TOPICS: dict[str, type] = {

@@ -103,6 +103,7 @@ class Launcher:
         self.session = transport.open_session(self.sc.zenoh)
         self._subs = [
             self.session.declare_subscriber(self.keys.topic("planner/result"), self._on_result),
+            self.session.declare_subscriber(self.keys.topic("task/result"), self._on_result),
             self.session.declare_subscriber(self.keys.health("*"), self._on_health),
             self.session.liveliness().declare_subscriber(self.keys.all_alive, self._on_alive, history=True),
         ]
@@ -156,15 +157,16 @@ class Launcher:
         self.changed.set()
 
     def _on_result(self, sample: zenoh.Sample) -> None:
+        """``planner/result``: one goal ended (progress); ``task/result``: the task ended (the run ends)."""
         try:
             res = msgs.decode(msgs.MoveResult, sample.payload.to_bytes())
         except msgs.BadMessage as e:
-            self.say(f"warning: unreadable planner result: {e}")
+            self.say(f"warning: unreadable result on {sample.key_expr}: {e}")
             return
         with self.lock:
-            if res.goal_id == "task":
+            if str(sample.key_expr) == self.keys.topic("task/result"):
                 self.outcome.task = res
-            else:
+            elif res.goal_id != "task":  # the planner repeats the task's result on planner/result
                 self.outcome.results.append(res)
                 err = max((abs(e) for e in res.execution_error), default=float("nan"))
                 status = "reached" if res.success else f"FAILED ({res.message})"

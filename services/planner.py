@@ -12,14 +12,16 @@ Writes:
   stamped to start ``START_DELAY`` after the tick it was planned on;
 - ``planner/path`` (the geometric path, for the logger), ``planner/feedback`` (state ``planning`` /
   ``executing`` / ``settling``, progress, 10 Hz sim), ``planner/result`` (MoveResult);
+- ``task/result`` (MoveResult ``task``): the outcome of the scenario task;
 - ``sync/planner`` (lockstep acknowledgement) through the base class.
 
 Serves ``planner/goal`` (MoveGoal → GoalResponse, accepted or rejected with the reason) and
 ``planner/cancel`` (CancelRequest → GoalResponse). A new goal preempts the active one.
 
-The scenario task (``task.targets``) is run by the service itself: goals ``task-1`` … ``task-N`` in
-order, each starting on the tick after the previous result, then a MoveResult ``task`` saying
-how many targets were reached (``hilsim up`` ends the run on it).
+The scenario task (``task.targets``) is a :class:`hilsim.tasks.TaskRunner` hosted here: goals
+``task-1`` … ``task-N`` in order, each starting on the tick after the previous result, then a
+MoveResult ``task`` saying how many targets were reached, on ``planner/result`` and on
+``task/result`` (``hilsim up`` ends the run on the latter).
 
 Threads: Zenoh callbacks run under ``self.lock`` and only queue work; one worker thread plans
 (with its own MuJoCo model) so goal and cancel queries are answered while it plans.
@@ -50,6 +52,7 @@ from hilsim.planning.trajectory import (
     to_msg,
 )
 from hilsim.service import Service
+from hilsim.tasks import TaskGoal, TaskRunner, is_reserved
 
 START_DELAY_NS = 20_000_000  # trajectory starts 20 ms (sim) after the tick it was planned on
 FEEDBACK_PERIOD_NS = 100_000_000  # 10 Hz sim
@@ -62,7 +65,7 @@ class Goal:
     planner: str
     planning_time: float
     execute: bool = True
-    task: bool = False
+    task: bool = False  # a step of the scenario task (its end is reported to the task runner)
     state: str = "queued"  # queued | planning | executing | settling | done
     canceled: bool = False
     start_ns: int = 0
@@ -95,11 +98,8 @@ class PlannerService(Service):
         self.last_target: np.ndarray | None = None  # target of the last goal reached
         self.active: Goal | None = None
         self.pending: list[Goal] = []
-        self.task_targets = [np.asarray(t, float) for t in scenario.task.targets]
-        self.task_index = 0  # next task target to start
-        self.task_reached = 0
-        self.task_errors: list[float] = []
-        self.task_started = False
+        self.task_runner = TaskRunner(scenario.task.targets, self._submit_task_goal, self._report_task,
+                                      planner=self.default_planner)
         self.goal_counter = 0
         self.plans = 0
         self.goals_rejected = 0
@@ -114,6 +114,7 @@ class PlannerService(Service):
         self.pub_path = self.publisher(k.topic("planner/path"))
         self.pub_feedback = self.publisher(k.topic("planner/feedback"))
         self.pub_result = self.publisher(k.topic("planner/result"))
+        self.pub_task_result = self.publisher(k.topic("task/result"))
         self.subscribe(k.topic("joint_states"), msgs.JointState, self.on_joint_states, n_joints=self.n)
         self.queryable(k.topic("planner/goal"), msgs.MoveGoal, self.on_goal, n_joints=self.n, reject=self._reject)
         self.queryable(k.topic("planner/cancel"), msgs.CancelRequest, self.on_cancel, reject=self._reject)
@@ -188,7 +189,7 @@ class PlannerService(Service):
     def on_goal(self, g: msgs.MoveGoal) -> msgs.GoalResponse:
         self.goal_counter += 1
         gid = g.goal_id or f"goal-{self.goal_counter}"
-        if gid == "task" or gid.startswith("task-"):
+        if is_reserved(gid):
             return self._reject(f"INVALID_GOAL: goal id {gid!r} is reserved for the scenario task", gid)
         name = g.planner or self.default_planner
         try:
@@ -260,34 +261,18 @@ class PlannerService(Service):
         if self.active is goal:
             self.active = None
         if goal.task:
-            self.task_reached += int(success)
-            if self.task_index < len(self.task_targets):
-                self._queue_task_target()
-            else:
-                self._finish_task(err)
+            self.task_runner.on_goal_result(success, self.sim_ns, err)
 
-    def _queue_task_target(self) -> None:
-        i = self.task_index
-        self.task_index += 1
-        q = self.task_targets[i]
-        goal = Goal(f"task-{i + 1}", q, self.default_planner, self.sc.planner.planning_time, True, task=True)
-        goal.invalid = self.check_target(q)
+    # ------------------------------------------------------------------ the scenario task (hilsim.tasks)
+    def _submit_task_goal(self, tg: TaskGoal) -> None:
+        goal = Goal(tg.goal_id, tg.target, self.default_planner, self.sc.planner.planning_time, True, task=True)
+        goal.invalid = self.check_target(tg.target)  # reported in turn, as a failed step
         self.pending.append(goal)
 
-    def _finish_task(self, err: list[float]) -> None:
-        n = len(self.task_targets)
-        self.pub_result.put(
-            msgs.MoveResult(
-                header=msgs.header(self.sim_ns),
-                goal_id="task",
-                success=self.task_reached == n,
-                error_code=msgs.SUCCESS if self.task_reached == n else msgs.FAILURE,
-                message=f"{self.task_reached}/{n} targets reached",
-                execution_error=err,
-                planner=self.default_planner,
-            )
-        )
-        self.log.info("task finished: %d/%d targets reached", self.task_reached, n)
+    def _report_task(self, result: msgs.MoveResult) -> None:
+        self.pub_result.put(result)
+        self.pub_task_result.put(result)
+        self.log.info("task finished: %s", result.message)
 
     def _feedback(self, goal: Goal, progress: float, now_ns: int) -> None:
         goal.last_feedback_ns = now_ns
@@ -343,9 +328,7 @@ class PlannerService(Service):
     def on_tick(self, t: int) -> None:
         """A decision step (see the module docstring)."""
         self.sim_ns = max(self.sim_ns, t)
-        if not self.task_started and self.task_targets:
-            self.task_started = True
-            self._queue_task_target()
+        self.task_runner.on_tick()
         if self.active is None and self.pending and self.q is not None:
             goal = self.pending.pop(0)
             if goal.invalid is not None:

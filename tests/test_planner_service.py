@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import pytest
 import zenoh
+from util import wait_until
 
 from hilsim import msgs
 from hilsim.keys import Keys
@@ -234,8 +235,17 @@ def test_planner_out_of_budget_fails_and_service_goes_on(rig: Any) -> None:
 @pytest.mark.parametrize("rig", [{"task.targets": [LEFT, OVER]}], indirect=True)
 def test_scenario_task_runs_targets_in_order(rig: Any) -> None:
     _svc, sim, client = rig
-    sim.run_until(lambda: client.result("task") is not None, 5000)
-    task = client.result("task")
-    assert task.success and task.message == "2/2 targets reached", client.result("task-2").message
-    assert client.result("task-1").success and client.result("task-2").success
-    assert np.allclose(sim.q, OVER, atol=1e-9)
+    on_task: list[msgs.MoveResult] = []
+    sub = client.session.declare_subscriber(
+        client.keys.topic("task/result"), lambda s: on_task.append(msgs.decode(msgs.MoveResult, s.payload.to_bytes()))
+    )
+    try:
+        sim.run_until(lambda: client.result("task") is not None, 5000)
+        task = client.result("task")
+        assert task.success and task.message == "2/2 targets reached", client.result("task-2").message
+        assert client.result("task-1").success and client.result("task-2").success
+        assert np.allclose(sim.q, OVER, atol=1e-9)
+        # the task's outcome also comes on the generic task/result, the same message
+        assert wait_until(lambda: len(on_task) == 1) and on_task[0] == task
+    finally:
+        sub.undeclare()
