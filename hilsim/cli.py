@@ -27,12 +27,12 @@ def cmd_run(args: argparse.Namespace) -> int:
 
     setup_logging(args.service, logging.DEBUG if args.verbose else logging.INFO)
     try:
-        cls = service_class(args.service)
+        service_class(args.service)  # an unknown name is said before the scenario is read
     except UnknownService as e:
         print(f"hilsim run: {e}", file=sys.stderr)
         return 2
     sc = load_scenario(args.config, parse_overrides(args.set))
-    return int(cls(sc).run())
+    return int(service_class(args.service, sc)(sc).run())
 
 
 def _lazy(module: str, func: str) -> Callable[[argparse.Namespace], int]:

@@ -24,7 +24,8 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 CONFIG_DIR = REPO_ROOT / "config"
 MODELS_DIR = REPO_ROOT / "models"
 
-SERVICE_NAMES = ("physics", "sensors", "controller", "planner", "logger")
+DEFAULT_SERVICES = ("physics", "sensors", "controller", "planner", "logger")
+SIM = "sim"  # the server of a joint simulated by physics
 
 
 class ConfigError(Exception):
@@ -49,6 +50,10 @@ class ClockConfig(_Model):
     ack_timeout: float = Field(
         10.0, gt=0, description="wall seconds physics waits for a lockstep ack before publishing a fault"
     )
+    max_age: float = Field(
+        0.05, ge=0, description="realtime: a received sample older than this (wall seconds since it was sent) is "
+        "dropped as stale and counted, so a service that fell behind catches up; 0 = keep every sample",
+    )
     start_delay: float = Field(
         0.5, ge=0, description="wall seconds between every service being live and step 0 (peers finish connecting)"
     )
@@ -57,12 +62,29 @@ class ClockConfig(_Model):
 class WorldConfig(_Model):
     model: Path = Field(description="MJCF world file (robot included)")
     urdf: Path | None = None
-    gravity_compensation: bool = True
+
+
+Interface = Literal["effort", "position", "velocity"]
+
+
+class JointConfig(_Model):
+    """How one joint is commanded and who serves it (like a ros2_control hardware interface)."""
+
+    interface: Interface = Field("effort", description="command interface: effort, position or velocity")
+    server: str = Field(SIM, description="'sim' (physics) or the name of an external server (e.g. motor-model)")
+    servo_kp: float | None = Field(None, gt=0, description="simulated drive: position [N·m/rad] or velocity "
+                                   "[N·m·s/rad] servo gain (default 100 / 10)")
+    servo_kv: float | None = Field(None, ge=0, description="simulated position drive: damping [N·m·s/rad] (default 5)")
 
 
 class PhysicsConfig(_Model):
-    actuator: Literal["effort", "position", "velocity"] = "effort"
     truth_imu_site: str | None = "imu"
+    gravity_compensation: list[str] = Field(
+        default_factory=list, description="bodies whose gravity is compensated (names or glob patterns, e.g. 'link_*')"
+    )
+    server_timeout: float = Field(
+        0.25, gt=0, description="wall seconds without state from an external joint server before it is a fault"
+    )
 
 
 class SensorConfig(BaseModel):
@@ -84,7 +106,11 @@ class PidGains(_Model):
 
 
 class ControllerConfig(_Model):
+    type: str = Field("joint_trajectory", description="control law, by name (built-in or hilsim.controllers plug-in)")
     rate_hz: float = Field(1000.0, gt=0)
+    velocity_gain: float = Field(
+        10.0, ge=0, description="velocity-interface joints: command = v_ref + velocity_gain·(p_ref − p) [1/s]"
+    )
     gains: dict[str, PidGains] = Field(default_factory=dict, description="per joint name, or 'default'")
     hold_timeout: float = Field(0.05, gt=0, description="sim seconds without joint_states before holding")
 
@@ -112,16 +138,23 @@ class LoggerConfig(_Model):
 
 
 class Scenario(_Model):
+    """A scenario. Besides the fields below, a top-level section named after a service (e.g.
+    ``motor-model:``) holds that service's own settings; its class validates them."""
+
+    model_config = ConfigDict(extra="allow", validate_assignment=True)
     name: str
     robot: str = "arm"
     prefix: str = "hilsim"
     seed: int = 0
     duration: float | None = Field(None, gt=0, description="sim seconds; None = until the task ends")
-    services: list[str] = Field(default_factory=lambda: list(SERVICE_NAMES))
+    services: list[str] = Field(default_factory=lambda: list(DEFAULT_SERVICES))
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
     clock: ClockConfig = Field(default_factory=ClockConfig)
     world: WorldConfig
     physics: PhysicsConfig = Field(default_factory=PhysicsConfig)
+    joints: dict[str, JointConfig] = Field(
+        default_factory=dict, description="per joint name, or 'default' for the others: interface and server"
+    )
     sensors: dict[str, SensorConfig] = Field(default_factory=dict)
     controller: ControllerConfig = Field(default_factory=ControllerConfig)
     planner: PlannerConfig = Field(default_factory=PlannerConfig)
@@ -139,10 +172,47 @@ class Scenario(_Model):
     @field_validator("services")
     @classmethod
     def _known_services(cls, v: list[str]) -> list[str]:
+        from hilsim import registry  # registry names come from tables and entry points, nothing imported
+
+        known = registry.names("services")
         for s in v:
-            if s not in SERVICE_NAMES:
-                raise ValueError(f"unknown service {s!r}; expected some of {', '.join(SERVICE_NAMES)}")
+            if s not in known:
+                raise ValueError(f"unknown service {s!r}; available: {', '.join(known)}")
+        if len(set(v)) != len(v):
+            raise ValueError("a service is listed twice")
         return v
+
+    @model_validator(mode="after")
+    def _service_sections(self) -> Scenario:
+        from hilsim import registry
+
+        known = registry.names("services")
+        for k in self.model_extra or {}:
+            if k not in known:
+                raise ValueError(f"unknown field {k!r} (not a scenario field, nor a service's section; "
+                                 f"services: {', '.join(known)})")
+        return self
+
+    def joint(self, name: str) -> JointConfig:
+        """The interface and server of a joint (its own entry, else ``default``, else effort/sim)."""
+        return self.joints.get(name) or self.joints.get("default") or JointConfig()
+
+    def external_servers(self) -> list[str]:
+        """External joint servers named in ``joints`` (in order of first mention)."""
+        out: list[str] = []
+        for j in self.joints.values():
+            if j.server != SIM and j.server not in out:
+                out.append(j.server)
+        return out
+
+    def processes(self) -> list[str]:
+        """Every service this scenario runs: ``services`` plus the external joint servers."""
+        return [*self.services, *(s for s in self.external_servers() if s not in self.services)]
+
+    def section(self, name: str) -> dict[str, Any]:
+        """Raw settings of a plug-in or server section (validated by the service that owns it)."""
+        v = (self.model_extra or {}).get(name, {})
+        return v if isinstance(v, dict) else {}
 
     @model_validator(mode="after")
     def _control_rate(self) -> Scenario:
@@ -177,24 +247,14 @@ class Scenario(_Model):
     def control_decimation(self) -> int:
         return round(1.0 / (self.controller.rate_hz * self.clock.dt))
 
-    def lockstep_participants(self) -> list[str]:
-        """Services physics waits for in lockstep mode.
-
-        The sensors acknowledge only when there is no controller: the controller runs on the
-        encoders' ``joint_states``, so its command for step k already proves the sensors have
-        handled step k (physics publishes every truth of a step before ``truth/joint_states``).
-        One message and two deliveries fewer per step.
-        """
-        order = ("controller", "planner") if "controller" in self.services else ("sensors", "planner")
-        return [s for s in order if s in self.services]
-
     def dump(self) -> dict[str, Any]:
         return self.model_dump(mode="json", exclude={"source"})
 
 
-def _format_error(path: Path | str, err: ValidationError) -> str:
+def format_error(path: Path | str, err: ValidationError, prefix: str = "") -> str:
+    """One line: file, dotted field (under ``prefix``), what was expected, what was given."""
     e = err.errors()[0]
-    loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
+    loc = ".".join([prefix, *(str(p) for p in e["loc"])] if prefix else [str(p) for p in e["loc"]]) or "(top level)"
     got = e.get("input")
     shown = got is not None and not isinstance(got, dict | list) and e["type"] != "missing"
     extra = f" (got {got!r})" if shown else ""
@@ -241,13 +301,14 @@ def scenario_path(name_or_path: str | Path) -> Path:
     return CONFIG_DIR / f"{name_or_path}.yaml"
 
 
-def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = None) -> Scenario:
-    path = scenario_path(name_or_path)
+def _read(path: Path, chain: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """Raw data of a scenario file, its ``extends:`` base merged under it (paths resolved)."""
     try:
         text = path.read_text()
     except FileNotFoundError:
         avail = ", ".join(sorted(p.stem for p in CONFIG_DIR.glob("*.yaml") if _is_scenario(p)))
-        raise ConfigError(f"{path}: no such scenario file (available in config/: {avail})") from None
+        where = f"{chain[-1]}: extends: " if chain else ""
+        raise ConfigError(f"{where}{path}: no such scenario file (available in config/: {avail})") from None
     except OSError as e:
         raise ConfigError(f"{path}: cannot read: {e.strerror}") from None
     try:
@@ -258,6 +319,31 @@ def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = N
         raise ConfigError(f"{path}: {where}: not valid YAML ({getattr(e, 'problem', e)})") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: (top level): expected a mapping of scenario fields, got {type(data).__name__}")
+    _resolve_paths(data, path.resolve().parent)
+    base = data.pop("extends", None)
+    if base is None:
+        return data
+    if not isinstance(base, str):
+        raise ConfigError(f"{path}: extends: expected the path of a scenario file (got {base!r})")
+    base_path = (path.resolve().parent / base).resolve()
+    if base_path in chain or base_path == path.resolve():
+        raise ConfigError(f"{path}: extends: {base} extends itself (through {', '.join(map(str, chain))})")
+    return _merge(_read(base_path, (*chain, path.resolve())), data)
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """``over`` on top of ``base``: sections merge key by key, anything else is replaced."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = None) -> Scenario:
+    """Load, merge (``extends:``), override, validate. A scenario file may start from another
+    with ``extends: <path relative to this file>`` and change only some fields (an overlay)."""
+    path = scenario_path(name_or_path)
+    data = _read(path)
     for k, v in (overrides or {}).items():
         set_dotted(data, k, v)
     _apply_env(data)
@@ -265,13 +351,32 @@ def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = N
     try:
         sc = Scenario.model_validate(data)
     except ValidationError as e:
-        raise ConfigError(_format_error(path, e)) from None
+        raise ConfigError(format_error(path, e)) from None
     if not sc.world.model.exists():
         raise ConfigError(f"{path}: world.model: file {sc.world.model} does not exist")
     if sc.world.urdf is not None and not sc.world.urdf.exists():
         raise ConfigError(f"{path}: world.urdf: file {sc.world.urdf} does not exist")
+    check_joint_servers(sc, path)
     sc.source = path
     return sc
+
+
+def check_joint_servers(sc: Scenario, path: Path | str) -> None:
+    """External joint servers exist and the clock suits them (one-line :class:`ConfigError`)."""
+    from hilsim import registry
+
+    known = registry.names("services")
+    for jname, j in sc.joints.items():
+        if j.server == SIM:
+            continue
+        if j.server not in known:
+            raise ConfigError(f"{path}: joints.{jname}.server: unknown server {j.server!r}; "
+                              f"expected 'sim' or one of {', '.join(known)}")
+        if sc.clock.mode != "realtime":
+            # hardware lives on the wall clock: it cannot wait for a lockstep step
+            raise ConfigError(f"{path}: joints.{jname}.server: {j.server!r} is an external server, which runs on "
+                              f"the wall clock, so the scenario needs clock.mode: realtime (got "
+                              f"{sc.clock.mode!r}; pass --clock realtime)")
 
 
 def _is_scenario(p: Path) -> bool:

@@ -42,6 +42,9 @@ PER_SERVICE_TOPICS: dict[str, type] = {
     "sync": msgs.Clock,
     "log": msgs.Log,
 }
+# Keys <prefix>/<robot>/hw/<server>/<topic>: what an external joint server (a bridge, the motor
+# model) publishes. One key per server, so each has exactly one writer.
+SERVER_TOPICS: dict[str, type] = {"joint_states": msgs.JointState}
 GLOBAL_TOPICS: dict[str, type] = {"clock": msgs.Clock}
 
 # Queryables (request/reply): topic -> (request type, reply type).
@@ -89,6 +92,24 @@ class Keys:
         """Liveliness token of a running service (no payload)."""
         return f"{self.prefix}/{self.robot}/alive/{service}"
 
+    def server_state(self, server: str) -> str:
+        """Measured state of the joints an external server serves (sensor_msgs/JointState)."""
+        return f"{self.prefix}/{self.robot}/hw/{server}/joint_states"
+
+    @property
+    def all_server_states(self) -> str:
+        return f"{self.prefix}/{self.robot}/hw/*/joint_states"
+
+    def lockstep(self, service: str, period: int, via: str, gid: str) -> str:
+        """Liveliness token of a lockstep participant: physics waits for ``service`` every
+        ``period`` steps; its acknowledgement is ``sync/<service>`` (``via`` = ``sync``) or its
+        ``joint_commands`` (``via`` = ``joint_commands``), written by the publisher ``gid`` (hex)."""
+        return f"{self.prefix}/{self.robot}/lockstep/{service}/{period}/{via}/{gid}"
+
+    @property
+    def all_lockstep(self) -> str:
+        return f"{self.prefix}/{self.robot}/lockstep/**"
+
     @property
     def all_alive(self) -> str:
         return f"{self.prefix}/{self.robot}/alive/*"
@@ -114,4 +135,6 @@ def message_type(key: str) -> type:
             return TOPICS[rest]
         if len(parts) == 4 and parts[2] in PER_SERVICE_TOPICS:
             return PER_SERVICE_TOPICS[parts[2]]
+        if len(parts) == 5 and parts[2] == "hw" and parts[4] in SERVER_TOPICS:
+            return SERVER_TOPICS[parts[4]]
     raise UnknownKey(f"{key!r} is not a hilsim data key")

@@ -33,9 +33,16 @@ from hilsim import msgs, transport
 from hilsim.config import Scenario, load_scenario, write_scenario
 from hilsim.keys import Keys
 
-STOP_ORDER = ("physics", "planner", "controller", "sensors", "logger")
-START_ORDER = ("logger", "controller", "sensors", "planner", "physics")
 LOGGER_NICE = 10
+
+
+def stop_order(sc: Scenario) -> list[str]:
+    """The scenario's processes in the order they stop (each class's ``stop_rank``: physics
+    first, the recorder last); they start in the reverse order."""
+    from hilsim.registry import service_class
+
+    names = sc.processes()
+    return sorted(names, key=lambda n: (service_class(n, sc).stop_rank, names.index(n)))
 
 
 def _pdeathsig() -> None:
@@ -70,6 +77,7 @@ class Outcome:
     health: dict[str, dict[str, str]] = field(default_factory=dict)
     physics_done: bool = False
     died: list[tuple[str, int]] = field(default_factory=list)
+    faults: list[str] = field(default_factory=list)
     interrupted: bool = False
 
 
@@ -105,11 +113,13 @@ class Launcher:
             self.session.declare_subscriber(self.keys.topic("planner/result"), self._on_result),
             self.session.declare_subscriber(self.keys.topic("task/result"), self._on_result),
             self.session.declare_subscriber(self.keys.health("*"), self._on_health),
+            self.session.declare_subscriber(self.keys.log("*"), self._on_log),
             self.session.liveliness().declare_subscriber(self.keys.all_alive, self._on_alive, history=True),
         ]
         env = dict(os.environ)
         env.setdefault("PYTHONUNBUFFERED", "1")
-        for name in [s for s in START_ORDER if s in self.sc.services]:
+        self.order = stop_order(self.sc)
+        for name in reversed(self.order):
             log_path = self.run_dir / f"{name}.log"
             with open(log_path, "wb") as logf:
                 proc = subprocess.Popen(
@@ -174,6 +184,17 @@ class Launcher:
                          f"planning {res.planning_time:.2f}s, max joint error {err:.4f} rad")
         self.changed.set()
 
+    def _on_log(self, sample: zenoh.Sample) -> None:
+        """Faults of any service (a silent joint server, a stalled lockstep) as they happen."""
+        try:
+            m = msgs.decode(msgs.Log, sample.payload.to_bytes())
+        except msgs.BadMessage:
+            return
+        if m.level >= 40:
+            with self.lock:
+                self.outcome.faults.append(f"{m.name}: {m.msg}")
+            self.say(f"  fault: {m.name}: {m.msg}")
+
     def _on_health(self, sample: zenoh.Sample) -> None:
         try:
             h = msgs.decode(msgs.DiagnosticArray, sample.payload.to_bytes())
@@ -223,7 +244,7 @@ class Launcher:
 
     # ------------------------------------------------------------------ stop
     def stop(self) -> None:
-        for name in STOP_ORDER:
+        for name in getattr(self, "order", []):
             c = self.children.get(name)
             if c is None:
                 continue
@@ -321,6 +342,8 @@ def summarise(la: Launcher) -> int:
     print(f"  logs: {la.run_dir}/")
     for name, rc in o.died:
         print(f"  service {name} died (exit code {rc})")
+    if o.faults:
+        print(f"  faults reported: {len(o.faults)} (first: {o.faults[0]})")
     print("result: " + ("OK" if ok else "FAILED"))
     return 0 if ok else 1
 
@@ -340,7 +363,8 @@ def cmd_up(args: argparse.Namespace) -> int:
         sc.services = [s for s in sc.services if s != "logger"]
     run_dir = Path(args.out) if args.out else default_run_dir(sc)
     la = Launcher(sc, run_dir, router=args.router)
-    print(f"hilsim up {sc.name}: {len(sc.services)} services, clock {sc.clock.mode}, seed {sc.seed}, run dir {run_dir}")
+    print(f"hilsim up {sc.name}: {len(sc.processes())} services, clock {sc.clock.mode}, seed {sc.seed}, "
+          f"run dir {run_dir}")
 
     def on_signal(signum: int, _frame: Any) -> None:
         la.outcome.interrupted = True

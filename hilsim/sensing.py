@@ -1,7 +1,7 @@
 """Emulated sensors: one base class, one small subclass per sensor kind, picked by name.
 
 A scenario's ``sensors:`` section maps a sensor *name* to its ``type`` (a key of
-:data:`SENSORS`), ``rate_hz``, ``enabled`` and the parameters of that type::
+:mod:`hilsim.registry`, kind ``sensors``), ``rate_hz``, ``enabled`` and the parameters of that type::
 
     encoders: {type: encoder, rate_hz: 1000, resolution: 0.0001, noise_std: 0.00002}
 
@@ -9,14 +9,14 @@ The base :class:`Sensor` does what every sensor shares: parameter validation (on
 errors naming ``sensors.<name>.<field>``), the rate as a decimation of the physics step,
 and a noise generator seeded from the scenario seed and the sensor name (stable across runs
 and independent of the other sensors). A subclass declares which truth topic it reads, which
-topic it writes, its parameters (a pydantic model) and :meth:`Sensor.measure`. New kinds
-(GPS, laser scanner) register with ``@register("gps")`` and need nothing else.
+topic it writes, its parameters (a pydantic model) and :meth:`Sensor.measure`. A new kind is
+a subclass listed in the registry's built-in table, or offered by another package through the
+``hilsim.sensors`` entry-point group; nothing else changes.
 """
 
 from __future__ import annotations
 
 import zlib
-from collections.abc import Callable
 from typing import Any, ClassVar
 
 import numpy as np
@@ -36,23 +36,18 @@ class SensorParams(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
 
-SENSORS: dict[str, type[Sensor]] = {}
-
-
-def register(type_name: str) -> Callable[[type[Sensor]], type[Sensor]]:
-    def deco(cls: type[Sensor]) -> type[Sensor]:
-        cls.type_name = type_name
-        SENSORS[type_name] = cls
-        return cls
-
-    return deco
-
-
 def sensor_class(type_name: str) -> type[Sensor]:
+    from hilsim import registry
+
     try:
-        return SENSORS[type_name]
-    except KeyError:
-        raise UnknownSensorType(f"unknown sensor type {type_name!r}; available: {', '.join(sorted(SENSORS))}") from None
+        cls = registry.load("sensors", type_name)
+    except registry.UnknownName as e:
+        raise UnknownSensorType(str(e).replace("unknown sensor", "unknown sensor type")) from None
+    if not (isinstance(cls, type) and issubclass(cls, Sensor)):
+        raise UnknownSensorType(f"sensor type {type_name!r} is {cls!r}, not a hilsim.sensing.Sensor subclass")
+    if not cls.type_name:
+        cls.type_name = type_name
+    return cls
 
 
 def make_sensor(name: str, cfg: SensorConfig, *, seed: int, dt_ns: int, where: str = "") -> Sensor:
@@ -124,7 +119,6 @@ class EncoderParams(SensorParams):
     velocity_resolution: float = Field(0.0, ge=0, description="quantum of the velocity [rad/s]; 0 = exact")
 
 
-@register("encoder")
 class Encoder(Sensor):
     """Joint encoders: ``joint_states`` from ``truth/joint_states``.
 
@@ -136,6 +130,7 @@ class Encoder(Sensor):
     Names and order are those of the truth message.
     """
 
+    type_name = "encoder"
     truth_topic = "joint_states"
     output_topic = "joint_states"
     truth_type = msgs.JointState
@@ -174,12 +169,12 @@ class ImuParams(SensorParams):
     gyro_bias: Vec3 = (0.0, 0.0, 0.0)
 
 
-@register("imu")
 class ImuSensor(Sensor):
     """IMU: ``imu`` from ``truth/imu``. Accelerometer and gyro get a constant bias and white
     Gaussian noise; orientation (and its covariance) is passed through; the covariances of the
     rates are diagonal with the noise variances."""
 
+    type_name = "imu"
     truth_topic = "imu"
     output_topic = "imu"
     truth_type = msgs.Imu

@@ -22,14 +22,16 @@ import logging
 import signal
 import sys
 import threading
+import time
 from collections import Counter
 from collections.abc import Callable
 from typing import Any, ClassVar, TypeVar
 
 import zenoh
+from pydantic import BaseModel, ValidationError
 
 from hilsim import msgs, transport
-from hilsim.config import ConfigError, Scenario
+from hilsim.config import ConfigError, Scenario, format_error
 from hilsim.keys import Keys
 
 T = TypeVar("T")
@@ -57,12 +59,41 @@ class Publisher:
 
 
 class Service:
-    """One hilsim service process. Subclasses set ``name`` and implement :meth:`setup`."""
+    """One hilsim service process. Subclasses set ``name`` and implement :meth:`setup`.
+
+    What the launcher and physics need to know of a service is declared here, by the class:
+    ``stop_rank`` (``hilsim up`` stops services in ascending rank and starts them in the reverse
+    order: physics first to stop, the recorder last), :meth:`lockstep_period` (whether and how
+    often physics waits for it; announced at run time with a liveliness token, so physics needs
+    no list of participants) and ``ack_via``. ``Config`` validates the service's own scenario
+    section (a top-level field named like the service), available as ``self.cfg``.
+    """
 
     name: ClassVar[str] = "service"
+    stop_rank: ClassVar[int] = 50
+    # how a lockstep participant acknowledges a step: "sync" (a Clock on sync/<name>) or a topic
+    # it publishes exactly once per step anyway (the controller: joint_commands)
+    ack_via: ClassVar[str] = "sync"
+    Config: ClassVar[type[BaseModel] | None] = None
+
+    @classmethod
+    def lockstep_period(cls, sc: Scenario) -> int | None:
+        """Physics steps between this service's lockstep acknowledgements; None: not a participant."""
+        return None
+
+    @classmethod
+    def resolve(cls, sc: Scenario) -> type[Service]:
+        """The class that actually runs for this scenario (e.g. the controller by ``controller.type``)."""
+        return cls
 
     def __init__(self, scenario: Scenario) -> None:
         self.sc = scenario
+        self.cfg: Any = None
+        if self.Config is not None:
+            try:
+                self.cfg = self.Config.model_validate(scenario.section(self.name))
+            except ValidationError as e:
+                raise ConfigError(format_error(scenario.source or "scenario", e, prefix=self.name)) from None
         self.keys = Keys(scenario.prefix, scenario.robot)
         self.log = logging.getLogger(f"hilsim.{self.name}")
         self.lock = threading.RLock()
@@ -71,6 +102,7 @@ class Service:
         self.counts_in: Counter[str] = Counter()
         self.counts_out: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
+        self.stale: Counter[str] = Counter()  # realtime: samples dropped as older than clock.max_age
         self.errors = 0
         self.overruns = 0
         self.last_error = ""
@@ -111,22 +143,39 @@ class Service:
         handler: Callable[[T, str], None],
         *,
         n_joints: int | None = None,
+        with_attachment: bool = False,
     ) -> None:
-        """Call ``handler(msg, key)`` for every valid message on ``key`` (may be a key expression)."""
+        """Call ``handler(msg, key)`` for every valid message on ``key`` (may be a key expression);
+        with ``with_attachment``, ``handler(msg, key, attachment)`` (None if the sample has none)."""
         assert self.session is not None
+
+        max_age_ns = round(self.sc.clock.max_age * 1e9) if self.sc.clock.mode == "realtime" else 0
 
         def on_sample(sample: zenoh.Sample) -> None:
             k = str(sample.key_expr)
             self.counts_in[k] += 1
+            if max_age_ns:
+                # realtime: a sample that waited too long in a queue (this process fell behind)
+                # is dropped, so the loop works on fresh data and catches up instead of lagging more
+                att = transport.read_attachment(sample)
+                if att is not None and time.time_ns() - att.source_ns > max_age_ns:
+                    self.stale[k] += 1
+                    return
             try:
                 msg = msgs.decode(cls, sample.payload.to_bytes(), n_joints=n_joints)
             except msgs.BadMessage as e:
-                self.rejected[k] += 1
-                self.warn(f"rejected payload on {k}: {e}")
+                self.reject(k, str(e))
                 return
             try:
                 with self.lock:
-                    handler(msg, k)
+                    if self.stop_event.is_set():
+                        return  # stopping: the publishers may be going away
+                    if with_attachment:
+                        handler(msg, k, transport.read_attachment(sample))  # type: ignore[call-arg]
+                    else:
+                        handler(msg, k)
+            except msgs.BadMessage as e:  # well-formed, but not usable here (e.g. an unknown joint)
+                self.reject(k, str(e))
             except Exception as e:  # a bug or bad value must not kill the subscriber thread
                 self.fault(f"error handling {k}: {type(e).__name__}: {e}", exc=e)
 
@@ -172,11 +221,21 @@ class Service:
 
         self._declared.append(self.session.declare_queryable(key, on_query))
 
+    def reject(self, key: str, reason: str) -> bool:
+        """A sample that cannot be used: counted per key, logged with the key; returns False."""
+        self.rejected[key] += 1
+        self.warn(f"rejected payload on {key}: {reason}")
+        return False
+
     # ------------------------------------------------------------------ lockstep
     @property
     def lockstep(self) -> bool:
-        """True when physics waits for this service at every step."""
-        return self.sc.clock.mode == "lockstep" and self.name in self.sc.lockstep_participants()
+        """True when physics waits for this service (at its :meth:`lockstep_period`)."""
+        return self.sc.clock.mode == "lockstep" and self.lockstep_period(self.sc) is not None
+
+    def ack_publisher(self) -> Publisher | None:
+        """The publisher whose samples acknowledge steps (``ack_via``); the sync one by default."""
+        return self._sync_pub
 
     def ack(self, step_ns: int) -> None:
         """Tell physics this service has delivered its output for the step at ``step_ns``."""
@@ -214,6 +273,7 @@ class Service:
             "rejected": sum(self.rejected.values()),
             "errors": self.errors,
             "overruns": self.overruns,
+            "stale_dropped": sum(self.stale.values()),
             "last_error": self.last_error,
         }
         values.update(self.health_values())
@@ -251,9 +311,18 @@ class Service:
         self.session = session
         self._health_pub = self.publisher(self.keys.health(self.name))
         self._log_pub = self.publisher(self.keys.log(self.name))
-        if self.lockstep:
+        if self.lockstep and self.ack_via == "sync":
             self._sync_pub = self.publisher(self.keys.sync(self.name))
         self.setup()
+        if self.lockstep:
+            # announce the role before the liveliness token: physics, which waits for every
+            # service's token before step 0, then knows whom to wait for at each step
+            period = self.lockstep_period(self.sc)
+            ack = self.ack_publisher()
+            if ack is None:
+                raise RuntimeError(f"{self.name}: lockstep participant without an acknowledgement publisher")
+            token = self.keys.lockstep(self.name, int(period or 1), self.ack_via, ack.gid.hex())
+            self._declared.append(session.liveliness().declare_token(token))
         self._declared.append(session.liveliness().declare_token(self.keys.alive(self.name)))
         self.state = "running"
 
@@ -286,6 +355,8 @@ class Service:
             rc = 1
         finally:
             self.stop_event.set()
+            with self.lock:
+                pass  # a handler still running finishes; later ones see stop_event and return
             try:
                 self.publish_health()
             except Exception:

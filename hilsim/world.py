@@ -1,10 +1,18 @@
 """The MuJoCo world of a scenario, without any transport: load, command, step, read truth.
 
+Each actuated joint has the command interface its scenario entry names (``joints.<name>``):
+``effort`` (the motor torque), ``position`` or ``velocity`` (a simulated drive: MuJoCo's
+affine servo, its force limited by the motor's effort limit). A joint served by an external
+process (``server`` other than ``sim``) is not actuated: it *follows* the state its server
+measured (:meth:`World.follow`), kinematically, so the links, contacts and the recording
+stay consistent with the real motor.
+
 Used by the physics service and, unchanged, by the in-process baseline of ``hilsim bench loop``.
 """
 
 from __future__ import annotations
 
+import fnmatch
 import math
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -13,9 +21,10 @@ import mujoco
 import numpy as np
 
 from hilsim import msgs
-from hilsim.config import ConfigError, Scenario
+from hilsim.config import SIM, ConfigError, Scenario
 
-SERVO_KV = 5.0  # damping of the position servos [N·m·s/rad]
+SERVO_KP = {"position": 100.0, "velocity": 10.0}  # default drive gains [N·m/rad], [N·m·s/rad]
+SERVO_KV = 5.0  # default damping of the position servos [N·m·s/rad]
 
 
 class ModelError(ConfigError):
@@ -53,11 +62,18 @@ class World:
                                (mujoco.mjtSensor.mjSENS_FRAMEQUAT, "imu_quat")):
                 s = spec.add_sensor(name=name, type=kind, objname=self.imu_site)
                 s.objtype = mujoco.mjtObj.mjOBJ_SITE
-        if sc.world.gravity_compensation:
-            # As in the arm paper: link gravity off, inertia kept. Set before compiling:
-            # MuJoCo counts gravity-compensated bodies at compile time.
+        # As in the arm paper: link gravity off, inertia kept, for the bodies the scenario lists
+        # (a wheeled base must keep its weight). Set before compiling: MuJoCo counts
+        # gravity-compensated bodies at compile time.
+        bodies = [b.name for b in spec.bodies if b.name != "world"]
+        for pattern in sc.physics.gravity_compensation:
+            hits = fnmatch.filter(bodies, pattern)
+            if not hits:
+                raise ModelError(f"{where}physics.gravity_compensation: no body matches {pattern!r} in "
+                                 f"{sc.world.model} (bodies: {', '.join(bodies)})")
             for b in spec.bodies:
-                b.gravcomp = 1.0
+                if b.name in hits:
+                    b.gravcomp = 1.0
         self.model = spec.compile()
         self.model.opt.timestep = sc.clock.dt
         self.data = mujoco.MjData(self.model)
@@ -78,11 +94,33 @@ class World:
             for i, n in enumerate(self.joint_names):
                 if n in lim:
                     self.velocity_limit[i] = lim[n][1]
-        self.mode = sc.physics.actuator
-        if self.mode != "effort":
-            self._make_servos()
+        for jname in sc.joints:
+            if jname != "default" and jname not in self.joint_names:
+                raise ModelError(f"{where}joints.{jname}: no actuated joint of that name in {sc.world.model} "
+                                 f"(joints: {', '.join(self.joint_names)})")
+        cfg = [sc.joint(n) for n in self.joint_names]
+        self.interfaces = [c.interface for c in cfg]
+        self.servers = [c.server for c in cfg]
+        self.external = np.array([s != SIM for s in self.servers])
+        self.ext_index = [i for i, e in enumerate(self.external) if e]
+        self._servo_kp = np.zeros(m.nu)
+        self._servo_kv = np.zeros(m.nu)
+        for i, c in enumerate(cfg):
+            if c.server == SIM and c.interface != "effort":
+                self._make_servo(i, c.interface, c.servo_kp or SERVO_KP[c.interface],
+                                 SERVO_KV if c.servo_kv is None else c.servo_kv)
+        if self.ext_index:
+            # an external joint's motor is real: the simulated one applies nothing
+            for i in self.ext_index:
+                m.actuator_gainprm[i, 0] = 0.0
+                m.actuator_biasprm[i, :3] = 0.0
+        self._effort = np.array([c.interface == "effort" and c.server == SIM for c in cfg])
         self.index = {n: i for i, n in enumerate(self.joint_names)}
         self._cmd = np.zeros(m.nu)
+        # external joints: the latest measured (position, velocity) from their server
+        self._follow_pos = np.zeros(len(self.ext_index))
+        self._follow_vel = np.zeros(len(self.ext_index))
+        self._follow_ok = np.zeros(len(self.ext_index), dtype=bool)
         if self.imu_site:
             self._acc = m.sensor("imu_acc").adr[0]
             self._gyro = m.sensor("imu_gyro").adr[0]
@@ -90,51 +128,89 @@ class World:
         self.step_index = 0
         mujoco.mj_forward(m, self.data)
 
-    def _make_servos(self) -> None:
-        """Turn the motors into position or velocity servos (MuJoCo's affine actuator form)."""
+    def _make_servo(self, i: int, interface: str, kp: float, kv: float) -> None:
+        """Turn motor ``i`` into a position or velocity servo (MuJoCo's affine actuator form:
+        force = kp·ctrl − kp·q − kv·q̇, solved implicitly, so stiff gains stay stable at 1 kHz)."""
         m = self.model
-        for i in range(m.nu):
-            kp = 100.0 if self.mode == "position" else 10.0
-            m.actuator_gaintype[i] = mujoco.mjtGain.mjGAIN_FIXED
-            m.actuator_biastype[i] = mujoco.mjtBias.mjBIAS_AFFINE
-            m.actuator_gainprm[i, 0] = kp
-            # a position servo needs damping, or it rings around its setpoint
-            m.actuator_biasprm[i, :3] = (0.0, -kp, -SERVO_KV) if self.mode == "position" else (0.0, 0.0, -kp)
-            # the command is now a setpoint; the effort limit moves to the force range
-            m.actuator_forcelimited[i] = 1
-            m.actuator_forcerange[i] = (-self.effort_limit[i], self.effort_limit[i])
-            m.actuator_ctrllimited[i] = 0
+        m.actuator_gaintype[i] = mujoco.mjtGain.mjGAIN_FIXED
+        m.actuator_biastype[i] = mujoco.mjtBias.mjBIAS_AFFINE
+        m.actuator_gainprm[i, 0] = kp
+        # a position servo needs damping, or it rings around its setpoint
+        m.actuator_biasprm[i, :3] = (0.0, -kp, -kv) if interface == "position" else (0.0, 0.0, -kp)
+        # the command is now a setpoint; the effort limit moves to the force range
+        m.actuator_forcelimited[i] = 1
+        m.actuator_forcerange[i] = (-self.effort_limit[i], self.effort_limit[i])
+        m.actuator_ctrllimited[i] = 0
+        self._servo_kp[i], self._servo_kv[i] = kp, kv
 
     @property
     def time_ns(self) -> int:
         return self.step_index * self.sc.dt_ns
 
     def command(self, cmd: msgs.JointState) -> None:
-        """Take a joint command (by name); fields used depend on the actuator mode."""
-        values = {"effort": cmd.effort, "position": cmd.position, "velocity": cmd.velocity}[self.mode]
-        if len(values) != len(cmd.name):
-            raise msgs.BadMessage(f"joint command has no {self.mode} values for its {len(cmd.name)} joints")
-        for n, v in zip(cmd.name, values, strict=True):
-            i = self.index.get(n)
+        """Take a joint command by name. It may name any subset of the joints (the others keep
+        their last command); each simulated joint reads the field of its interface (a position
+        joint also its ``velocity``, as feed-forward, when given); external joints are skipped:
+        their server reads the same message. All-or-nothing: a bad entry changes nothing."""
+        n = len(cmd.name)
+        new: list[tuple[int, float]] = []
+        for k, jn in enumerate(cmd.name):
+            i = self.index.get(jn)
             if i is None:
-                raise msgs.BadMessage(f"joint command names unknown joint {n!r}")
+                raise msgs.BadMessage(f"joint command names unknown joint {jn!r}")
+            if self.external[i]:
+                continue
+            iface = self.interfaces[i]
+            values = cmd.effort if iface == "effort" else cmd.position if iface == "position" else cmd.velocity
+            if len(values) != n:
+                raise msgs.BadMessage(f"joint command has no {iface} values for joint {jn!r} ({iface} interface)")
+            v = values[k]
+            if iface == "position" and len(cmd.velocity) == n and self._servo_kp[i] > 0:
+                # velocity feed-forward through the affine servo: kp·(p + kv/kp·v) − kp·q − kv·q̇
+                v += self._servo_kv[i] / self._servo_kp[i] * cmd.velocity[k]
+            new.append((i, v))
+        for i, v in new:
             self._cmd[i] = v
 
     def command_array(self, u: np.ndarray) -> None:
         self._cmd[:] = u
 
+    def follow(self, names: list[str], position: list[float], velocity: list[float]) -> None:
+        """The measured state of external joints, from their server; applied from the next step."""
+        for k, jn in enumerate(names):
+            i = self.index.get(jn)
+            if i is None or not self.external[i]:
+                raise msgs.BadMessage(f"joint {jn!r} is not served externally in this scenario")
+            e = self.ext_index.index(i)
+            self._follow_pos[e] = position[k]
+            self._follow_vel[e] = velocity[k] if velocity else 0.0
+            self._follow_ok[e] = True
+
     def step(self) -> None:
-        u = self._cmd
-        if self.mode == "effort":
-            u = np.clip(u, -self.effort_limit, self.effort_limit)
-            # velocity limit as a drive enforces it: no torque that pushes further past the limit
-            v = self.data.qvel[self.dof_adr]
-            over = (np.abs(v) > self.velocity_limit) & (np.sign(u) == np.sign(v))
-            if over.any():
-                u = np.where(over, 0.0, u)
+        u = np.where(self._effort, np.clip(self._cmd, -self.effort_limit, self.effort_limit), self._cmd)
+        # velocity limit as a drive enforces it: no torque that pushes further past the limit
+        v = self.data.qvel[self.dof_adr]
+        over = self._effort & (np.abs(v) > self.velocity_limit) & (np.sign(u) == np.sign(v))
+        if over.any():
+            u = np.where(over, 0.0, u)
         self.data.ctrl[:] = u
         mujoco.mj_step(self.model, self.data)
+        if self.ext_index:
+            self._apply_follow()
         self.step_index += 1
+
+    def _apply_follow(self) -> None:
+        """Kinematic follow: overwrite the external joints' state with their server's latest
+        measurement after integrating, so the next step's contacts and truth see the real motor.
+        Until a server has reported, its joint is held where it is."""
+        d = self.data
+        for e, i in enumerate(self.ext_index):
+            if self._follow_ok[e]:
+                d.qpos[self.qpos_adr[i]] = self._follow_pos[e]
+                d.qvel[self.dof_adr[i]] = self._follow_vel[e]
+            else:
+                d.qpos[self.qpos_adr[i]] -= d.qvel[self.dof_adr[i]] * self.sc.clock.dt
+                d.qvel[self.dof_adr[i]] = 0.0
 
     def positions(self) -> np.ndarray:
         return self.data.qpos[self.qpos_adr].copy()

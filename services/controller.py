@@ -4,10 +4,13 @@ Reads (``<prefix>/<robot>/…``):
   ``joint_states`` (sensor_msgs/JointState, measured; one control step per message),
   ``joint_trajectory`` (trajectory_msgs/JointTrajectory).
 Writes:
-  ``joint_commands`` (sensor_msgs/JointState) stamped like the joint_states it answers — the
-  ``effort`` of the PIDs with ``physics.actuator: effort``; with ``position``/``velocity``
-  actuators the reference ``position`` and ``velocity`` are forwarded instead. In lockstep mode
-  this message is the controller's acknowledgement of the step (no ``sync`` message);
+  ``joint_commands`` (sensor_msgs/JointState) stamped like the joint_states it answers, every
+  joint in every message, all three fields filled so each joint's server (physics or an external
+  one) reads the field of its interface (``joints.<name>.interface``): ``effort`` = the PID output
+  (effort joints; 0 for the others), ``position`` = the reference, ``velocity`` = the reference
+  velocity (position joints: feed-forward) or, for velocity joints, the velocity command
+  ``v_ref + controller.velocity_gain·(p_ref − p)``. In lockstep mode this message is the
+  controller's acknowledgement of the step (no ``sync`` message);
   ``controller/reference`` (sensor_msgs/JointState: reference position and velocity), same stamp.
 Serves:
   ``controller/set_parameters`` (SetParameters ``<joint>.<kp|ki|kd|i_limit|output_limit|feedforward>``
@@ -24,13 +27,32 @@ from typing import Any
 
 import numpy as np
 
-from hilsim import control, msgs
-from hilsim.config import Scenario
-from hilsim.service import Service
+from hilsim import control, msgs, registry
+from hilsim.config import ConfigError, Scenario
+from hilsim.service import Publisher, Service
 
 
 class ControllerService(Service):
+    """The ``joint_trajectory`` control law (``controller.type``); other types are other
+    :class:`~hilsim.service.Service` subclasses named ``controller``, found in the registry."""
+
     name = "controller"
+    stop_rank = 20
+    ack_via = "joint_commands"
+
+    @classmethod
+    def lockstep_period(cls, sc: Scenario) -> int | None:
+        return sc.control_decimation
+
+    @classmethod
+    def resolve(cls, sc: Scenario) -> type[Service]:
+        law = registry.load("controllers", sc.controller.type)
+        if not (isinstance(law, type) and issubclass(law, Service)):
+            raise ConfigError(f"{sc.source}: controller.type: {sc.controller.type!r} is not a hilsim Service class")
+        return law
+
+    def ack_publisher(self) -> Publisher | None:
+        return self.cmd_pub
 
     def __init__(self, scenario: Scenario) -> None:
         super().__init__(scenario)
@@ -38,7 +60,10 @@ class ControllerService(Service):
         self.joints = control.joint_table(scenario.world.model)
         self.names = list(self.joints.names)
         self.n = self.joints.n
-        self.effort_mode = scenario.physics.actuator == "effort"
+        self.interfaces = [scenario.joint(n).interface for n in self.names]
+        self.effort_joint = [i == "effort" for i in self.interfaces]
+        self.velocity_joint = np.array([i == "velocity" for i in self.interfaces])
+        self.velocity_gain = scenario.controller.velocity_gain
         gains = control.gains_for(scenario.controller.gains, self.names, where)
         self.pids = [
             control.Pid(g, float(self.joints.effort_lower[i]), float(self.joints.effort_upper[i]))
@@ -82,10 +107,10 @@ class ControllerService(Service):
     def _measure(self, msg: msgs.JointState, key: str, stamp: int) -> bool:
         """Copy the measurement into self.pos/self.vel in model order; False if unusable."""
         if not msg.position:
-            return self._reject(key, "JointState without positions")
+            return self.reject(key, "JointState without positions")
         if msg.name != self._order_names:
             if sorted(msg.name) != sorted(self.names):
-                return self._reject(key, f"JointState names {list(msg.name)} are not the joints {self.names}")
+                return self.reject(key, f"JointState names {list(msg.name)} are not the joints {self.names}")
             self._order_names = list(msg.name)
             self._order = None if self._order_names == self.names else [self._order_names.index(n) for n in self.names]
         pos = np.asarray(msg.position, float)
@@ -126,16 +151,19 @@ class ControllerService(Service):
         ref = msgs.JointState(
             header=header, name=self.names, position=self.ref_pos.tolist(), velocity=self.ref_vel.tolist()
         )
-        if self.effort_mode:
-            u = [
-                pid.update(rp, rv, p, v, self.dt)
-                for pid, rp, rv, p, v in zip(
-                    self.pids, ref.position, ref.velocity, self.pos.tolist(), self.vel.tolist(), strict=True
-                )
-            ]
-            self.cmd_pub.put(msgs.JointState(header=header, name=self.names, effort=u))
-        else:
-            self.cmd_pub.put(ref)  # position/velocity actuators track the reference themselves
+        u = [
+            pid.update(rp, rv, p, v, self.dt) if eff else 0.0
+            for pid, eff, rp, rv, p, v in zip(
+                self.pids, self.effort_joint, ref.position, ref.velocity, self.pos.tolist(), self.vel.tolist(),
+                strict=True,
+            )
+        ]
+        vel = ref.velocity
+        if self.velocity_joint.any():
+            # a velocity drive needs the position error closed here, as ros2_control's JTC does
+            v_cmd = self.ref_vel + self.velocity_gain * (self.ref_pos - self.pos)
+            vel = np.where(self.velocity_joint, v_cmd, self.ref_vel).tolist()
+        self.cmd_pub.put(msgs.JointState(header=header, name=self.names, position=ref.position, velocity=vel, effort=u))
         self.ref_pub.put(ref)
         self.steps += 1
 
@@ -167,7 +195,7 @@ class ControllerService(Service):
         try:
             t = control.TrajectorySampler(msg, self.names, start, base, self.joints.lower, self.joints.upper)
         except control.TrajectoryError as e:
-            self._reject(key, str(e))
+            self.reject(key, str(e))
             return
         self.next_traj = t
         self.max_tracking_error = 0.0
@@ -190,11 +218,6 @@ class ControllerService(Service):
         return msgs.SetParametersResult(successful=True, reason=f"{len(changes)} parameter(s) set")
 
     # ------------------------------------------------------------------ reporting
-    def _reject(self, key: str, reason: str) -> bool:
-        self.rejected[key] += 1
-        self.warn(f"rejected payload on {key}: {reason}")
-        return False
-
     def health_values(self) -> dict[str, Any]:
         t = self.next_traj or self.traj
         active = t is not None and not t.done(self.sim_ns)
@@ -206,5 +229,5 @@ class ControllerService(Service):
             "max_tracking_error": f"{self.max_tracking_error:.6f}",
             "control_steps": self.steps,
             "joint_states_gaps": self.gaps,
-            "actuator": self.sc.physics.actuator,
+            "interfaces": ",".join(sorted(set(self.interfaces))),
         }

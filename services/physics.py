@@ -1,18 +1,25 @@
 """Physics service: MuJoCo owns sim time and the robot's true state.
 
 Reads:
-  ``<prefix>/<robot>/joint_commands``  sensor_msgs/JointState (effort, or position/velocity per actuator mode)
-  ``<prefix>/<robot>/sync/<service>``  rosgraph_msgs/Clock, lockstep acknowledgements
-  ``<prefix>/<robot>/alive/*``         liveliness of the lockstep participants
+  ``<prefix>/<robot>/joint_commands``        sensor_msgs/JointState: per joint, the field of its
+                                             interface (``joints.<name>.interface``); any subset
+  ``<prefix>/<robot>/hw/<server>/joint_states`` sensor_msgs/JointState measured by an external
+                                             joint server; the joints it serves follow it
+  ``<prefix>/<robot>/sync/<service>``        rosgraph_msgs/Clock, lockstep acknowledgements
+  ``<prefix>/<robot>/alive/*``, ``lockstep/**`` liveliness: who is running, who is a lockstep
+                                             participant (period, how it acknowledges, its writer id)
 Writes (every step, stamped with the step's sim time):
   ``<prefix>/<robot>/truth/imu``          sensor_msgs/Imu at ``physics.truth_imu_site`` (if set)
   ``<prefix>/<robot>/truth/joint_states`` sensor_msgs/JointState (position, velocity, applied effort)
   ``<prefix>/clock``                      rosgraph_msgs/Clock
 
 Lockstep (default): step k+1 happens only once every participant acknowledged step k (see
-docs/keys.md). The step is taken in the thread that delivers the last acknowledgement, which
-avoids a thread hand-off per step. Realtime: steps are paced by the wall clock, and a step
-that finishes after its deadline counts as an overrun.
+docs/keys.md). Participants announce themselves (``lockstep/<service>/<period>/<via>/<gid>``),
+so physics needs no list of them; a ``joint_commands`` sample acknowledges a step only when
+written by the participant that announced it. The step is taken in the thread that delivers the
+last acknowledgement, which avoids a thread hand-off per step. Realtime: steps are paced by the
+wall clock, and a step that finishes after its deadline counts as an overrun. An external joint
+server silent for ``physics.server_timeout`` is a fault (published; said again on recovery).
 """
 
 from __future__ import annotations
@@ -28,6 +35,7 @@ import zenoh
 
 from hilsim import msgs
 from hilsim.service import LEVEL_ERROR, Service
+from hilsim.transport import Attachment
 from hilsim.world import World
 
 SPIN_NS = 80_000  # realtime: busy-wait at most this long before a deadline
@@ -35,8 +43,18 @@ REALTIME_PRIORITY = 10
 JITTER_BINS = 20_000  # SCHED_FIFO priority of physics in realtime mode (if permitted)
 
 
+class Participant:
+    """A lockstep participant as it announced itself."""
+
+    __slots__ = ("gid", "period", "via")
+
+    def __init__(self, period: int, via: str, gid: str) -> None:
+        self.period, self.via, self.gid = period, via, gid
+
+
 class PhysicsService(Service):
     name = "physics"
+    stop_rank = 0  # stopped first: sim time ends before its consumers go
     world: World  # loaded in setup(), inside run()'s error handling
 
     def __init__(self, scenario: Any) -> None:
@@ -50,9 +68,9 @@ class PhysicsService(Service):
         sc = self.sc
         self.world = World(sc)
         self.n = len(self.world.joint_names)
-        self.participants = sc.lockstep_participants() if sc.clock.mode == "lockstep" else []
-        self.periods = {"controller": sc.control_decimation, "planner": sc.planner_decimation}
-        self.acked: dict[str, int] = {p: -1 for p in self.participants}
+        self.participants: dict[str, Participant] = {}  # from lockstep tokens, fixed at step 0
+        self.announced: dict[str, Participant] = {}
+        self.acked: dict[str, int] = {}
         self.present: set[str] = set()
         self.started = False
         self.done = False
@@ -62,13 +80,21 @@ class PhysicsService(Service):
         self.pub_imu = self.publisher(self.keys.truth("imu")) if self.world.imu_site else None
         self.pub_js = self.publisher(self.keys.truth("joint_states"))
         self.pub_clock = self.publisher(self.keys.clock)
-        self.subscribe(self.keys.topic("joint_commands"), msgs.JointState, self._on_command, n_joints=self.n)
-        for p in self.participants:
-            if p != "controller":
-                self.subscribe(self.keys.sync(p), msgs.Clock, self._on_sync)
-        self._declared.append(
-            self.session.liveliness().declare_subscriber(self.keys.all_alive, self._on_alive, history=True)
-        )
+        self.subscribe(self.keys.topic("joint_commands"), msgs.JointState, self._on_command, with_attachment=True)
+        self.subscribe(self.keys.sync("*"), msgs.Clock, self._on_sync, with_attachment=True)
+        # external joint servers: which joints each serves, when it last reported (wall clock)
+        self.servers: dict[str, set[str]] = {}
+        for jn, srv in zip(self.world.joint_names, self.world.servers, strict=True):
+            if self.world.external[self.world.index[jn]]:
+                self.servers.setdefault(srv, set()).add(jn)
+        self.server_seen: dict[str, float] = {}
+        self.server_silent: set[str] = set()
+        if self.servers:
+            self.subscribe(self.keys.all_server_states, msgs.JointState, self._on_server_state)
+        live = self.session.liveliness()
+        self._declared.append(live.declare_subscriber(self.keys.all_alive, self._on_alive, history=True))
+        if sc.clock.mode == "lockstep":
+            self._declared.append(live.declare_subscriber(self.keys.all_lockstep, self._on_lockstep, history=True))
         self.wall_start = 0.0
         self.steps_done = 0
 
@@ -77,7 +103,7 @@ class PhysicsService(Service):
         svc = str(sample.key_expr).rsplit("/", 1)[-1]
         with self.lock:
             if sample.kind == zenoh.SampleKind.PUT:
-                if svc not in self.present and svc in self.sc.services:
+                if svc not in self.present and svc in self.sc.processes():
                     self.log.info("%s is here", svc)
                 self.present.add(svc)
             else:
@@ -87,13 +113,65 @@ class PhysicsService(Service):
                     self.fault(f"lockstep participant {svc} left the simulation at t={self.sim_ns / 1e9:.3f}s; "
                                f"sim time is paused until it comes back")
 
-    def _on_command(self, cmd: msgs.JointState, key: str) -> None:
-        self.world.command(cmd)
-        if "controller" in self.acked:
-            self._ack("controller", msgs.ns_of(cmd.header.stamp))
+    def _on_lockstep(self, sample: zenoh.Sample) -> None:
+        # <prefix>/<robot>/lockstep/<service>/<period>/<via>/<gid>
+        svc, period, via, gid = str(sample.key_expr).split("/")[-4:]
+        with self.lock:
+            if sample.kind != zenoh.SampleKind.PUT:
+                self.announced.pop(svc, None)
+                return
+            if via not in ("sync", "joint_commands") or not period.isdigit() or int(period) < 1:
+                self.fault(f"lockstep token of {svc} not understood: period {period!r}, via {via!r}")
+                return
+            p = Participant(int(period), via, gid)
+            self.announced[svc] = p
+            if svc in self.participants:  # a participant that came back (e.g. restarted): new writer id
+                self.participants[svc] = p
 
-    def _on_sync(self, clk: msgs.Clock, key: str) -> None:
-        self._ack(key.rsplit("/", 1)[-1], msgs.ns_of(clk.clock))
+    def _on_command(self, cmd: msgs.JointState, key: str, att: Attachment | None) -> None:
+        self.world.command(cmd)
+        if att is None:
+            return
+        writer = att.gid.hex()
+        for name, p in self.participants.items():
+            if p.via == "joint_commands" and p.gid == writer:
+                self._ack(name, msgs.ns_of(cmd.header.stamp))
+
+    def _on_sync(self, clk: msgs.Clock, key: str, att: Attachment | None) -> None:
+        name = key.rsplit("/", 1)[-1]
+        p = self.participants.get(name)
+        if p is None or p.via != "sync":
+            return
+        if att is None or att.gid.hex() != p.gid:
+            self.reject(key, f"acknowledgement not from the {name} that announced itself")
+            return
+        self._ack(name, msgs.ns_of(clk.clock))
+
+    def _on_server_state(self, js: msgs.JointState, key: str) -> None:
+        server = key.split("/")[-2]
+        served = self.servers.get(server)
+        if served is None:
+            raise msgs.BadMessage(f"{server!r} serves no joint in this scenario")
+        stray = [n for n in js.name if n not in served]
+        if stray:
+            raise msgs.BadMessage(f"{server} reports joints it does not serve: {stray}")
+        if len(js.position) != len(js.name):
+            raise msgs.BadMessage("joint server state without positions")
+        self.world.follow(list(js.name), list(js.position), list(js.velocity))
+        self.server_seen[server] = time.monotonic()
+        if server in self.server_silent:
+            self.server_silent.discard(server)
+            self.log.info("joint server %s reports again (t=%.3f s)", server, self.sim_ns / 1e9)
+
+    def _check_servers(self) -> None:
+        """A joint server silent for physics.server_timeout (wall) is a fault, said once."""
+        now = time.monotonic()
+        for server, joints in self.servers.items():
+            last = self.server_seen.get(server, self.wall_start)
+            if now - last > self.sc.physics.server_timeout and server not in self.server_silent:
+                self.server_silent.add(server)
+                self.fault(f"joint server {server} silent for {now - last:.2f} s at t={self.sim_ns / 1e9:.3f}s: "
+                           f"{', '.join(sorted(joints))} held at the last measured state")
 
     def _ack(self, who: str, ns: int) -> None:
         if who not in self.acked:
@@ -147,6 +225,7 @@ class PhysicsService(Service):
             "real_time_factor": f"{self.world.time_ns / 1e9 / wall:.3f}" if wall else "0",
             "clock_mode": self.sc.clock.mode,
             "waiting_for": ",".join(self._missing()),
+            "servers_silent": ",".join(sorted(self.server_silent)),
             **self._jitter_figures(),
         }
 
@@ -163,8 +242,8 @@ class PhysicsService(Service):
     def _missing(self) -> list[str]:
         """Participants that still owe an acknowledgement for the current step."""
         t, k = self.world.time_ns, self.world.step_index
-        # the controller answers at control steps only, the planner at its own decision steps
-        return [p for p, ns in self.acked.items() if ns < t and k % self.periods.get(p, 1) == 0]
+        # e.g. the controller answers at control steps only, the planner at its own decision steps
+        return [p for p, ns in self.acked.items() if ns < t and k % self.participants[p].period == 0]
 
     def _wait_for_services(self) -> bool:
         """Before step 0: every service of the scenario is live, then a short grace.
@@ -174,14 +253,23 @@ class PhysicsService(Service):
         later, and a step-0 message sent before that would be lost and stall the lockstep.
         """
         deadline = time.monotonic() + 120.0
-        others = [s for s in self.sc.services if s != self.name]
+        others = [s for s in self.sc.processes() if s != self.name]
         if others:
             self.log.info("waiting for %s", ", ".join(others))
         while not self.stop_event.is_set():
             with self.lock:
                 missing = [p for p in others if p not in self.present]
             if not missing:
-                return not self.stop_event.wait(self.sc.clock.start_delay)
+                if self.stop_event.wait(self.sc.clock.start_delay):
+                    return False
+                with self.lock:
+                    # the participants are those that announced themselves by now
+                    self.participants = dict(self.announced) if self.sc.clock.mode == "lockstep" else {}
+                    self.acked = {p: -1 for p in self.participants}
+                if self.participants:
+                    self.log.info("lockstep participants: %s", ", ".join(
+                        f"{n} (every {p.period} steps, via {p.via})" for n, p in self.participants.items()))
+                return True
             if time.monotonic() > deadline:
                 self.state = "fault"
                 self.fault(f"services never appeared: {', '.join(missing)}")
@@ -257,6 +345,8 @@ class PhysicsService(Service):
                 self._advance()
                 if self.done:
                     break
+                if self.servers and k % 50 == 0:
+                    self._check_servers()
             self.jitter_hist[min((now - deadline) // 1000, JITTER_BINS)] += 1
             self.ticks += 1
             if time.perf_counter_ns() > deadline + dt_ns:

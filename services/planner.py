@@ -81,6 +81,11 @@ class Goal:
 
 class PlannerService(Service):
     name = "planner"
+    stop_rank = 10
+
+    @classmethod
+    def lockstep_period(cls, sc: Scenario) -> int | None:
+        return sc.planner_decimation  # it decides, and acknowledges, on its own ticks only
 
     def __init__(self, scenario: Scenario) -> None:
         super().__init__(scenario)

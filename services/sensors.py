@@ -2,10 +2,13 @@
 
 Reads (``<prefix>/<robot>/…``):
   ``truth/joint_states`` (sensor_msgs/JointState), ``truth/imu`` (sensor_msgs/Imu) — the truth
-  topics of the configured sensors (:mod:`hilsim.sensing`).
+  topics of the configured sensors (:mod:`hilsim.sensing`);
+  ``hw/<server>/joint_states`` (sensor_msgs/JointState) — joints served by external servers.
 Writes:
   ``joint_states`` (encoders), ``imu`` — each stamped with the truth stamp, at the sensor's rate
-  (the physics steps ``k`` with ``k % decimation == 0``);
+  (the physics steps ``k`` with ``k % decimation == 0``). ``joint_states`` is *one* message with
+  every joint: the simulated joints from the encoders, the external joints as their server last
+  measured them (a real encoder needs no emulated noise), merged at each step;
   ``sync/sensors`` (lockstep, only in scenarios without a controller, whose command would
   otherwise be the proof): the acknowledgement of step ``t_k`` once ``truth/joint_states`` of
   ``t_k`` is handled (physics publishes ``truth/imu`` before it, so every truth of the step has
@@ -21,7 +24,7 @@ from collections import defaultdict
 from typing import Any
 
 from hilsim import msgs
-from hilsim.config import ConfigError, Scenario
+from hilsim.config import SIM, ConfigError, Scenario
 from hilsim.sensing import Sensor, make_sensor
 from hilsim.service import Publisher, Service
 
@@ -31,6 +34,12 @@ ACK_TRUTH = "joint_states"
 
 class SensorService(Service):
     name = "sensors"
+    stop_rank = 30
+
+    @classmethod
+    def lockstep_period(cls, sc: Scenario) -> int | None:
+        # with a controller, its command for step k proves the sensors handled step k
+        return None if "controller" in sc.services else 1
 
     def __init__(self, scenario: Scenario) -> None:
         super().__init__(scenario)
@@ -58,6 +67,9 @@ class SensorService(Service):
                     )
         self._by_truth: dict[str, list[tuple[Sensor, Publisher | None]]] = defaultdict(list)
         self._joint_names: list[str] | None = None
+        # external joints: name -> server, and their latest measurement (position, velocity, effort)
+        self._external = {n: j.server for n, j in scenario.joints.items() if n != "default" and j.server != SIM}
+        self._measured: dict[str, tuple[float, float, float]] = {}
 
     def setup(self) -> None:
         topics = {s.truth_topic: s.truth_type for s in self.sensors}
@@ -67,10 +79,33 @@ class SensorService(Service):
             self._by_truth[s.truth_topic].append((s, pub))
         for topic, cls in topics.items():
             self.subscribe(self.keys.truth(topic), cls, self._make_handler(topic))
+        if self._external:
+            self.subscribe(self.keys.all_server_states, msgs.JointState, self._on_server_state)
+
+    def _on_server_state(self, js: msgs.JointState, key: str) -> None:
+        server = key.split("/")[-2]
+        if any(self._external.get(n) != server for n in js.name) or len(js.position) != len(js.name):
+            self.reject(key, f"{server} reports joints it does not serve, or no positions: {list(js.name)}")
+            return
+        for k, n in enumerate(js.name):
+            self._measured[n] = (js.position[k], js.velocity[k] if js.velocity else 0.0,
+                                 js.effort[k] if js.effort else 0.0)
+
+    def _merge_external(self, out: msgs.JointState) -> None:
+        """Put the servers' measurements in place of the emulated encoders of external joints."""
+        for i, n in enumerate(out.name):
+            m = self._measured.get(n)
+            if m is not None:
+                out.position[i] = m[0]
+                if out.velocity:
+                    out.velocity[i] = m[1]
+                if out.effort:
+                    out.effort[i] = m[2]
 
     def _make_handler(self, topic: str) -> Any:
         sensors = self._by_truth.get(topic, [])
         ack = topic == ACK_TRUTH and self.lockstep
+        merge = bool(self._external)
 
         def handle(msg: Any, key: str) -> None:
             stamp = msgs.ns_of(msg.header.stamp)
@@ -80,6 +115,8 @@ class SensorService(Service):
             for s, pub in sensors:
                 out = s.sample(msg, stamp) if pub is not None else None
                 if out is not None:
+                    if merge and s.output_topic == "joint_states":
+                        self._merge_external(out)
                     pub.put(out)
             if ack:
                 self.ack(stamp)
@@ -89,17 +126,12 @@ class SensorService(Service):
     def _check_joints(self, msg: msgs.JointState, key: str) -> bool:
         """The joints of the truth must not change during a run (names fixed by the first message)."""
         if not msg.position:
-            return self._reject(key, "JointState without positions")
+            return self.reject(key, "JointState without positions")
         if self._joint_names is None:
             self._joint_names = list(msg.name)
         elif msg.name != self._joint_names:
-            return self._reject(key, f"JointState names {list(msg.name)} differ from {self._joint_names}")
+            return self.reject(key, f"JointState names {list(msg.name)} differ from {self._joint_names}")
         return True
-
-    def _reject(self, key: str, reason: str) -> bool:
-        self.rejected[key] += 1
-        self.warn(f"rejected payload on {key}: {reason}")
-        return False
 
     def health_values(self) -> dict[str, Any]:
         return {

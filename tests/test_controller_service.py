@@ -205,14 +205,23 @@ def test_malformed_inputs_are_rejected_and_counted(rig: Rig) -> None:
     assert h[f"rejected:{key_js}"] == "5"
 
 
-def test_position_actuators_get_the_reference(
+def test_each_joint_gets_the_command_of_its_interface(
     scenario: Callable[..., Any], session: Any, run_service: Callable[[Any], Any]
 ) -> None:
-    with run_service(ControllerService(scenario(overrides={"physics.actuator": "position"}))) as svc:
+    """Mixed interfaces: joint_1 position, joint_2 velocity, the others effort — one message,
+    every joint, each field filled for the joints whose interface reads it."""
+    sc = scenario(overrides={"joints.joint_1": {"interface": "position"}, "joints.joint_2": {"interface": "velocity"}})
+    with run_service(ControllerService(sc)) as svc:
         r = Rig(svc, session)
         try:
-            c = r.step(js(0, [0.3] * 6, [0.0] * 6))
-            assert c.position == pytest.approx([0.3] * 6) and c.velocity == [0.0] * 6 and not c.effort
+            r.step(js(0, [0.3] * 6))  # the first measurement is the setpoint
+            c = r.step(js(1, [0.25] * 6))  # 0.05 rad behind on every joint
+            assert c.name == NAMES and c.position == pytest.approx([0.3] * 6)
+            gain = sc.controller.velocity_gain
+            assert c.velocity[1] == pytest.approx(gain * 0.05)  # velocity joint: position error closed
+            assert c.velocity[0] == 0.0  # position joint: the reference velocity (feed-forward)
+            assert c.effort[0] == 0.0 and c.effort[1] == 0.0  # no PID output for non-effort joints
+            assert all(e > 0 for e in c.effort[2:])  # effort joints push towards the setpoint
         finally:
             r.close()
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from hilsim import msgs
+from hilsim import msgs, registry
 from hilsim.config import ConfigError, load_scenario
 from hilsim.keys import Keys, UnknownKey, message_type
 
@@ -67,9 +67,9 @@ def test_trajectory_validation() -> None:
 def test_scenario_loads_and_resolves_paths() -> None:
     sc = load_scenario("arm")
     assert sc.world.model.is_absolute() and sc.world.model.exists()
-    assert sc.lockstep_participants() == ["controller", "planner"]
+    assert registry.lockstep_participants(sc) == {"controller": 1, "planner": 10}
     sc.services = ["physics", "sensors", "planner"]
-    assert sc.lockstep_participants() == ["sensors", "planner"]
+    assert registry.lockstep_participants(sc) == {"sensors": 1, "planner": 10}
     assert sc.dt_ns == 1_000_000 and sc.control_decimation == 1
     assert len(sc.task.targets) == 3
 

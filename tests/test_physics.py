@@ -25,7 +25,6 @@ def test_world_holds_still_with_gravity_compensation(scenario: Any) -> None:
 
 def test_lockstep_waits_for_every_participant(scenario: Any, session: zenoh.Session, run_service: Any) -> None:
     sc = scenario("arm", {"services": ["physics", "sensors", "controller", "planner"], "clock.ack_timeout": 1.0})
-    assert sc.lockstep_participants() == ["controller", "planner"]
     keys = Keys(sc.prefix, sc.robot)
     clocks: list[int] = []
     got = threading.Event()
@@ -37,7 +36,17 @@ def test_lockstep_waits_for_every_participant(scenario: Any, session: zenoh.Sess
     sub = session.declare_subscriber(keys.clock, on_clock)
     sync = transport.publisher(session, keys.sync("planner"))
     cmd = transport.publisher(session, keys.topic("joint_commands"))
-    tokens = [session.liveliness().declare_token(keys.alive(n)) for n in ("planner", "controller", "sensors")]
+    # the test plays the planner and the controller: it announces them as participants, with
+    # the writer ids its acknowledgements carry
+    gid_sync, gid_cmd = transport.new_gid(), transport.new_gid()
+    seq = iter(range(1, 1000))
+
+    def put(pub: Any, msg: Any, gid: bytes) -> None:
+        pub.put(msgs.encode(msg), attachment=transport.attachment_bytes(next(seq), gid))
+
+    tokens = [session.liveliness().declare_token(keys.lockstep("planner", 1, "sync", gid_sync.hex())),
+              session.liveliness().declare_token(keys.lockstep("controller", 1, "joint_commands", gid_cmd.hex()))]
+    tokens += [session.liveliness().declare_token(keys.alive(n)) for n in ("planner", "controller", "sensors")]
     svc = PhysicsService(sc)
     with run_service(svc):
         assert got.wait(10), "physics never published step 0"
@@ -45,25 +54,36 @@ def test_lockstep_waits_for_every_participant(scenario: Any, session: zenoh.Sess
         assert clocks == [0], "physics stepped without acknowledgements"
         # only the controller answers: still waiting for the planner
         names = [f"joint_{i}" for i in range(1, 7)]
-        cmd.put(msgs.encode(msgs.JointState(header=msgs.header(0), name=names, effort=[0.0] * 6)))
+        put(cmd, msgs.JointState(header=msgs.header(0), name=names, effort=[0.0] * 6), gid_cmd)
+        time.sleep(0.3)
+        assert clocks == [0]
+        # an acknowledgement from a writer other than the one that announced itself does not count
+        put(sync, msgs.Clock(clock=msgs.stamp(0)), transport.new_gid())
         time.sleep(0.3)
         assert clocks == [0]
         for k in range(5):
             got.clear()
-            sync.put(msgs.encode(msgs.Clock(clock=msgs.stamp(k * sc.dt_ns))))
+            put(sync, msgs.Clock(clock=msgs.stamp(k * sc.dt_ns)), gid_sync)
             if k:
-                cmd.put(msgs.encode(msgs.JointState(header=msgs.header(k * sc.dt_ns), name=names, effort=[0.5] * 6)))
+                put(cmd, msgs.JointState(header=msgs.header(k * sc.dt_ns), name=names, effort=[0.5] * 6), gid_cmd)
             assert got.wait(5)
             time.sleep(0.05)
         assert clocks == [k * sc.dt_ns for k in range(6)]
+        # a joint_commands sample from someone else moves nothing forward
+        got.clear()
+        put(sync, msgs.Clock(clock=msgs.stamp(5 * sc.dt_ns)), gid_sync)
+        put(cmd, msgs.JointState(header=msgs.header(5 * sc.dt_ns), name=names, effort=[0.5] * 6), transport.new_gid())
+        time.sleep(0.3)
+        assert clocks[-1] == 5 * sc.dt_ns
         # the commanded effort moved the arm
         assert svc.world.velocities()[0] > 0
         # malformed commands: rejected and counted, no step taken, still serving
         cmd.put(b"\x00\x01\x00\x00garbage")
-        cmd.put(msgs.encode(msgs.JointState(header=msgs.header(0), name=names[:3], effort=[1.0] * 3)))
+        cmd.put(msgs.encode(msgs.JointState(header=msgs.header(0), name=["joint_9"], effort=[1.0])))
+        cmd.put(msgs.encode(msgs.JointState(header=msgs.header(0), name=names[:3], position=[1.0] * 3)))
         cmd.put(msgs.encode(msgs.JointState(header=msgs.header(0), name=names, effort=[float("nan")] * 6)))
         time.sleep(0.5)
-        assert sum(svc.rejected.values()) == 3
+        assert sum(svc.rejected.values()) == 5, svc.rejected  # 4 above + the impostor acknowledgement
         assert clocks[-1] == 5 * sc.dt_ns
         # a silent participant is reported as a fault, not a hang
         time.sleep(1.5)
@@ -106,7 +126,7 @@ def test_bad_model_is_one_line_and_exit_code_2(tmp_path: Any) -> None:
 
 
 def test_position_actuators_track_a_commanded_position(scenario: Any) -> None:
-    w = World(scenario("arm", {"physics.actuator": "position"}))
+    w = World(scenario("arm", {"joints.default.interface": "position"}))
     names = w.joint_names
     target = [0.3, -0.2, 0.1, 0.0, 0.2, 0.0]
     w.command(msgs.JointState(name=names, position=target))
