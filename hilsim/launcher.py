@@ -331,10 +331,42 @@ def summarise(la: Launcher) -> int:
             counts = json.loads(summary.read_text())
             rec = sum(v.get("recorded", 0) for v in counts.values())
             recv = sum(v.get("received", 0) for v in counts.values())
-            lost = {k: v for k, v in counts.items() if v.get("received") != v.get("recorded")}
-            mismatch = f"; MISMATCH on {sorted(lost)}" if lost else ""
-            print(f"  recorded {rec} of {recv} messages on {len(counts)} keys{mismatch}")
-            ok = ok and not lost
+            mismatch = sorted(k for k, v in counts.items() if v.get("received") != v.get("recorded"))
+            lost = {k: v["lost"] for k, v in counts.items() if v.get("lost")}
+            n_lost, n_full = sum(lost.values()), sum(v.get("dropped", 0) for v in counts.values())
+            realtime = sc.clock.mode == "realtime"
+
+            def short(key: str) -> str:  # keys as the user names them: clock, truth/joint_states, …
+                for p in (f"{sc.prefix}/{sc.robot}/", f"{sc.prefix}/"):
+                    if key.startswith(p):
+                        return key[len(p):]
+                return key
+
+            line = f"  recorded {rec} of {recv} received messages on {len(counts)} keys"
+            if n_lost:
+                where = "in transport"
+                if n_full:
+                    where = f"({n_lost - n_full} in transport, {n_full} dropped by the recorder)"
+                why = "realtime: the recorder could not keep up" if realtime else "lockstep, where nothing may be lost"
+                top = sorted(lost.items(), key=lambda kv: (-kv[1], kv[0]))
+                keys = ", ".join(f"{short(k)} {n}" for k, n in top[:8]) + (", …" if len(top) > 8 else "")
+                line += f"; lost {n_lost} {where} ({why}): {keys}"
+            if mismatch:
+                line += f"; MISMATCH (received but not recorded) on {mismatch}"
+            print(line)
+            # Samples after the last one of their writer that reached the recorder (dropped, or still
+            # in flight when the run stopped) leave no gap it could count; physics' own step count
+            # shows them for the clock (one sample per step, plus step 0).
+            clock = counts.get(f"{sc.prefix}/clock")
+            steps = int(ph.get("steps", "0") or 0)
+            if clock and steps > 0:
+                seen = clock["received"] + clock.get("lost", 0) + clock.get("before_first", 0)
+                if steps + 1 > seen:
+                    print(f"  clock: physics published {steps + 1}, the recording has {clock['received']}; "
+                          f"{steps + 1 - seen} never reached the recorder (at the end of the stream, where no "
+                          f"later sample shows a gap)")
+            # realtime: a loss is reported, not a failure; lockstep promises that nothing is lost
+            ok = ok and not mismatch and (realtime or not n_lost)
         else:
             print("  recording summary missing")
             ok = False

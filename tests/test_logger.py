@@ -158,7 +158,7 @@ def test_tool_kinematics_matches_mujoco() -> None:
     import mujoco
 
     from hilsim.config import MODELS_DIR
-    from hilsim.services.logger import ToolKinematics, UrdfTree
+    from hilsim.kinematics import ToolKinematics, UrdfTree
 
     urdf = MODELS_DIR / "arm" / "arm.urdf"
     kin = ToolKinematics(UrdfTree.from_file_path(urdf))
@@ -232,3 +232,85 @@ def test_rerun_analytics_off_in_a_private_config(tmp_path: Path, monkeypatch: An
     cfg = json.loads(r.stdout)
     assert cfg["analytics_enabled"] is False
     assert cfg["config_file_path"].startswith(env["XDG_CONFIG_HOME"])
+
+
+def test_logger_counts_lost_samples_per_key(
+    scenario: Any, session: Any, run_service: Any, tmp_path: Path, monkeypatch: Any
+) -> None:
+    """Realtime: gaps in each writer's sequence numbers and samples refused by the full queue
+    are counted as lost per key; samples published before a writer's first one are not."""
+    from hilsim.services.logger import LoggerService
+
+    monkeypatch.setenv("HILSIM_LOGGER_DELAY_US", "50")
+    run_dir = tmp_path / "run"
+    sc = scenario("arm", {"logger.run_dir": str(run_dir), "clock.mode": "realtime"})
+    keys = Keys(sc.prefix, sc.robot)
+    svc = LoggerService(sc)
+    assert svc.delay_s == pytest.approx(50e-6)
+    assert LoggerService(scenario("arm", {"logger.run_dir": str(tmp_path / "ls")})).queue_limit is None  # lockstep
+    clock = msgs.encode(msgs.Clock(clock=msgs.stamp(0)))
+    js = msgs.encode(_js(0, 0))
+    a, b, c = transport.new_gid(), transport.new_gid(), transport.new_gid()
+    st = run_service(svc)
+    with st:
+        pub_clock = session.declare_publisher(keys.clock)
+        pub_js = session.declare_publisher(keys.truth("joint_states"))
+        try:
+            _wait(lambda: pub_clock.matching_status.matching and pub_js.matching_status.matching, 10, "the logger")
+            # writer a: 1 2 3 _ _ 6 7 (2 lost); writer b seen from 5 on: 5 6 _ 8 (1 lost, 4 before its first)
+            for gid, seq in [(a, 1), (a, 2), (a, 3), (b, 5), (a, 6), (b, 6), (a, 7), (b, 8)]:
+                pub_clock.put(clock, attachment=transport.attachment_bytes(seq, gid))
+            pub_clock.put(clock)  # no attachment (a foreign publisher): recorded, not sequence-checked
+            _wait(lambda: svc.counts_in[keys.clock] == 9, 10, "the clock samples")
+            assert svc.health_values()["lost"] == 3
+            # a stalled worker (held on the codec lock) and a queue of 3: the rest is refused
+            svc.queue_limit = 3
+            with svc._codec_lock:
+                for seq in range(1, 11):
+                    pub_js.put(js, attachment=transport.attachment_bytes(seq, c))
+                _wait(lambda: svc.counts_in[keys.truth("joint_states")] + svc.dropped[keys.truth("joint_states")] == 10,
+                      10, "the joint states")
+                hv = svc.health_values()
+            assert svc.state == "running"
+        finally:
+            pub_clock.undeclare()
+            pub_js.undeclare()
+    assert st.rc == 0
+    truth = keys.truth("joint_states")
+    assert hv[f"lost:{keys.clock}"] == 3 and hv[f"lost:{truth}"] == hv["dropped"] >= 6, hv
+    summary = json.loads((run_dir / "record_summary.json").read_text())
+    assert summary[keys.clock] == {
+        "received": 9, "recorded": 9, "rejected": 0, "lost": 3, "dropped": 0, "before_first": 4
+    }, summary[keys.clock]
+    t = summary[truth]
+    assert t["received"] == t["recorded"] and t["received"] + t["lost"] == 10 and t["lost"] == t["dropped"] >= 6, t
+
+
+@pytest.mark.parametrize("mode", ["realtime", "lockstep"])
+def test_launcher_summary_reports_losses(scenario: Any, tmp_path: Path, capsys: Any, mode: str) -> None:
+    """`hilsim up` shows what the recorder lost; a loss fails a lockstep run, not a realtime one."""
+    from hilsim.launcher import Launcher, summarise
+
+    sc = scenario("arm", {"clock.mode": mode, "duration": 1.0, "task.targets": []})
+    la = Launcher(sc, tmp_path)
+    la.outcome.physics_done = True
+    la.outcome.health["physics"] = {"steps": "1000", "sim_time": "1.000", "real_time_factor": "1.000"}
+    counts = {
+        "hilsim/clock": {"received": 700, "recorded": 700, "rejected": 0, "lost": 250, "dropped": 50,
+                         "before_first": 0},
+        "hilsim/arm/truth/imu": {"received": 900, "recorded": 900, "rejected": 0, "lost": 101, "dropped": 0},
+        "hilsim/arm/health/physics": {"received": 1, "recorded": 1, "rejected": 0},  # an older summary
+    }
+    (tmp_path / "record_summary.json").write_text(json.dumps(counts))
+    rc = summarise(la)
+    out = capsys.readouterr().out
+    assert ("recorded 1601 of 1601 received messages on 3 keys; lost 351 (301 in transport, 50 dropped by the "
+            "recorder)") in out, out
+    assert ": truth/imu 101, clock 250" not in out and ": clock 250, truth/imu 101" in out, out
+    assert "clock: physics published 1001, the recording has 700; 51 never reached the recorder" in out, out
+    assert rc == (0 if mode == "realtime" else 1) and out.rstrip().endswith("OK" if rc == 0 else "FAILED"), out
+    # received but not recorded fails either way
+    counts["hilsim/clock"]["recorded"] = 699
+    (tmp_path / "record_summary.json").write_text(json.dumps(counts))
+    assert summarise(la) == 1
+    assert "MISMATCH (received but not recorded) on ['hilsim/clock']" in capsys.readouterr().out

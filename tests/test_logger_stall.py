@@ -1,0 +1,70 @@
+"""End to end: a recorder too slow for a realtime run loses samples, says so, and never slows physics."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from hilsim import transport
+
+pytestmark = pytest.mark.e2e
+REPO = Path(__file__).resolve().parent.parent
+DURATION_S = 6  # long enough for a blocking publisher to fill the kernel's socket buffers and stall
+DELAY_US = 2000  # the logger takes at most ~500 samples/s; the arm publishes ~6,000/s
+
+
+def test_slow_recorder_loses_samples_but_never_slows_realtime_physics(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    ep = f"tcp/127.0.0.1:{transport.free_port()}"
+    router = transport.open_router(ep)
+    env = {**os.environ, "HILSIM_LOGGER_DELAY_US": str(DELAY_US)}
+    p = subprocess.Popen(
+        [sys.executable, "-m", "hilsim.cli", "up", "arm", "--clock", "realtime", "--duration", str(DURATION_S),
+         "--router", ep, "--out", str(out)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO, env=env, start_new_session=True,
+    )
+    try:
+        stdout, _ = p.communicate(timeout=240)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+        router.close()
+    # realtime: a loss is reported, it does not fail the run
+    assert p.returncode == 0, stdout
+
+    # physics kept its deadlines, by its own figures
+    rtf = float(stdout.split("real-time factor ")[-1].split(",")[0])
+    assert rtf >= 0.95, stdout
+    physics_log = (out / "physics.log").read_text()
+    m = re.search(r"overruns (\d+) of (\d+) steps", physics_log)
+    assert m, physics_log
+    overruns, steps = int(m[1]), int(m[2])
+    assert steps == DURATION_S * 1000, physics_log
+    if "running with SCHED_FIFO" in physics_log:  # without it, overruns depend on the machine's load
+        assert overruns <= 0.05 * steps, physics_log
+
+    # the recorder could not keep up, and every sample of physics' clock is accounted for
+    counts = json.loads((out / "record_summary.json").read_text())
+    assert all(c["received"] == c["recorded"] for c in counts.values()), counts
+    clock = counts["hilsim/clock"]
+    published = steps + 1  # step 0, then one per step
+    assert clock["before_first"] == 0, clock  # the logger heard physics from its first sample on
+    assert clock["received"] < 0.8 * published, clock
+    never = published - clock["received"] - clock["lost"]
+    assert never >= 0, (clock, published)
+    if never:  # samples still in flight when the run stopped leave no gap: the launcher reports them
+        assert (f"clock: physics published {published}, the recording has {clock['received']}; "
+                f"{never} never reached the recorder") in stdout, stdout
+    lost = {k: c["lost"] for k, c in counts.items() if c["lost"]}
+    if lost:
+        assert f"; lost {sum(lost.values())} " in stdout and "the recorder could not keep up" in stdout, stdout
+    logger_out = (out / "logger.out").read_text()
+    assert f"recorded hilsim/clock: received {clock['received']} recorded {clock['received']}" in logger_out
+    assert f"lost {sum(lost.values())} in {len(counts)} keys" in logger_out, logger_out
