@@ -64,6 +64,7 @@ def bench_in_process(sim_seconds: float) -> float:
     for s in svcs.values():
         s.attach(bus.session())
     phys = svcs["physics"]
+    phys.fix_participants()
     t0 = time.perf_counter()
     with phys.lock:
         phys.started = True

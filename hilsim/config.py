@@ -115,12 +115,15 @@ class ControllerConfig(_Model):
     hold_timeout: float = Field(0.05, gt=0, description="sim seconds without joint_states before holding")
 
 
-class PlannerConfig(BaseModel):
-    model_config = ConfigDict(extra="allow")
-    planner: str = "rrtstar"
-    planning_time: float = Field(1.0, gt=0)
-    clearance: float = Field(0.005, ge=0)
+class PlannerConfig(_Model):
+    planner: str = Field("rrtstar", description="default planner, by name in the planner library")
+    planning_time: float = Field(1.0, gt=0, description="wall seconds per plan (realtime)")
+    clearance: float = Field(0.005, ge=0, description="minimum distance to obstacles [m]")
     rate_hz: float = Field(100.0, gt=0, description="how often the planner decides (starts goals, monitors)")
+    library: Path | None = Field(None, description="planner library YAML (default config/planners.yaml)")
+    iterations: int | None = Field(
+        None, gt=0, description="lockstep: iteration budget per plan (default: the library's)"
+    )
 
 
 class TaskConfig(_Model):
@@ -263,11 +266,12 @@ def format_error(path: Path | str, err: ValidationError, prefix: str = "") -> st
 
 
 def _resolve_paths(data: dict[str, Any], base: Path) -> None:
-    world = data.get("world")
-    if isinstance(world, dict):
-        for k in ("model", "urdf"):
-            if isinstance(world.get(k), str) and not os.path.isabs(world[k]):
-                world[k] = str((base / world[k]).resolve())
+    for section, keys in (("world", ("model", "urdf")), ("planner", ("library",))):
+        d = data.get(section)
+        if isinstance(d, dict):
+            for k in keys:
+                if isinstance(d.get(k), str) and not os.path.isabs(d[k]):
+                    d[k] = str((base / d[k]).resolve())
 
 
 def set_dotted(data: dict[str, Any], dotted: str, value: Any) -> None:

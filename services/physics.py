@@ -245,6 +245,15 @@ class PhysicsService(Service):
         # e.g. the controller answers at control steps only, the planner at its own decision steps
         return [p for p, ns in self.acked.items() if ns < t and k % self.participants[p].period == 0]
 
+    def fix_participants(self) -> None:
+        """Before step 0: the lockstep participants are those that announced themselves by now."""
+        with self.lock:
+            self.participants = dict(self.announced) if self.sc.clock.mode == "lockstep" else {}
+            self.acked = {p: -1 for p in self.participants}
+        if self.participants:
+            self.log.info("lockstep participants: %s", ", ".join(
+                f"{n} (every {p.period} steps, via {p.via})" for n, p in self.participants.items()))
+
     def _wait_for_services(self) -> bool:
         """Before step 0: every service of the scenario is live, then a short grace.
 
@@ -262,13 +271,7 @@ class PhysicsService(Service):
             if not missing:
                 if self.stop_event.wait(self.sc.clock.start_delay):
                     return False
-                with self.lock:
-                    # the participants are those that announced themselves by now
-                    self.participants = dict(self.announced) if self.sc.clock.mode == "lockstep" else {}
-                    self.acked = {p: -1 for p in self.participants}
-                if self.participants:
-                    self.log.info("lockstep participants: %s", ", ".join(
-                        f"{n} (every {p.period} steps, via {p.via})" for n, p in self.participants.items()))
+                self.fix_participants()
                 return True
             if time.monotonic() > deadline:
                 self.state = "fault"

@@ -89,9 +89,8 @@ class PlannerService(Service):
 
     def __init__(self, scenario: Scenario) -> None:
         super().__init__(scenario)
-        extra: dict[str, Any] = scenario.planner.model_extra or {}
-        self.library = PlannerLibrary.load(extra.get("library"))
-        self.iterations = int(extra.get("iterations", self.library.iterations))
+        self.library = PlannerLibrary.load(scenario.planner.library)
+        self.iterations = scenario.planner.iterations or self.library.iterations
         self.default_planner = scenario.planner.planner
         self.library.create(self.default_planner)  # an unknown default is a configuration error at start
         # one model for the query handlers (validation, IK), one for the planning worker

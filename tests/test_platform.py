@@ -135,3 +135,18 @@ def test_controller_type_picks_the_control_law() -> None:
     sc2 = load_scenario("arm", {"controller.type": "four_wheel_steer"})
     with pytest.raises(ConfigError, match="unknown controller 'four_wheel_steer'; available: joint_trajectory"):
         registry.service_class("controller", sc2)
+
+
+def test_in_process_pipeline_finds_its_lockstep_participants() -> None:
+    """The services announce their lockstep role at run time; the in-process bus (bench loop's
+    no-transport baseline) carries those announcements like Zenoh does, so physics steps."""
+    from hilsim.bench import bench_in_process
+
+    assert bench_in_process(0.05) > 0.0  # raises if the pipeline stalls
+
+
+def test_planner_settings_are_explicit_fields() -> None:
+    with pytest.raises(ConfigError, match=r"planner.iteratoins: Extra inputs are not permitted"):
+        load_scenario("arm", {"planner.iteratoins": 10})
+    sc = load_scenario("arm", {"planner.iterations": 10, "planner.library": "planners.yaml"})
+    assert sc.planner.iterations == 10 and sc.planner.library == REPO / "config" / "planners.yaml"

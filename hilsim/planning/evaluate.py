@@ -104,7 +104,7 @@ def evaluate(
     library: PlannerLibrary | None = None,
     planner: str | None = None,
 ) -> list[Evaluation]:
-    lib = library or PlannerLibrary.load((sc.planner.model_extra or {}).get("library"))
+    lib = library or PlannerLibrary.load(sc.planner.library)
     arm = ArmModel(sc.world.model, sc.planner.clearance)
     vmax, amax, jmax = lib.joint_limits(arm.n, arm.velocity_limits())
     name = planner or sc.planner.planner
