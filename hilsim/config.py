@@ -324,15 +324,20 @@ def _read(path: Path, chain: tuple[Path, ...] = ()) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: (top level): expected a mapping of scenario fields, got {type(data).__name__}")
     _resolve_paths(data, path.resolve().parent)
-    base = data.pop("extends", None)
-    if base is None:
+    bases = data.pop("extends", None)
+    if bases is None:
         return data
-    if not isinstance(base, str):
-        raise ConfigError(f"{path}: extends: expected the path of a scenario file (got {base!r})")
-    base_path = (path.resolve().parent / base).resolve()
-    if base_path in chain or base_path == path.resolve():
-        raise ConfigError(f"{path}: extends: {base} extends itself (through {', '.join(map(str, chain))})")
-    return _merge(_read(base_path, (*chain, path.resolve())), data)
+    if isinstance(bases, str):
+        bases = [bases]
+    if not isinstance(bases, list) or not bases or not all(isinstance(b, str) for b in bases):
+        raise ConfigError(f"{path}: extends: expected a scenario file path, or a list of them (got {bases!r})")
+    merged: dict[str, Any] = {}
+    for base in bases:  # merged in order, this file last
+        base_path = (path.resolve().parent / base).resolve()
+        if base_path in chain or base_path == path.resolve():
+            raise ConfigError(f"{path}: extends: {base} extends itself (through {', '.join(map(str, chain))})")
+        merged = _merge(merged, _read(base_path, (*chain, path.resolve())))
+    return _merge(merged, data)
 
 
 def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
@@ -343,11 +348,19 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def load_scenario(name_or_path: str | Path, overrides: dict[str, Any] | None = None) -> Scenario:
-    """Load, merge (``extends:``), override, validate. A scenario file may start from another
-    with ``extends: <path relative to this file>`` and change only some fields (an overlay)."""
+def load_scenario(
+    name_or_path: str | Path, overrides: dict[str, Any] | None = None, overlays: Sequence[str | Path] = ()
+) -> Scenario:
+    """Load, merge, override, validate. A scenario file may start from another with
+    ``extends: <path relative to this file>`` and change only some fields; ``overlays`` (e.g. a
+    HIL file given to ``hilsim up --hil``) are merged on top in order, then ``overrides``."""
     path = scenario_path(name_or_path)
     data = _read(path)
+    for o in overlays:
+        op = Path(o)
+        if not op.exists():
+            raise ConfigError(f"{op}: no such overlay file")
+        data = _merge(data, _read(op))
     for k, v in (overrides or {}).items():
         set_dotted(data, k, v)
     _apply_env(data)

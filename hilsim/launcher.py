@@ -390,7 +390,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         overrides["duration"] = args.duration
     if args.seed is not None:
         overrides["seed"] = args.seed
-    sc = load_scenario(args.scenario, overrides)
+    sc = load_scenario(args.scenario, overrides, overlays=args.hil)
     if args.no_logger:
         sc.services = [s for s in sc.services if s != "logger"]
     run_dir = Path(args.out) if args.out else default_run_dir(sc)

@@ -150,3 +150,13 @@ def test_planner_settings_are_explicit_fields() -> None:
         load_scenario("arm", {"planner.iteratoins": 10})
     sc = load_scenario("arm", {"planner.iterations": 10, "planner.library": "planners.yaml"})
     assert sc.planner.iterations == 10 and sc.planner.library == REPO / "config" / "planners.yaml"
+
+
+def test_hil_overlay_and_extends_give_the_same_scenario() -> None:
+    """`hilsim up arm --hil config/hil/motor-model.yaml` == `hilsim up config/hil/arm-motor-model.yaml`."""
+    a = load_scenario("arm", overlays=[REPO / "config" / "hil" / "motor-model.yaml"]).dump()
+    b = load_scenario(REPO / "config" / "hil" / "arm-motor-model.yaml").dump()
+    assert a.pop("name") == "arm" and b.pop("name") == "arm-motor-model"
+    assert a == b and a["joints"]["joint_1"]["server"] == "motor-model" and a["clock"]["mode"] == "realtime"
+    with pytest.raises(ConfigError, match="no such overlay file"):
+        load_scenario("arm", overlays=["config/hil/nope.yaml"])
