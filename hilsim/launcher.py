@@ -354,17 +354,24 @@ def summarise(la: Launcher) -> int:
             if mismatch:
                 line += f"; MISMATCH (received but not recorded) on {mismatch}"
             print(line)
-            # Samples after the last one of their writer that reached the recorder (dropped, or still
-            # in flight when the run stopped) leave no gap it could count; physics' own step count
-            # shows them for the clock (one sample per step, plus step 0).
-            clock = counts.get(f"{sc.prefix}/clock")
-            steps = int(ph.get("steps", "0") or 0)
-            if clock and steps > 0:
-                seen = clock["received"] + clock.get("lost", 0) + clock.get("before_first", 0)
-                if steps + 1 > seen:
-                    print(f"  clock: physics published {steps + 1}, the recording has {clock['received']}; "
-                          f"{steps + 1 - seen} never reached the recorder (at the end of the stream, where no "
-                          f"later sample shows a gap)")
+            # Samples sent after the last one of their writer that reached the recorder (dropped, or
+            # still in flight when the run stopped) leave no gap it could count: compare with what
+            # every service says it published per key (final health).
+            published: dict[str, int] = {}
+            for h in o.health.values():
+                for k, v in h.items():
+                    if k.startswith("published:"):
+                        published[k[10:]] = published.get(k[10:], 0) + int(v)
+            unseen = {}
+            for k, v in counts.items():
+                seen = v["received"] + v.get("lost", 0) + v.get("before_first", 0)
+                if published.get(k, 0) > seen:
+                    unseen[k] = published[k] - seen
+            if unseen:
+                top = sorted(unseen.items(), key=lambda kv: (-kv[1], kv[0]))
+                keys = ", ".join(f"{short(k)} {n}" for k, n in top[:8]) + (", …" if len(top) > 8 else "")
+                print(f"  {sum(unseen.values())} published samples never reached the recorder: {keys}")
+                n_lost += sum(unseen.values())
             # realtime: a loss is reported, not a failure; lockstep promises that nothing is lost
             ok = ok and not mismatch and (realtime or not n_lost)
         else:

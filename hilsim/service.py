@@ -278,6 +278,9 @@ class Service:
         }
         values.update(self.health_values())
         values.update({f"rejected:{k}": v for k, v in self.rejected.items()})
+        values.update({f"stale:{k}": v for k, v in self.stale.items()})
+        # per key, how many samples this service has sent: what a recorder can be checked against
+        values.update({f"published:{k}": v for k, v in self.counts_out.items()})
         st = msgs.DiagnosticStatus(
             level=level,
             name=self.name,

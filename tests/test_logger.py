@@ -294,7 +294,8 @@ def test_launcher_summary_reports_losses(scenario: Any, tmp_path: Path, capsys: 
     sc = scenario("arm", {"clock.mode": mode, "duration": 1.0, "task.targets": []})
     la = Launcher(sc, tmp_path)
     la.outcome.physics_done = True
-    la.outcome.health["physics"] = {"steps": "1000", "sim_time": "1.000", "real_time_factor": "1.000"}
+    la.outcome.health["physics"] = {"steps": "1000", "sim_time": "1.000", "real_time_factor": "1.000",
+                                    "published:hilsim/clock": "1001", "published:hilsim/arm/truth/imu": "1001"}
     counts = {
         "hilsim/clock": {"received": 700, "recorded": 700, "rejected": 0, "lost": 250, "dropped": 50,
                          "before_first": 0},
@@ -307,7 +308,8 @@ def test_launcher_summary_reports_losses(scenario: Any, tmp_path: Path, capsys: 
     assert ("recorded 1601 of 1601 received messages on 3 keys; lost 351 (301 in transport, 50 dropped by the "
             "recorder)") in out, out
     assert ": truth/imu 101, clock 250" not in out and ": clock 250, truth/imu 101" in out, out
-    assert "clock: physics published 1001, the recording has 700; 51 never reached the recorder" in out, out
+    # every service's own per-key published count shows what left no gap (after the last sample seen)
+    assert "51 published samples never reached the recorder: clock 51\n" in out, out
     assert rc == (0 if mode == "realtime" else 1) and out.rstrip().endswith("OK" if rc == 0 else "FAILED"), out
     # received but not recorded fails either way
     counts["hilsim/clock"]["recorded"] = 699
