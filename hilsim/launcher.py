@@ -2,13 +2,15 @@
 
 The launcher opens an embedded Zenoh router on a free loopback port (or joins ``--router``),
 writes the resolved scenario to ``runs/<timestamp>/scenario.yaml``, starts one
-``hilsim run SERVICE`` process per service, waits for each liveliness token, then follows
-``planner/result`` (task progress) and ``health/*``. It stops when the planner reports the
-task result, the scenario duration is reached, a service dies, or on Ctrl-C; the logger is
-stopped last so it can drain and close the recording. Children get SIGTERM if the launcher
-itself dies (PR_SET_PDEATHSIG), so no process outlives a run.
+``hilsim run SERVICE`` process per service of the scenario and per external joint server it
+names (in the reverse of the order the service classes declare for stopping), waits for each
+liveliness token, then follows the task result, every service's health and its faults. It stops
+when the task result arrives, the scenario duration is reached, a service dies, or on Ctrl-C;
+physics is stopped first and the logger last so it can drain and close the recording. Children
+get SIGTERM if the launcher itself dies (PR_SET_PDEATHSIG), so no process outlives a run.
 
-Reads: ``<prefix>/<robot>/planner/result``, ``<prefix>/<robot>/health/*``, ``alive/*``.
+Reads: ``<prefix>/<robot>/task/result`` and ``planner/result``, ``health/*``, ``log/*`` (faults,
+printed as they happen), ``alive/*``.
 """
 
 from __future__ import annotations

@@ -186,6 +186,11 @@ class World:
             self._follow_vel[e] = velocity[k] if velocity else 0.0
             self._follow_ok[e] = True
 
+    def hold(self, names: list[str]) -> None:
+        """External joints whose server went silent: keep the last measured position, at rest."""
+        for jn in names:
+            self._follow_vel[self.ext_index.index(self.index[jn])] = 0.0
+
     def step(self) -> None:
         u = np.where(self._effort, np.clip(self._cmd, -self.effort_limit, self.effort_limit), self._cmd)
         # velocity limit as a drive enforces it: no torque that pushes further past the limit

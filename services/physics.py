@@ -170,8 +170,9 @@ class PhysicsService(Service):
             last = self.server_seen.get(server, self.wall_start)
             if now - last > self.sc.physics.server_timeout and server not in self.server_silent:
                 self.server_silent.add(server)
+                self.world.hold(sorted(joints))
                 self.fault(f"joint server {server} silent for {now - last:.2f} s at t={self.sim_ns / 1e9:.3f}s: "
-                           f"{', '.join(sorted(joints))} held at the last measured state")
+                           f"{', '.join(sorted(joints))} held at the last measured position")
 
     def _ack(self, who: str, ns: int) -> None:
         if who not in self.acked:
