@@ -47,8 +47,10 @@ class ControllerService(Service):
     @classmethod
     def resolve(cls, sc: Scenario) -> type[Service]:
         law = registry.load("controllers", sc.controller.type)
-        if not (isinstance(law, type) and issubclass(law, Service)):
-            raise ConfigError(f"{sc.source}: controller.type: {sc.controller.type!r} is not a hilsim Service class")
+        if not (isinstance(law, type) and issubclass(law, Service)) or law.name != cls.name:
+            # the launcher and physics know it as "controller": any other name would never be seen
+            raise ConfigError(f"{sc.source}: controller.type: {sc.controller.type!r} must be a hilsim Service "
+                              f"class named {cls.name!r} (got {law!r})")
         return law
 
     def ack_publisher(self) -> Publisher | None:
