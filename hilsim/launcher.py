@@ -80,6 +80,7 @@ class Outcome:
     physics_done: bool = False
     died: list[tuple[str, int]] = field(default_factory=list)
     faults: list[str] = field(default_factory=list)
+    stalled: str = ""  # physics waited longer than clock.ack_timeout for a lockstep participant
     interrupted: bool = False
 
 
@@ -208,6 +209,8 @@ class Launcher:
                 self.outcome.health[st.name] = vals
                 if st.name == "physics" and vals.get("state") == "done":
                     self.outcome.physics_done = True
+                if st.name == "physics" and vals.get("state") == "stalled" and not self.outcome.stalled:
+                    self.outcome.stalled = vals.get("last_error", "lockstep stalled")
         self.changed.set()
 
     def check_children(self) -> bool:
@@ -233,6 +236,9 @@ class Launcher:
             with self.lock:
                 if self.outcome.task is not None or self.outcome.physics_done:
                     return
+                if self.outcome.stalled:
+                    self.say(f"error: the simulation stalled: {self.outcome.stalled}; stopping")
+                    return
             if wall_timeout is not None and time.monotonic() - t0 > wall_timeout:
                 self.say(f"error: run did not finish within {wall_timeout:.0f}s wall")
                 return
@@ -252,6 +258,7 @@ class Launcher:
                 continue
             if c.proc.poll() is None:
                 c.proc.send_signal(signal.SIGINT)
+                c.proc.send_signal(signal.SIGCONT)  # a stopped (suspended) service must handle it too
                 try:
                     c.proc.wait(timeout=300 if name == "logger" else 15)
                 except subprocess.TimeoutExpired:
@@ -301,7 +308,7 @@ def summarise(la: Launcher) -> int:
     o, sc = la.outcome, la.sc
     # with no task and no duration, Ctrl-C is how a run ends: not a failure
     open_ended = not sc.task.targets and sc.duration is None
-    ok = not o.died and (not o.interrupted or open_ended)
+    ok = not o.died and not o.stalled and (not o.interrupted or open_ended)
     n_targets = len(sc.task.targets)
     print("summary:")
     if n_targets:
@@ -383,6 +390,8 @@ def summarise(la: Launcher) -> int:
     print(f"  logs: {la.run_dir}/")
     for name, rc in o.died:
         print(f"  service {name} died (exit code {rc})")
+    if o.stalled:
+        print(f"  stalled: {o.stalled}")
     if o.faults:
         print(f"  faults reported: {len(o.faults)} (first: {o.faults[0]})")
     print("result: " + ("OK" if ok else "FAILED"))

@@ -203,7 +203,11 @@ class PhysicsService(Service):
         self.world.step()
         self.steps_done += 1
         self.last_progress = time.monotonic()
-        self.waiting_reported = False
+        if self.waiting_reported:
+            self.waiting_reported = False
+            if self.state == "stalled":
+                self.state = "running"
+                self.log.info("lockstep acknowledgements arrive again")
         self._publish_step()
 
     def _finish(self) -> None:
@@ -303,8 +307,11 @@ class PhysicsService(Service):
                 stalled = time.monotonic() - self.last_progress
                 if not self.done and stalled > self.sc.clock.ack_timeout and not self.waiting_reported:
                     self.waiting_reported = True
+                    # "stalled" in health: hilsim up ends the run on it instead of waiting forever
+                    self.state = "stalled"
                     self.fault(f"no lockstep acknowledgement from {', '.join(self._missing())} "
                                f"for step t={self.world.time_ns / 1e9:.3f}s after {stalled:.1f}s")
+                    self.publish_health_async()
                 if self.state == "fault" and all(p in self.present for p in self.participants) and not self.done:
                     self.state = "running"
                     self.log.info("all participants present again; lockstep resumes")
@@ -368,6 +375,6 @@ class PhysicsService(Service):
         h = super().health()
         if self.state == "done":
             h.status[0].level = 0
-        elif self.state == "fault":
+        elif self.state in ("fault", "stalled"):
             h.status[0].level = LEVEL_ERROR
         return h

@@ -283,3 +283,30 @@ def test_realtime_clock_runs_the_task_at_wall_speed(tmp_path: Path) -> None:
     assert sim > 5 and wall >= sim  # paced by the wall clock, not faster
     rtf = float(stdout.split("real-time factor ")[-1].split(",")[0])
     assert 0.9 <= rtf <= 1.05, stdout
+
+
+def test_a_silent_participant_ends_the_run_non_zero(tmp_path: Path) -> None:
+    """A lockstep participant alive but silent (suspended): physics reports it within
+    clock.ack_timeout and hilsim up stops everything and exits non-zero, never hangs."""
+    lines: list[str] = []
+    # no targets: planning (which may take longer than this ack_timeout) stays out of it
+    p = hilsim_up("arm", "--no-logger", "--set", "clock.ack_timeout=2", "--set", "task.targets=[]",
+                  "--out", str(tmp_path / "run"), "--router", _router_ep_for_test())
+    try:
+        ready = wait_line(p, "ready:", 120, lines)
+        pid = int(ready.split("controller (pid ")[1].split(")")[0])
+        time.sleep(1.0)
+        os.kill(pid, signal.SIGSTOP)  # alive (its process and Zenoh session exist) but silent
+        t0 = time.monotonic()
+        stdout, _ = p.communicate(timeout=90)
+        took = time.monotonic() - t0
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+        _ROUTERS.pop().close()
+    out = "".join(lines) + stdout
+    assert p.returncode == 1, out
+    assert "fault: physics: no lockstep acknowledgement from controller" in out, out
+    assert "error: the simulation stalled" in out and "stalled: no lockstep acknowledgement" in out, out
+    assert took < 40, (took, out)
+    assert not children_of(p.pid)
