@@ -197,8 +197,13 @@ class Scenario(_Model):
         return self
 
     def joint(self, name: str) -> JointConfig:
-        """The interface and server of a joint (its own entry, else ``default``, else effort/sim)."""
-        return self.joints.get(name) or self.joints.get("default") or JointConfig()
+        """The interface and server of a joint: the fields its own entry sets, over ``default``'s,
+        over effort/sim."""
+        base = self.joints.get("default") or JointConfig()
+        own = self.joints.get(name)
+        if own is None:
+            return base
+        return base.model_copy(update={f: getattr(own, f) for f in own.model_fields_set})
 
     def external_servers(self) -> list[str]:
         """External joint servers named in ``joints`` (in order of first mention)."""

@@ -24,7 +24,7 @@ from collections import defaultdict
 from typing import Any
 
 from hilsim import msgs
-from hilsim.config import SIM, ConfigError, Scenario
+from hilsim.config import ConfigError, Scenario
 from hilsim.sensing import Sensor, make_sensor
 from hilsim.service import Publisher, Service
 
@@ -67,8 +67,8 @@ class SensorService(Service):
                     )
         self._by_truth: dict[str, list[tuple[Sensor, Publisher | None]]] = defaultdict(list)
         self._joint_names: list[str] | None = None
-        # external joints: name -> server, and their latest measurement (position, velocity, effort)
-        self._external = {n: j.server for n, j in scenario.joints.items() if n != "default" and j.server != SIM}
+        # external joints: their latest measurement (position, velocity, effort), by name
+        self._external = bool(scenario.external_servers())
         self._measured: dict[str, tuple[float, float, float]] = {}
 
     def setup(self) -> None:
@@ -84,7 +84,7 @@ class SensorService(Service):
 
     def _on_server_state(self, js: msgs.JointState, key: str) -> None:
         server = key.split("/")[-2]
-        if any(self._external.get(n) != server for n in js.name) or len(js.position) != len(js.name):
+        if any(self.sc.joint(n).server != server for n in js.name) or len(js.position) != len(js.name):
             self.reject(key, f"{server} reports joints it does not serve, or no positions: {list(js.name)}")
             return
         for k, n in enumerate(js.name):

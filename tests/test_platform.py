@@ -160,3 +160,10 @@ def test_hil_overlay_and_extends_give_the_same_scenario() -> None:
     assert a == b and a["joints"]["joint_1"]["server"] == "motor-model" and a["clock"]["mode"] == "realtime"
     with pytest.raises(ConfigError, match="no such overlay file"):
         load_scenario("arm", overlays=["config/hil/nope.yaml"])
+
+
+def test_a_joint_entry_overrides_only_the_fields_it_sets() -> None:
+    sc = load_scenario("arm", {"joints.default": {"interface": "position"}, "joints.joint_1": {"server": "motor-model"},
+                               "clock.mode": "realtime"})
+    assert sc.joint("joint_1").interface == "position" and sc.joint("joint_1").server == "motor-model"
+    assert sc.joint("joint_2").interface == "position" and sc.joint("joint_2").server == "sim"
