@@ -37,6 +37,8 @@ BUILTIN: dict[str, dict[str, str]] = {
         "planner": "hilsim.services.planner:PlannerService",
         "logger": "hilsim.services.logger:LoggerService",
         "motor-model": "hilsim.services.motor_model:MotorModelService",
+        "bridge-can": "hilsim.bridges.can_bridge:CanBridgeService",
+        "drive-emulator": "hilsim.bridges.drive_emulator:DriveEmulatorService",
     },
     # sensor kinds register themselves in hilsim.sensing (imported when a sensor is built)
     "sensors": {

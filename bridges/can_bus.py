@@ -1,0 +1,219 @@
+"""What the CAN bridge and the drive emulator share: the bus settings, the joint <-> motor mapping,
+and :class:`CanLink`, a python-can bus that opens, reads, sends and reopens on its own.
+
+The bus is any python-can interface: ``interface`` and ``channel`` as python-can names them, any
+other field is passed to ``can.Bus`` as it is (``bitrate``, ``port``, ``hop_limit``, ``fd``, …)::
+
+    bus: {interface: socketcan, channel: can0}
+    bus: {interface: udp_multicast, channel: "ff15:7079:7468:6f6e:6465:6d6f:6d63:6173", port: 43113}
+    bus: {interface: virtual, channel: test}          # in one process only
+    bus: {interface: pcan, channel: PCAN_USBBUS1, bitrate: 1000000}
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable
+from typing import Any, Literal
+
+import can
+from pydantic import BaseModel, ConfigDict, Field
+
+# python-can's udp_multicast defaults (can.interfaces.udp_multicast.UdpMulticastBus)
+UDP_GROUP_IPV6 = "ff15:7079:7468:6f6e:6465:6d6f:6d63:6173"
+UDP_PORT = 43113
+# SocketCAN error frame class bits (linux/can/error.h)
+CAN_ERR_BUSOFF = 0x40
+CAN_ERR_RESTARTED = 0x100
+
+
+class BusConfig(BaseModel):
+    """A python-can bus: ``interface``, ``channel``, and any other ``can.Bus`` argument."""
+
+    model_config = ConfigDict(extra="allow")
+    interface: str = Field("udp_multicast", description="python-can interface: socketcan, udp_multicast, "
+                           "virtual, pcan, slcan, …")
+    channel: str = Field(UDP_GROUP_IPV6, description="python-can channel (can0, a multicast group, …)")
+
+    def kwargs(self) -> dict[str, Any]:
+        return {"interface": self.interface, "channel": self.channel, **(self.model_extra or {})}
+
+    def describe(self) -> str:
+        extra = "".join(f" {k}={v}" for k, v in (self.model_extra or {}).items())
+        return f"{self.interface}:{self.channel}{extra}"
+
+
+class JointMap(BaseModel):
+    """One joint on the bus: the drive's node id and how the motor relates to the joint.
+
+    ``motor = direction · gear_ratio · (joint − offset)`` (rad; velocities without the offset;
+    torque: ``motor = direction · joint / gear_ratio``). ``offset`` is the joint position [rad]
+    at which the motor encoder reads zero."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    node_id: int = Field(ge=0, le=63, description="CAN node id of the drive (axis)")
+    gear_ratio: float = Field(1.0, gt=0, description="motor turns per joint turn")
+    direction: Literal[1, -1] = 1
+    offset: float = Field(0.0, description="joint position [rad] where the motor encoder reads 0")
+
+    def to_motor(self, q: float) -> float:
+        return self.direction * self.gear_ratio * (q - self.offset)
+
+    def to_joint(self, m: float) -> float:
+        return self.direction * m / self.gear_ratio + self.offset
+
+    def vel_to_motor(self, dq: float) -> float:
+        return self.direction * self.gear_ratio * dq
+
+    def vel_to_joint(self, dm: float) -> float:
+        return self.direction * dm / self.gear_ratio
+
+    def torque_to_motor(self, tau: float) -> float:
+        return self.direction * tau / self.gear_ratio
+
+    def torque_to_joint(self, tau_m: float) -> float:
+        return self.direction * tau_m * self.gear_ratio
+
+
+def open_bus(cfg: BusConfig) -> can.BusABC:
+    """Open the bus; :class:`ConnectionError` with one line if it is not available."""
+    try:
+        return can.Bus(**cfg.kwargs())
+    except (can.CanError, OSError, ImportError, ValueError, TypeError, NotImplementedError) as e:
+        raise ConnectionError(f"CAN bus {cfg.describe()} not available: {type(e).__name__}: {e}") from None
+
+
+def is_bus_off(msg: can.Message) -> bool:
+    """An error frame saying the controller went bus-off (SocketCAN's error class bits)."""
+    return bool(msg.is_error_frame and msg.arbitration_id & CAN_ERR_BUSOFF)
+
+
+class CanLink:
+    """A bus that keeps itself open: a reader thread hands every data frame to ``on_frame`` and,
+    when the bus cannot be opened, fails to receive, goes bus-off, reports an error state or
+    keeps refusing frames, closes it, calls ``on_state(False, reason)`` (once per outage), and
+    reopens it every ``reconnect_interval`` s; ``on_state(True, "")`` once it works again.
+    Sending never raises: a refused frame is counted."""
+
+    SEND_FAILURES_DOWN = 50  # consecutive refused frames that count as the bus being down
+
+    def __init__(self, cfg: BusConfig, on_frame: Callable[[can.Message], None],
+                 on_state: Callable[[bool, str], None], *, reconnect_interval: float = 1.0,
+                 name: str = "can", opener: Callable[[BusConfig], can.BusABC] = open_bus) -> None:
+        self.cfg = cfg
+        self.on_frame, self.on_state = on_frame, on_state
+        self.reconnect_interval = reconnect_interval
+        self.opener = opener
+        self.log = logging.getLogger(f"hilsim.{name}.bus")
+        self.bus: can.BusABC | None = None
+        self.up = False
+        self.reason = ""
+        self._stop = threading.Event()
+        self._send_lock = threading.Lock()
+        self._reopen: str | None = None  # set by a sender that saw the bus fail; the reader acts on it
+        self._thread = threading.Thread(target=self._run, daemon=True, name=f"{name}-rx")
+        self.rx = self.tx = self.tx_failed = self.error_frames = self.outages = 0
+        self._consecutive_failures = 0
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(5.0)
+        self._close()
+
+    def send(self, msg: can.Message) -> bool:
+        bus = self.bus
+        if bus is None or not self.up:
+            self.tx_failed += 1
+            return False
+        try:
+            with self._send_lock:
+                bus.send(msg, timeout=0.005)
+        except (can.CanError, OSError, ValueError) as e:
+            self.tx_failed += 1
+            self._consecutive_failures += 1
+            if self._consecutive_failures >= self.SEND_FAILURES_DOWN and self._reopen is None:
+                self._reopen = f"{self._consecutive_failures} frames in a row refused ({e})"
+            return False
+        self._consecutive_failures = 0
+        self.tx += 1
+        return True
+
+    # ---------------------------------------------------------------- reader thread
+    def _close(self) -> None:
+        bus, self.bus = self.bus, None
+        if bus is not None:
+            try:
+                bus.shutdown()
+            except Exception:  # a bus that failed may fail to close too
+                pass
+
+    def _down(self, reason: str) -> None:
+        self._close()
+        if self.up or not self.reason:
+            self.outages += 1
+            self.up = False
+            self.reason = reason
+            self.on_state(False, reason)
+
+    def _run(self) -> None:
+        next_state_check = 0.0
+        while not self._stop.is_set():
+            if self.bus is None:
+                try:
+                    self.bus = self.opener(self.cfg)
+                except ConnectionError as e:
+                    if self.reason != str(e):
+                        self.up = True  # so that _down reports this new reason
+                    self._down(str(e))
+                    self._stop.wait(self.reconnect_interval)
+                    continue
+                self._consecutive_failures = 0
+                self._reopen = None
+                self.up, self.reason = True, ""
+                self.on_state(True, "")
+            if self._reopen is not None:
+                self._down(self._reopen)
+                self._stop.wait(self.reconnect_interval)
+                continue
+            try:
+                msg = self.bus.recv(0.05)
+            except (can.CanError, OSError, ValueError) as e:
+                self._down(f"receive failed: {type(e).__name__}: {e}")
+                self._stop.wait(self.reconnect_interval)
+                continue
+            now = time.monotonic()
+            if now >= next_state_check:
+                next_state_check = now + 0.5
+                if _bus_state(self.bus) == can.BusState.ERROR:
+                    self._down("bus-off (the interface reports an error state)")
+                    continue
+            if msg is None:
+                continue
+            if msg.is_error_frame:
+                self.error_frames += 1
+                if is_bus_off(msg):
+                    self._down("bus-off (error frame from the controller)")
+                    self._stop.wait(self.reconnect_interval)
+                continue
+            self.rx += 1
+            try:
+                self.on_frame(msg)
+            except Exception as e:  # the owner's bug must not end the reader
+                self.log.exception("frame handler failed: %s", e)
+
+
+def _bus_state(bus: can.BusABC) -> Any:
+    try:
+        return bus.state
+    except Exception:
+        return None
+
+
+def finite(*xs: float) -> bool:
+    return all(math.isfinite(x) for x in xs)

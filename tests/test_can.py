@@ -1,0 +1,324 @@
+"""CAN hardware in the loop, in one process: the ODrive CAN Simple frames (DBC, byte layout, bad
+frames), the joint <-> motor mapping, and the CAN bridge against the drive emulator on python-can's
+``virtual`` bus (both services in threads, real Zenoh): commands out, state back, and the faults
+(heartbeat loss, axis error, garbage frames, a bus missing at start, bus-off, a drive that comes
+back, the other drives held)."""
+
+from __future__ import annotations
+
+import itertools
+import math
+import struct
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import can
+import pytest
+import zenoh
+
+from hilsim import msgs, transport
+from hilsim.bridges import can_bus
+from hilsim.bridges.can_bridge import CanBridgeService
+from hilsim.bridges.can_bus import BusConfig, JointMap
+from hilsim.bridges.can_profiles import DriveCommand, Estimate, FrameError, Heartbeat, make_profile
+from hilsim.bridges.drive_emulator import DriveEmulatorService
+from hilsim.config import ConfigError, ZenohConfig, load_scenario
+from hilsim.keys import Keys
+
+REPO = Path(__file__).resolve().parent.parent
+CAN_HIL = REPO / "config" / "hil" / "can.yaml"
+_channels = itertools.count()
+
+
+# ------------------------------------------------------------------ protocol
+def test_odrive_frames_have_the_documented_layout() -> None:
+    p = make_profile("odrive")
+    f = p.command_frame(3, "position", 2 * math.pi * 1.25, 2 * math.pi * 0.5, -0.002)
+    assert f.arbitration_id == 3 << 5 | 0x0C and not f.is_extended_id
+    assert bytes(f.data) == struct.pack("<fhh", 1.25, 500, -2)
+    f = p.command_frame(1, "velocity", 0.0, 2 * math.pi * -2.0, 0.0)
+    assert f.arbitration_id == 0x2D and bytes(f.data) == struct.pack("<ff", -2.0, 0.0)
+    f = p.command_frame(0, "effort", 0.0, 0.0, 0.75)
+    assert f.arbitration_id == 0x0E and bytes(f.data) == struct.pack("<f", 0.75)
+    modes = [bytes(p.mode_frame(0, i).data) for i in ("effort", "velocity", "position")]
+    assert modes == [struct.pack("<ii", m, 1) for m in (1, 2, 3)]
+    assert bytes(p.state_frame(2, 8).data) == struct.pack("<I", 8) and p.state_frame(2, 8).arbitration_id == 0x47
+    hb = p.heartbeat_frame(Heartbeat(5, 0x200, 8, 0, True))
+    assert hb.arbitration_id == 5 << 5 | 1 and bytes(hb.data) == struct.pack("<IBBBx", 0x200, 8, 0, 1)
+    est = p.estimate_frame(Estimate(0, 2 * math.pi * 0.25, 2 * math.pi * -1.5))
+    assert est.arbitration_id == 9 and bytes(est.data) == struct.pack("<ff", 0.25, -1.5)
+    rtr = p.estimate_request(4)
+    assert rtr.is_remote_frame and rtr.arbitration_id == 4 << 5 | 9
+    # and back
+    assert p.parse(hb) == Heartbeat(5, 0x200, 8, 0, True)
+    e = p.parse(est)
+    assert isinstance(e, Estimate) and e.position == pytest.approx(math.pi / 2)
+    assert e.velocity == pytest.approx(-3 * math.pi)
+    assert p.parse(rtr) == DriveCommand(4, "request_estimate")
+    c = p.parse(p.command_frame(3, "position", 1.0, 2.0, 0.5))
+    assert c.kind == "position" and c.a == pytest.approx(1.0, abs=1e-6) and c.b == pytest.approx(2.0, abs=0.01)
+    assert p.direction(hb) == "to_host" and p.direction(rtr) == "to_drive" and p.direction(f) == "to_drive"
+
+
+@pytest.mark.parametrize(("frame", "kind"), [
+    (can.Message(arbitration_id=0x1F, data=b"\0" * 8, is_extended_id=False), "unknown_id"),
+    (can.Message(arbitration_id=0x12345, data=b"\0" * 8, is_extended_id=True), "unknown_id"),
+    (can.Message(arbitration_id=0x01, data=b"\0" * 3, is_extended_id=False), "bad_length"),
+    (can.Message(arbitration_id=0x09, data=struct.pack("<ff", math.nan, 0.0), is_extended_id=False), "malformed"),
+    (can.Message(arbitration_id=0x21, is_remote_frame=True, dlc=8, is_extended_id=False), "unknown_id"),
+])
+def test_frames_of_no_use_say_why(frame: can.Message, kind: str) -> None:
+    with pytest.raises(FrameError) as e:
+        make_profile("odrive").parse(frame)
+    assert e.value.kind == kind
+
+
+def test_joint_mapping_and_profile_lookup() -> None:
+    m = JointMap(node_id=0, gear_ratio=9.0, direction=-1, offset=0.2)
+    assert m.to_motor(0.2) == 0.0 and m.to_joint(m.to_motor(0.7)) == pytest.approx(0.7)
+    assert m.to_motor(0.3) == pytest.approx(-0.9) and m.vel_to_motor(1.0) == -9.0
+    assert m.torque_to_motor(9.0) == -1.0 and m.torque_to_joint(-1.0) == pytest.approx(9.0)
+    with pytest.raises(ConfigError, match=r"unknown CAN profile 'cia402'; available: odrive"):
+        make_profile("cia402")
+
+
+def test_the_bridge_config_names_every_joint_it_serves(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("joints: {joint_2: {interface: velocity, server: bridge-can}}\n")
+    sc = load_scenario("arm", overlays=[CAN_HIL, bad])
+    with pytest.raises(ConfigError, match=r"bridge-can\.joints: no drive given for joint_2"):
+        CanBridgeService(sc)
+
+
+# ------------------------------------------------------------------ bridge <-> emulated drives
+class Rig:
+    """The bridge and the emulator (model mode) on one virtual bus, a Zenoh session of the test."""
+
+    def __init__(self, router: str, run_service: Callable[[Any], Any], extra: dict[str, Any]) -> None:
+        channel = f"hilsim-test-{next(_channels)}-{time.monotonic_ns()}"
+        o = {
+            "zenoh.connect": [router],
+            "joints.joint_2": {"interface": "velocity", "server": "bridge-can"},
+            "bridge-can.bus": {"interface": "virtual", "channel": channel},
+            "bridge-can.joints.joint_1": {"node_id": 0, "gear_ratio": 2.0, "direction": -1, "offset": 0.1},
+            "bridge-can.joints.joint_2": {"node_id": 1},
+            "bridge-can.heartbeat_period": 0.05,
+            "bridge-can.recover_interval": 0.1,
+            "bridge-can.reconnect_interval": 0.2,
+            "drive-emulator.heartbeat_period": 0.05,
+            "drive-emulator.encoder_period": 0.005,
+            "drive-emulator.initial_position": {"joint_1": 0.1},
+        }
+        o.update(extra)
+        self.sc = load_scenario("arm", o, overlays=[CAN_HIL])
+        self.channel = channel
+        self.keys = Keys(self.sc.prefix, self.sc.robot)
+        self.session = transport.open_session(ZenohConfig(connect=[router]))
+        self.lock = threading.Lock()
+        self.logs: list[tuple[int, str]] = []
+        self.states: list[msgs.JointState] = []
+        s = self.session
+        self.subs = [
+            s.declare_subscriber(self.keys.log("bridge-can"), self._on_log),
+            s.declare_subscriber(self.keys.server_state("bridge-can"), self._on_state),
+        ]
+        self.cmd = s.declare_publisher(self.keys.topic("joint_commands"))
+        self.bridge = CanBridgeService(self.sc)
+        self.emulator = DriveEmulatorService(self.sc)
+        self.run_service = run_service
+        self.ctx: list[Any] = []
+
+    def _on_log(self, sample: zenoh.Sample) -> None:
+        m = msgs.decode(msgs.Log, sample.payload.to_bytes())
+        with self.lock:
+            self.logs.append((m.level, m.msg))
+
+    def _on_state(self, sample: zenoh.Sample) -> None:
+        m = msgs.decode(msgs.JointState, sample.payload.to_bytes())
+        with self.lock:
+            self.states.append(m)
+
+    def start(self, *services: Any) -> None:
+        for svc in services:
+            cm = self.run_service(svc)
+            cm.__enter__()
+            self.ctx.append(cm)
+
+    def close(self) -> None:
+        for cm in reversed(self.ctx):
+            cm.__exit__(None, None, None)
+        for s in self.subs:
+            s.undeclare()
+        self.cmd.undeclare()
+        self.session.close()
+
+    def command(self, joint_1: float, joint_2: float) -> None:
+        """joint_1 (position interface) to a position, joint_2 (velocity) at a velocity."""
+        self.cmd.put(msgs.encode(msgs.JointState(header=msgs.header(0), name=["joint_1", "joint_2"],
+                                                 position=[joint_1, 0.0], velocity=[0.0, joint_2], effort=[0.0, 0.0])))
+
+    def drive(self, node: int) -> Any:
+        return self.emulator.drives[node]
+
+    def joint(self, name: str) -> Any:
+        return self.bridge.joints[name]
+
+    def said(self, level: int, text: str) -> bool:
+        with self.lock:
+            return any(lv == level and text in m for lv, m in self.logs)
+
+    def measured(self, name: str) -> float | None:
+        with self.lock:
+            for m in reversed(self.states):
+                if name in m.name:
+                    return m.position[m.name.index(name)]
+        return None
+
+
+def wait_for(cond: Callable[[], Any], timeout: float = 5.0, what: str = "") -> None:
+    deadline = time.monotonic() + timeout
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what or cond}")
+        time.sleep(0.01)
+
+
+@pytest.fixture
+def rig(router: str, run_service: Callable[[Any], Any]) -> Iterator[Callable[..., Rig]]:
+    made: list[Rig] = []
+
+    def make(**extra: Any) -> Rig:
+        r = Rig(router, run_service, extra)
+        made.append(r)
+        return r
+
+    yield make
+    for r in made:
+        r.close()
+
+
+def test_commands_reach_the_drive_and_its_state_comes_back_in_joint_units(rig: Callable[..., Rig]) -> None:
+    r = rig()
+    r.start(r.emulator, r.bridge)
+    wait_for(lambda: r.joint("joint_1").status == "ok" and r.joint("joint_2").status == "ok", what="closed loop")
+    d1, d2 = r.drive(0), r.drive(1)
+    assert d1.closed_loop and d1.mode == "position" and d2.mode == "velocity"
+    assert r.bridge.state == "running"
+    # joint_1: gear 2, direction -1, offset 0.1 -> motor = -2 (q - 0.1)
+    for _ in range(150):
+        r.command(joint_1=0.4, joint_2=0.5)
+        time.sleep(0.01)
+    assert d1.p == pytest.approx(-0.6, abs=0.01)  # the drive's motor, in motor rad
+    assert d2.v == pytest.approx(0.5, abs=0.02)  # velocity mode: 0.5 rad/s
+    wait_for(lambda: abs((r.measured("joint_1") or 0) - 0.4) < 0.01, what="joint_1 measured at 0.4 rad")
+    assert r.bridge.health_values()["frames_malformed"] == 0
+
+
+def test_heartbeat_loss_is_a_fault_the_other_drive_is_held_and_both_come_back(rig: Callable[..., Rig]) -> None:
+    r = rig()
+    r.start(r.emulator, r.bridge)
+    wait_for(lambda: r.joint("joint_1").status == "ok" and r.joint("joint_2").status == "ok", what="closed loop")
+    r.drive(1).silent = True  # joint_2's drive stops talking
+    wait_for(lambda: r.said(40, "joint_2 (node 1): heartbeat lost"), what="heartbeat fault")
+    assert r.bridge.state == "fault" and r.joint("joint_2").status == "fault"
+    assert r.bridge.health().status[0].level == 2
+    # joint_1 held where it is: position mode, and commands no longer reach it
+    wait_for(lambda: r.joint("joint_1").held, what="joint_1 held")
+    hold = r.drive(0).inputs[0]
+    for _ in range(20):
+        r.command(joint_1=1.0, joint_2=0.3)
+        time.sleep(0.01)
+    assert r.drive(0).inputs[0] == hold and r.drive(0).mode == "position"
+    assert r.drive(1).inputs[1] == 0.0  # the silent drive got no setpoint either
+    r.drive(1).silent = False
+    wait_for(lambda: r.said(20, "joint_2 (node 1) recovered (heartbeat lost"), what="recovery said")
+    wait_for(lambda: r.said(20, "joint_1 (node 0) released"), what="release said")
+    assert r.bridge.state == "running"
+    r.command(joint_1=0.35, joint_2=0.3)
+    wait_for(lambda: r.drive(1).inputs[1] == pytest.approx(0.3, abs=1e-6), what="joint_2 follows again")
+
+
+def test_an_axis_error_is_a_fault_cleared_by_the_bridge(rig: Callable[..., Rig]) -> None:
+    r = rig()
+    r.start(r.emulator, r.bridge)
+    wait_for(lambda: r.joint("joint_1").status == "ok", what="closed loop")
+    d = r.drive(0)
+    with r.emulator.lock:
+        d.fail(0x200, sticky=True)  # a drive error that does not go away by itself
+    wait_for(lambda: r.said(40, "joint_1 (node 0): axis error 0x200"), what="axis error fault")
+    n = d.commands
+    time.sleep(0.5)
+    assert r.joint("joint_1").status == "fault" and d.commands > n  # it keeps trying to clear it
+    assert d.state == d.profile.IDLE
+    with r.emulator.lock:
+        d.sticky_error = False  # now Clear_Errors works
+    wait_for(lambda: r.said(20, "joint_1 (node 0) recovered (axis error 0x200"), what="recovery")
+    assert d.closed_loop and d.error == 0
+
+
+def test_garbage_frames_are_counted_not_fatal(rig: Callable[..., Rig]) -> None:
+    r = rig()
+    r.start(r.emulator, r.bridge)
+    wait_for(lambda: r.joint("joint_1").status == "ok", what="closed loop")
+    bus = can.Bus(interface="virtual", channel=r.channel)
+    try:
+        junk = [
+            can.Message(arbitration_id=0x1F, data=b"\xff" * 8, is_extended_id=False),  # unknown command
+            can.Message(arbitration_id=0x01, data=b"\x00\x01", is_extended_id=False),  # short heartbeat
+            can.Message(arbitration_id=0x09, data=struct.pack("<ff", math.inf, 0.0), is_extended_id=False),
+            can.Message(arbitration_id=0x1ABCDEF, data=b"\x00", is_extended_id=True),  # not CAN Simple
+            can.Message(arbitration_id=0x3E9, data=b"\x00" * 8, is_extended_id=False),  # node 31 heartbeat
+        ]
+        for _ in range(3):
+            for f in junk:
+                bus.send(f)
+    finally:
+        bus.shutdown()
+    wait_for(lambda: r.bridge.bad["malformed"] == 3 and r.bridge.bad["bad_length"] == 3, what="counted")
+    h = r.bridge.health_values()
+    assert (h["frames_unknown_id"], h["frames_bad_length"], h["frames_malformed"]) == (6, 3, 3)
+    assert h["frames_other_nodes"] >= 3
+    assert r.bridge.state == "running" and r.joint("joint_1").status == "ok"
+    assert r.said(30, "CAN frame not used (malformed")
+    assert r.emulator.bad["unknown_id"] >= 6  # the drives count them too
+
+
+def test_a_bus_missing_at_start_then_bus_off_faults_and_recovers(rig: Callable[..., Rig],
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    r = rig()
+    tries = {"n": 0}
+    real_open = can_bus.open_bus
+
+    def flaky(cfg: BusConfig) -> can.BusABC:
+        tries["n"] += 1
+        if tries["n"] <= 2:  # not there for the first two attempts, as a USB adapter being plugged in
+            return can_bus.open_bus(BusConfig(interface="socketcan", channel="hilsimnone0"))
+        return real_open(cfg)
+
+    r.bridge.link.opener = flaky
+    r.start(r.emulator, r.bridge)
+    wait_for(lambda: r.said(40, "CAN bus virtual:"), what="bus fault")
+    assert r.said(40, "not available") and r.bridge.state == "fault"
+    wait_for(lambda: r.said(20, "joint_1 (node 0) recovered (CAN bus down"), timeout=8, what="recovery after bus up")
+    assert r.said(20, "up again") and tries["n"] == 3
+    # the controller goes bus-off: SocketCAN reports it with an error frame
+    bus = can.Bus(interface="virtual", channel=r.channel)
+    try:
+        bus.send(can.Message(arbitration_id=can_bus.CAN_ERR_BUSOFF, is_error_frame=True, dlc=8, data=bytes(8)))
+    finally:
+        bus.shutdown()
+    wait_for(lambda: r.said(40, "bus-off"), what="bus-off fault")
+    assert r.bridge.link.outages == 2
+    wait_for(lambda: r.bridge.state == "running" and r.joint("joint_1").status == "ok", timeout=8,
+             what="running after bus-off")
+
+
+def test_nothing_on_the_bus_is_a_fault_not_a_hang(rig: Callable[..., Rig]) -> None:
+    r = rig()
+    r.start(r.bridge)  # no drive at all
+    wait_for(lambda: r.said(40, "joint_1 (node 0): no heartbeat from node 0"), what="no-drive fault")
+    assert r.said(40, "joint_2 (node 1): no heartbeat from node 1")
+    assert r.measured("joint_1") is None
