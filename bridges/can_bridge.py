@@ -105,7 +105,7 @@ class CanBridgeService(Service):
         super().__init__(scenario)
         where = scenario.source or "scenario"
         c = self.cfg
-        mine = [n for n, j in scenario.joints.items() if n != "default" and j.server == self.name]
+        mine = [n for n in scenario.joints if n != "default" and scenario.joint(n).server == self.name]
         if scenario.joint("default").server == self.name:
             raise ConfigError(f"{where}: joints.default.server: name the joints {self.name} serves one by one")
         if not mine:
