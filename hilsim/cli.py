@@ -7,7 +7,7 @@
     hilsim goal ROBOT --joints J1 … | --pose X Y Z [R P Y]
     hilsim gains ROBOT JOINT.GAIN=VALUE …
     hilsim plan evaluate --targets FILE [--criterion length|smoothness|weighted]
-    hilsim bench loop|plan [--json]
+    hilsim bench loop|plan|can [--json]
     hilsim router [--listen ENDPOINT]
 """
 
@@ -129,6 +129,12 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--sim-seconds", type=float, default=5.0)
     bl.add_argument("--realtime-seconds", type=float, default=60.0)
     bl.set_defaults(func=_lazy("hilsim.bench", "cmd_loop"))
+    bc = bsub.add_parser("can", help="CAN bridge: frames per second and added latency vs python-can alone")
+    bc.add_argument("--json", action="store_true")
+    bc.add_argument("--samples", type=int, default=1000, help="paced latency probes per path")
+    bc.add_argument("--seconds", type=float, default=3.0, help="flat-out duration per direction")
+    bc.add_argument("--port", type=int, default=None, help="udp_multicast port (default: a random one)")
+    bc.set_defaults(func=_lazy("hilsim.bridges.can_bench", "cmd_can"))
     bp = bsub.add_parser("plan", help="planners on the shipped scenes")
     bp.add_argument("--json", action="store_true")
     bp.add_argument("--seeds", type=int, default=10)
