@@ -114,6 +114,15 @@ class Keys:
     def all_alive(self) -> str:
         return f"{self.prefix}/{self.robot}/alive/*"
 
+    def writer(self, gid: bytes, key: str) -> str:
+        """Liveliness token of a publisher: writer ``gid`` writes ``key`` (a key under this prefix)."""
+        rest = key[len(self.prefix) + 1:] if key.startswith(f"{self.prefix}/") else key
+        return f"{self.prefix}/writers/{gid.hex()}/{rest}"
+
+    @property
+    def all_writers(self) -> str:
+        return f"{self.prefix}/writers/**"
+
     def scoped(self, expr: str) -> str:
         """A key expression under this simulation's prefix, e.g. ``scoped("**")``."""
         return f"{self.prefix}/{expr}"

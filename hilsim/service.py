@@ -33,6 +33,7 @@ from pydantic import BaseModel, ValidationError
 from hilsim import msgs, transport
 from hilsim.config import ConfigError, Scenario, format_error
 from hilsim.keys import Keys
+from hilsim.provenance import Provenance, parse_writer_token
 
 T = TypeVar("T")
 LEVEL_OK, LEVEL_WARN, LEVEL_ERROR = 0, 1, 2
@@ -48,6 +49,8 @@ class Publisher:
         self._pub = transport.publisher(service.session, key, drop_when_congested=service.sc.clock.mode == "realtime")
         self.gid = transport.new_gid()
         self.seq = 0
+        # announce: receivers accept this key only from announced writers (hilsim.provenance)
+        self._token = service.session.liveliness().declare_token(service.keys.writer(self.gid, key))
 
     def put(self, msg: Any) -> None:
         self.seq += 1
@@ -55,6 +58,7 @@ class Publisher:
         self._svc.counts_out[self.key] += 1
 
     def undeclare(self) -> None:
+        self._token.undeclare()
         self._pub.undeclare()
 
 
@@ -103,6 +107,8 @@ class Service:
         self.counts_out: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
         self.stale: Counter[str] = Counter()  # realtime: samples dropped as older than clock.max_age
+        self.seq_gaps: Counter[str] = Counter()  # samples missing from a writer's sequence, per key
+        self.provenance = Provenance()
         self.errors = 0
         self.overruns = 0
         self.last_error = ""
@@ -154,13 +160,18 @@ class Service:
         def on_sample(sample: zenoh.Sample) -> None:
             k = str(sample.key_expr)
             self.counts_in[k] += 1
-            if max_age_ns:
+            att = transport.read_attachment(sample)
+            why, gap = self.provenance.check(k, att)
+            if why is not None:
+                self.reject(k, why)
+                return
+            if gap:
+                self.seq_gaps[k] += gap
+            if max_age_ns and att is not None and time.time_ns() - att.source_ns > max_age_ns:
                 # realtime: a sample that waited too long in a queue (this process fell behind)
                 # is dropped, so the loop works on fresh data and catches up instead of lagging more
-                att = transport.read_attachment(sample)
-                if att is not None and time.time_ns() - att.source_ns > max_age_ns:
-                    self.stale[k] += 1
-                    return
+                self.stale[k] += 1
+                return
             try:
                 msg = msgs.decode(cls, sample.payload.to_bytes(), n_joints=n_joints)
             except msgs.BadMessage as e:
@@ -171,7 +182,7 @@ class Service:
                     if self.stop_event.is_set():
                         return  # stopping: the publishers may be going away
                     if with_attachment:
-                        handler(msg, k, transport.read_attachment(sample))  # type: ignore[call-arg]
+                        handler(msg, k, att)  # type: ignore[call-arg]
                     else:
                         handler(msg, k)
             except msgs.BadMessage as e:  # well-formed, but not usable here (e.g. an unknown joint)
@@ -233,6 +244,16 @@ class Service:
         """True when physics waits for this service (at its :meth:`lockstep_period`)."""
         return self.sc.clock.mode == "lockstep" and self.lockstep_period(self.sc) is not None
 
+    def _on_writer(self, sample: Any) -> None:
+        parsed = parse_writer_token(str(sample.key_expr))
+        if parsed is None:
+            return
+        key, gid = parsed
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.provenance.announce(key, gid)
+        else:
+            self.provenance.withdraw(key, gid)
+
     def ack_publisher(self) -> Publisher | None:
         """The publisher whose samples acknowledge steps (``ack_via``); the sync one by default."""
         return self._sync_pub
@@ -274,11 +295,13 @@ class Service:
             "errors": self.errors,
             "overruns": self.overruns,
             "stale_dropped": sum(self.stale.values()),
+            "seq_gaps": sum(self.seq_gaps.values()),
             "last_error": self.last_error,
         }
         values.update(self.health_values())
         values.update({f"rejected:{k}": v for k, v in self.rejected.items()})
         values.update({f"stale:{k}": v for k, v in self.stale.items()})
+        values.update({f"seq_gaps:{k}": v for k, v in self.seq_gaps.items()})
         # per key, how many samples this service has sent: what a recorder can be checked against
         values.update({f"published:{k}": v for k, v in self.counts_out.items()})
         st = msgs.DiagnosticStatus(
@@ -312,6 +335,9 @@ class Service:
         :class:`hilsim.inproc.Bus` session (benchmarks, tests). The liveliness token comes last,
         so whoever sees it knows the inputs exist."""
         self.session = session
+        # before any input: who may write which key (history: the writers that exist already)
+        self._declared.append(session.liveliness().declare_subscriber(
+            self.keys.all_writers, self._on_writer, history=True))
         self._health_pub = self.publisher(self.keys.health(self.name))
         self._log_pub = self.publisher(self.keys.log(self.name))
         if self.lockstep and self.ack_via == "sync":

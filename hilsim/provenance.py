@@ -1,0 +1,73 @@
+"""Who sent what: the announced writers of each key and what each writer sent last.
+
+Every hilsim publisher announces itself with a liveliness token
+``<prefix>/writers/<gid hex>/<key below the prefix>`` (see :meth:`hilsim.keys.Keys.writer`) and
+stamps every sample with rmw_zenoh's attachment (sequence number, source time, its gid; see
+:mod:`hilsim.transport`). A receiver keeps a :class:`Provenance` and asks it about every sample:
+
+- a key that has had an announced writer is *restricted*: a sample on it without an attachment,
+  or from a writer that has not announced itself for that key, is rejected (an impostor, or a
+  tool publishing by hand while the real writer runs). A key nobody announced stays open, so a
+  test or a tool may still drive a service alone;
+- per writer, the sequence number must grow: the same number again is a duplicate, a smaller
+  one is out of order — both are rejected; a jump is a gap, counted as lost samples;
+- the first sample seen from a writer starts its count (what it sent before we listened is not
+  a loss).
+
+Pure bookkeeping, no transport: unit-tested on its own, used by :class:`hilsim.service.Service`.
+"""
+
+from __future__ import annotations
+
+from hilsim.transport import Attachment
+
+
+class Provenance:
+    def __init__(self) -> None:
+        self.writers: dict[str, set[bytes]] = {}
+        self.restricted: set[str] = set()
+        self.last: dict[tuple[str, bytes], int] = {}
+
+    # ------------------------------------------------------------------ announcements
+    def announce(self, key: str, gid: bytes) -> None:
+        self.writers.setdefault(key, set()).add(gid)
+        self.restricted.add(key)
+
+    def withdraw(self, key: str, gid: bytes) -> None:
+        """A writer went away (its token was undeclared); the key stays restricted."""
+        self.writers.get(key, set()).discard(gid)
+        self.last.pop((key, gid), None)
+
+    # ------------------------------------------------------------------ samples
+    def check(self, key: str, att: Attachment | None) -> tuple[str | None, int]:
+        """(reason to reject the sample or None, samples lost before it from its writer)."""
+        if key in self.restricted:
+            if att is None:
+                return "no attachment: the sender is unknown (every hilsim writer attaches its id)", 0
+            if att.gid not in self.writers.get(key, ()):
+                return f"from writer {att.gid.hex()[:12]}…, which has not announced itself for this key", 0
+        if att is None:
+            return None, 0
+        k = (key, att.gid)
+        last = self.last.get(k)
+        if last is not None:
+            if att.seq == last:
+                return f"duplicate of sample {att.seq} from this writer", 0
+            if att.seq < last:
+                return f"out of order: sample {att.seq} after {last} from this writer", 0
+        self.last[k] = att.seq
+        return None, 0 if last is None else att.seq - last - 1
+
+
+def parse_writer_token(token: str) -> tuple[str, bytes] | None:
+    """``<prefix>/writers/<gid hex>/<rest>`` → (``<prefix>/<rest>``, gid); None if malformed."""
+    parts = token.split("/", 3)
+    if len(parts) != 4 or parts[1] != "writers":
+        return None
+    try:
+        gid = bytes.fromhex(parts[2])
+    except ValueError:
+        return None
+    if len(gid) != 16:
+        return None
+    return f"{parts[0]}/{parts[3]}", gid
