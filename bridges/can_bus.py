@@ -38,11 +38,15 @@ class BusConfig(BaseModel):
                            "virtual, pcan, slcan, …")
     channel: str = Field(UDP_GROUP_IPV6, description="python-can channel (can0, a multicast group, …)")
 
+    def extra(self) -> dict[str, Any]:
+        """The other ``can.Bus`` arguments; one set to null (e.g. an overlay's ``port: null``) is left out."""
+        return {k: v for k, v in (self.model_extra or {}).items() if v is not None}
+
     def kwargs(self) -> dict[str, Any]:
-        return {"interface": self.interface, "channel": self.channel, **(self.model_extra or {})}
+        return {"interface": self.interface, "channel": self.channel, **self.extra()}
 
     def describe(self) -> str:
-        extra = "".join(f" {k}={v}" for k, v in (self.model_extra or {}).items())
+        extra = "".join(f" {k}={v}" for k, v in self.extra().items())
         return f"{self.interface}:{self.channel}{extra}"
 
 
