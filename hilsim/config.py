@@ -113,6 +113,10 @@ class ControllerConfig(_Model):
     )
     gains: dict[str, PidGains] = Field(default_factory=dict, description="per joint name, or 'default'")
     hold_timeout: float = Field(0.05, gt=0, description="sim seconds without joint_states before holding")
+    params: dict[str, Any] = Field(
+        default_factory=dict, description="settings of the control law named by `type`, validated by its class "
+        "(e.g. four_wheel_steer: max_speed, cmd_timeout, script)",
+    )
 
 
 class PlannerConfig(_Model):

@@ -44,6 +44,8 @@ BUILTIN: dict[str, dict[str, str]] = {
     "sensors": {
         "encoder": "hilsim.sensing:Encoder",
         "imu": "hilsim.sensing:ImuSensor",
+        "laser": "hilsim.sensors_mobile:Laser",
+        "gps": "hilsim.sensors_mobile:Gps",
     },
     "controllers": {
         "joint_trajectory": "hilsim.services.controller:ControllerService",

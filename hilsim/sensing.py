@@ -50,13 +50,18 @@ def sensor_class(type_name: str) -> type[Sensor]:
     return cls
 
 
-def make_sensor(name: str, cfg: SensorConfig, *, seed: int, dt_ns: int, where: str = "") -> Sensor:
-    """Build the sensor ``name`` of a scenario; raises :class:`ConfigError` (one line) on bad config."""
+def make_sensor(name: str, cfg: SensorConfig, *, seed: int, dt_ns: int, where: str = "",
+                scenario: Any = None) -> Sensor:
+    """Build the sensor ``name`` of a scenario; raises :class:`ConfigError` (one line) on bad config.
+    With ``scenario``, the sensor is also bound to it (:meth:`Sensor.bind`)."""
     try:
         cls = sensor_class(cfg.type)
     except UnknownSensorType as e:
         raise UnknownSensorType(f"{where}sensors.{name}.type: {e}") from None
-    return cls(name, cfg, seed=seed, dt_ns=dt_ns, where=where)
+    s = cls(name, cfg, seed=seed, dt_ns=dt_ns, where=where)
+    if scenario is not None:
+        s.bind(scenario, where)
+    return s
 
 
 class Sensor:
@@ -92,6 +97,11 @@ class Sensor:
         # Seeded per sensor: adding or removing one sensor leaves the noise of the others unchanged.
         self.rng = np.random.default_rng([seed & 0xFFFFFFFF, zlib.crc32(name.encode())])
         self.published = 0
+
+    def bind(self, scenario: Any, where: str = "") -> None:
+        """Take what the sensor needs from the scenario beyond its own parameters (e.g. the world
+        model a laser casts its rays in, the frame a GPS antenna sits at); called once by the
+        sensor service after construction. Raise :class:`ConfigError` (one line) if it is unusable."""
 
     def due(self, stamp_ns: int) -> bool:
         """Whether the sensor samples the truth of the physics step stamped ``stamp_ns``."""

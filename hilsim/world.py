@@ -7,6 +7,10 @@ process (``server`` other than ``sim``) is not actuated: it *follows* the state 
 measured (:meth:`World.follow`), kinematically, so the links, contacts and the recording
 stay consistent with the real motor.
 
+A model whose root body has a free joint (a mobile robot such as the rover) also gets a
+:class:`MobileBase`: its chassis pose and twist (``truth/odom``) and the transforms of the chassis
+and its sensor sites (``tf``). A fixed-base model (the arm) has none, and nothing about it changes.
+
 Used by the physics service and, unchanged, by the in-process baseline of ``hilsim bench loop``.
 """
 
@@ -126,6 +130,7 @@ class World:
             self._gyro = m.sensor("imu_gyro").adr[0]
             self._quat = m.sensor("imu_quat").adr[0]
         self.step_index = 0
+        self.base = MobileBase.of(m, self.data)  # None for a fixed-base robot
         mujoco.mj_forward(m, self.data)
 
     def _make_servo(self, i: int, interface: str, kp: float, kv: float) -> None:
@@ -244,3 +249,63 @@ class World:
             angular_velocity=msgs.Vector3(x=float(g[0]), y=float(g[1]), z=float(g[2])),
             linear_acceleration=msgs.Vector3(x=float(a[0]), y=float(a[1]), z=float(a[2])),
         )
+
+
+class MobileBase:
+    """Ground truth of a free-floating base: the body of the model's free joint (the chassis).
+
+    ``odometry`` is nav_msgs/Odometry of the chassis in the world frame (``header.frame_id``
+    ``world``, ``child_frame_id`` the chassis body): pose = the free joint's position and
+    orientation, twist in the chassis frame (ROS convention: linear and angular velocity of the
+    body expressed in ``child_frame_id``). ``transforms`` is tf2_msgs/TFMessage: world → chassis,
+    then chassis → each site on the chassis (the sensor frames, e.g. ``laser``, ``imu``, ``gps``).
+    """
+
+    def __init__(self, m: mujoco.MjModel, d: mujoco.MjData, joint: int) -> None:
+        self.m, self.d = m, d
+        self.body = int(m.jnt_bodyid[joint])
+        self.name = m.body(self.body).name
+        self.qadr = int(m.jnt_qposadr[joint])
+        self.sites = [(m.site(i).name, m.site_pos[i].copy(), m.site_quat[i].copy())
+                      for i in range(m.nsite) if m.site_bodyid[i] == self.body]
+        self._vel = np.zeros(6)
+
+    @classmethod
+    def of(cls, m: mujoco.MjModel, d: mujoco.MjData) -> MobileBase | None:
+        """The mobile base of a model: the first free joint whose body hangs from the world."""
+        for j in range(m.njnt):
+            if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_FREE and m.body_parentid[m.jnt_bodyid[j]] == 0:
+                return cls(m, d, j)
+        return None
+
+    def odometry(self, stamp_ns: int) -> msgs.Odometry:
+        q = self.d.qpos[self.qadr:self.qadr + 7]
+        # XBODY: the body frame (BODY would be its principal inertia frame)
+        mujoco.mj_objectVelocity(self.m, self.d, mujoco.mjtObj.mjOBJ_XBODY, self.body, self._vel, 1)
+        w, v = self._vel[:3], self._vel[3:]
+        return msgs.Odometry(
+            header=msgs.header(stamp_ns, "world"),
+            child_frame_id=self.name,
+            pose=msgs.PoseWithCovariance(pose=msgs.Pose(
+                position=msgs.Point(x=float(q[0]), y=float(q[1]), z=float(q[2])),
+                orientation=msgs.Quaternion(x=float(q[4]), y=float(q[5]), z=float(q[6]), w=float(q[3])))),
+            twist=msgs.TwistWithCovariance(twist=msgs.Twist(
+                linear=msgs.Vector3(x=float(v[0]), y=float(v[1]), z=float(v[2])),
+                angular=msgs.Vector3(x=float(w[0]), y=float(w[1]), z=float(w[2])))),
+        )
+
+    def transforms(self, stamp_ns: int) -> msgs.TFMessage:
+        q = self.d.qpos[self.qadr:self.qadr + 7]
+        out = [msgs.TransformStamped(
+            header=msgs.header(stamp_ns, "world"), child_frame_id=self.name,
+            transform=msgs.Transform(
+                translation=msgs.Vector3(x=float(q[0]), y=float(q[1]), z=float(q[2])),
+                rotation=msgs.Quaternion(x=float(q[4]), y=float(q[5]), z=float(q[6]), w=float(q[3]))))]
+        for name, pos, quat in self.sites:
+            out.append(msgs.TransformStamped(
+                header=msgs.header(stamp_ns, self.name), child_frame_id=name,
+                transform=msgs.Transform(
+                    translation=msgs.Vector3(x=float(pos[0]), y=float(pos[1]), z=float(pos[2])),
+                    rotation=msgs.Quaternion(x=float(quat[1]), y=float(quat[2]), z=float(quat[3]),
+                                             w=float(quat[0])))))
+        return msgs.TFMessage(transforms=out)

@@ -10,6 +10,10 @@ Reads:
                                              participant (period, how it acknowledges, its writer id)
 Writes (every step, stamped with the step's sim time):
   ``<prefix>/<robot>/truth/imu``          sensor_msgs/Imu at ``physics.truth_imu_site`` (if set)
+  ``<prefix>/<robot>/truth/odom``         nav_msgs/Odometry of the chassis, world frame (mobile
+                                          robots only: a model whose root body has a free joint)
+  ``<prefix>/<robot>/tf``                 tf2_msgs/TFMessage: world → chassis → its sensor sites
+                                          (mobile robots only)
   ``<prefix>/<robot>/truth/joint_states`` sensor_msgs/JointState (position, velocity, applied effort)
   ``<prefix>/clock``                      rosgraph_msgs/Clock
 
@@ -78,6 +82,9 @@ class PhysicsService(Service):
         self.last_progress = time.monotonic()
         self.waiting_reported = False
         self.pub_imu = self.publisher(self.keys.truth("imu")) if self.world.imu_site else None
+        # a mobile base (free joint) also has truth/odom and tf; a fixed-base robot has neither
+        self.pub_odom = self.publisher(self.keys.truth("odom")) if self.world.base else None
+        self.pub_tf = self.publisher(self.keys.topic("tf")) if self.world.base else None
         self.pub_js = self.publisher(self.keys.truth("joint_states"))
         self.pub_clock = self.publisher(self.keys.clock)
         self.subscribe(self.keys.topic("joint_commands"), msgs.JointState, self._on_command, with_attachment=True)
@@ -192,6 +199,10 @@ class PhysicsService(Service):
             imu = w.imu()
             assert imu is not None
             self.pub_imu.put(imu)
+        if w.base is not None and self.pub_odom is not None and self.pub_tf is not None:
+            # before truth/joint_states: the sensors' step is complete once they handled that one
+            self.pub_odom.put(w.base.odometry(w.time_ns))
+            self.pub_tf.put(w.base.transforms(w.time_ns))
         self.pub_js.put(w.joint_states())
         self.pub_clock.put(msgs.Clock(clock=msgs.stamp(w.time_ns)))
 

@@ -1,11 +1,13 @@
 """Sensor emulator service: turns physics ground truth into what real sensors would report.
 
 Reads (``<prefix>/<robot>/…``):
-  ``truth/joint_states`` (sensor_msgs/JointState), ``truth/imu`` (sensor_msgs/Imu) — the truth
-  topics of the configured sensors (:mod:`hilsim.sensing`);
+  ``truth/joint_states`` (sensor_msgs/JointState), ``truth/imu`` (sensor_msgs/Imu), ``truth/odom``
+  (nav_msgs/Odometry; laser and GPS of a mobile robot) — the truth topics of the configured
+  sensors (:mod:`hilsim.sensing`, :mod:`hilsim.sensors_mobile`);
   ``hw/<server>/joint_states`` (sensor_msgs/JointState) — joints served by external servers.
 Writes:
-  ``joint_states`` (encoders), ``imu`` — each stamped with the truth stamp, at the sensor's rate
+  ``joint_states`` (encoders), ``imu``, ``scan`` (sensor_msgs/LaserScan), ``gps/fix``
+  (sensor_msgs/NavSatFix) — each stamped with the truth stamp, at the sensor's rate
   (the physics steps ``k`` with ``k % decimation == 0``). ``joint_states`` is *one* message with
   every joint: the simulated joints from the encoders, the external joints as their server last
   measured them (a real encoder needs no emulated noise), merged at each step;
@@ -45,7 +47,7 @@ class SensorService(Service):
         super().__init__(scenario)
         where = f"{scenario.source}: " if scenario.source else ""
         self.sensors: list[Sensor] = [
-            make_sensor(n, cfg, seed=scenario.seed, dt_ns=scenario.dt_ns, where=where)
+            make_sensor(n, cfg, seed=scenario.seed, dt_ns=scenario.dt_ns, where=where, scenario=scenario)
             for n, cfg in scenario.sensors.items()
         ]
         outputs: dict[str, str] = {}

@@ -1,0 +1,104 @@
+"""Physics truth of a mobile base: truth/odom (chassis pose, body-frame twist) and tf of the chassis
+and its sensor sites, published before truth/joint_states; a fixed-base robot publishes neither."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from hilsim import msgs
+from hilsim.keys import Keys
+from hilsim.services.physics import PhysicsService
+from hilsim.world import World
+
+
+def test_truth_odom_pose_and_body_twist(scenario: Any) -> None:
+    w = World(scenario("rover"))
+    assert w.base is not None and w.base.name == "base_link"
+    # turned 90 degrees to the left and pushed along world +y: forward in its own frame
+    yaw = math.pi / 2
+    w.data.qpos[3:7] = (math.cos(yaw / 2), 0, 0, math.sin(yaw / 2))
+    w.data.qpos[0:3] = (1.0, 2.0, 0.3)
+    w.data.qvel[0:3] = (0.0, 0.7, 0.0)
+    w.data.qvel[3:6] = (0.0, 0.0, 0.2)
+    import mujoco
+
+    mujoco.mj_forward(w.model, w.data)
+    od = w.base.odometry(123)
+    assert od.header.frame_id == "world" and od.child_frame_id == "base_link" and msgs.ns_of(od.header.stamp) == 123
+    p, q = od.pose.pose.position, od.pose.pose.orientation
+    assert (p.x, p.y, p.z) == (1.0, 2.0, 0.3)
+    assert np.allclose((q.w, q.z), (math.cos(yaw / 2), math.sin(yaw / 2)))
+    t = od.twist.twist
+    assert np.allclose((t.linear.x, t.linear.y, t.angular.z), (0.7, 0.0, 0.2), atol=1e-9), t
+    tf = w.base.transforms(123).transforms
+    assert [x.child_frame_id for x in tf] == ["base_link", "imu", "laser", "gps"]
+    assert tf[0].header.frame_id == "world" and tf[2].header.frame_id == "base_link"
+    assert np.allclose([tf[2].transform.translation.x, tf[2].transform.translation.z], [0.38, 0.16])
+
+
+def test_arm_has_no_mobile_base(scenario: Any) -> None:
+    assert World(scenario("arm")).base is None
+
+
+def test_rover_settles_on_its_wheels(scenario: Any) -> None:
+    w = World(scenario("rover"))
+    for _ in range(500):
+        w.step()
+    od = w.base.odometry(w.time_ns)  # type: ignore[union-attr]
+    assert abs(od.pose.pose.position.z - 0.25) < 0.005 and abs(od.pose.pose.position.x) < 1e-3
+    assert abs(od.twist.twist.linear.z) < 1e-3
+
+
+def _order(sc: Any, session: zenoh.Session, run_service: Any) -> list[tuple[str, int]]:
+    keys = Keys(sc.prefix, sc.robot)
+    seen: list[tuple[str, int]] = []
+    lock = threading.Lock()
+
+    def on(s: zenoh.Sample) -> None:
+        k = str(s.key_expr).split(f"{sc.robot}/", 1)[1]
+        m = msgs.decode(keys_type[k], s.payload.to_bytes())
+        stamp = m.transforms[0].header.stamp if isinstance(m, msgs.TFMessage) else m.header.stamp
+        with lock:
+            seen.append((k, msgs.ns_of(stamp)))
+
+    keys_type = {"truth/odom": msgs.Odometry, "tf": msgs.TFMessage, "truth/joint_states": msgs.JointState,
+                 "truth/imu": msgs.Imu}
+    def on_any(s: zenoh.Sample) -> None:
+        if str(s.key_expr).split(f"{sc.robot}/", 1)[1] in keys_type:
+            on(s)
+
+    # one subscriber for every key: it sees them in the order they were sent
+    subs = [session.declare_subscriber(keys.scoped(f"{sc.robot}/**"), on_any)]
+    time.sleep(0.3)
+    with run_service(PhysicsService(sc)) as svc:
+        t0 = time.monotonic()
+        while svc.state != "done" and time.monotonic() - t0 < 20:
+            time.sleep(0.02)
+        time.sleep(0.3)
+    for s in subs:
+        s.undeclare()
+    return seen
+
+
+def test_physics_publishes_odom_and_tf_before_joint_states(scenario: Any, session: zenoh.Session,
+                                                          run_service: Any) -> None:
+    sc = scenario("rover", {"services": ["physics"], "duration": 0.02})
+    seen = _order(sc, session, run_service)
+    by_stamp: dict[int, list[str]] = {}
+    for k, t in seen:
+        by_stamp.setdefault(t, []).append(k)
+    assert len(by_stamp) == 11, by_stamp  # steps 0..10 at 2 ms
+    for t, ks in by_stamp.items():
+        assert ks == ["truth/imu", "truth/odom", "tf", "truth/joint_states"], (t, ks)
+
+
+def test_fixed_base_publishes_no_odom(scenario: Any, session: zenoh.Session, run_service: Any) -> None:
+    sc = scenario("arm", {"services": ["physics"], "duration": 0.005})
+    seen = _order(sc, session, run_service)
+    assert {k for k, _ in seen} == {"truth/imu", "truth/joint_states"}
