@@ -48,7 +48,8 @@ class ClockConfig(_Model):
     mode: Literal["lockstep", "realtime"] = "lockstep"
     dt: float = Field(0.001, gt=0, le=0.1, description="physics step [s]")
     ack_timeout: float = Field(
-        10.0, gt=0, description="wall seconds physics waits for a lockstep ack before publishing a fault"
+        30.0, gt=0, description="wall seconds physics waits for a lockstep ack before the run is stalled "
+        "(longer than the planner's wall-clock cap on one plan, which a lockstep step may include)",
     )
     max_age: float = Field(
         0.05, ge=0, description="realtime: a received sample older than this (wall seconds since it was sent) is "

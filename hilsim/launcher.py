@@ -34,6 +34,7 @@ import zenoh
 from hilsim import msgs, transport
 from hilsim.config import Scenario, load_scenario, write_scenario
 from hilsim.keys import Keys
+from hilsim.provenance import Provenance
 
 LOGGER_NICE = 10
 
@@ -96,6 +97,8 @@ class Launcher:
         self.outcome = Outcome()
         self.changed = threading.Event()
         self.lock = threading.Lock()
+        self.prov = Provenance()
+        self.untrusted = 0  # samples on the keys it follows from writers other than the services
 
     def say(self, text: str) -> None:
         if not self.quiet:
@@ -113,6 +116,8 @@ class Launcher:
         write_scenario(self.sc, cfg)
         self.session = transport.open_session(self.sc.zenoh)
         self._subs = [
+            # first: who writes what, so that only the services' own samples are believed
+            self.session.liveliness().declare_subscriber(self.keys.all_writers, self.prov.on_token, history=True),
             self.session.declare_subscriber(self.keys.topic("planner/result"), self._on_result),
             self.session.declare_subscriber(self.keys.topic("task/result"), self._on_result),
             self.session.declare_subscriber(self.keys.health("*"), self._on_health),
@@ -169,8 +174,17 @@ class Launcher:
                 self.children[name].ready = True
         self.changed.set()
 
+    def _trusted(self, sample: zenoh.Sample) -> bool:
+        """A sample from the key's announced writer (not a stranger's, nor a duplicate)."""
+        why, _ = self.prov.check(str(sample.key_expr), transport.read_attachment(sample))
+        if why is not None:
+            self.untrusted += 1
+        return why is None
+
     def _on_result(self, sample: zenoh.Sample) -> None:
         """``planner/result``: one goal ended (progress); ``task/result``: the task ended (the run ends)."""
+        if not self._trusted(sample):
+            return
         try:
             res = msgs.decode(msgs.MoveResult, sample.payload.to_bytes())
         except msgs.BadMessage as e:
@@ -189,6 +203,8 @@ class Launcher:
 
     def _on_log(self, sample: zenoh.Sample) -> None:
         """Faults of any service (a silent joint server, a stalled lockstep) as they happen."""
+        if not self._trusted(sample):
+            return
         try:
             m = msgs.decode(msgs.Log, sample.payload.to_bytes())
         except msgs.BadMessage:
@@ -199,6 +215,8 @@ class Launcher:
             self.say(f"  fault: {m.name}: {m.msg}")
 
     def _on_health(self, sample: zenoh.Sample) -> None:
+        if not self._trusted(sample):
+            return
         try:
             h = msgs.decode(msgs.DiagnosticArray, sample.payload.to_bytes())
         except msgs.BadMessage:
@@ -290,6 +308,14 @@ def open_default_router() -> tuple[str, zenoh.Session]:
         return ep, transport.open_router(ep)
 
 
+def _num(v: str | None) -> int:
+    """A count from a health value (0 when absent or not a number)."""
+    try:
+        return int(v or 0)
+    except ValueError:
+        return 0
+
+
 def _tail(path: Path, n: int = 1) -> str:
     try:
         lines = [ln for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
@@ -330,7 +356,7 @@ def summarise(la: Launcher) -> int:
         print(f"  sim time {ph.get('sim_time', '?')} s, real-time factor {ph.get('real_time_factor', '?')}, "
               f"clock {sc.clock.mode}, seed {sc.seed}")
     for name, h in sorted(o.health.items()):
-        bad = int(h.get("rejected", "0") or 0) + int(h.get("errors", "0") or 0)
+        bad = _num(h.get("rejected")) + _num(h.get("errors"))
         if bad:
             print(f"  {name}: {h.get('rejected')} rejected, {h.get('errors')} errors (last: {h.get('last_error', '')})")
     rrd = la.run_dir / "recording.rrd"
@@ -370,7 +396,7 @@ def summarise(la: Launcher) -> int:
             for h in o.health.values():
                 for k, v in h.items():
                     if k.startswith("published:"):
-                        published[k[10:]] = published.get(k[10:], 0) + int(v)
+                        published[k[10:]] = published.get(k[10:], 0) + _num(v)
             unseen = {}
             for k, v in counts.items():
                 seen = v["received"] + v.get("lost", 0) + v.get("before_first", 0)
@@ -394,6 +420,8 @@ def summarise(la: Launcher) -> int:
         print(f"  stalled: {o.stalled}")
     if o.faults:
         print(f"  faults reported: {len(o.faults)} (first: {o.faults[0]})")
+    if la.untrusted:
+        print(f"  ignored {la.untrusted} samples on results, health and logs from writers other than the services")
     print("result: " + ("OK" if ok else "FAILED"))
     return 0 if ok else 1
 

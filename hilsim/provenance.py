@@ -19,6 +19,10 @@ Pure bookkeeping, no transport: unit-tested on its own, used by :class:`hilsim.s
 
 from __future__ import annotations
 
+from typing import Any
+
+import zenoh
+
 from hilsim.transport import Attachment
 
 
@@ -37,6 +41,17 @@ class Provenance:
         """A writer went away (its token was undeclared); the key stays restricted."""
         self.writers.get(key, set()).discard(gid)
         self.last.pop((key, gid), None)
+
+    def on_token(self, sample: Any) -> None:
+        """Liveliness callback for ``Keys.all_writers``: a writer appeared or went away."""
+        parsed = parse_writer_token(str(sample.key_expr))
+        if parsed is None:
+            return
+        key, gid = parsed
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.announce(key, gid)
+        else:
+            self.withdraw(key, gid)
 
     # ------------------------------------------------------------------ samples
     def check(self, key: str, att: Attachment | None) -> tuple[str | None, int]:

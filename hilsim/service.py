@@ -33,7 +33,7 @@ from pydantic import BaseModel, ValidationError
 from hilsim import msgs, transport
 from hilsim.config import ConfigError, Scenario, format_error
 from hilsim.keys import Keys
-from hilsim.provenance import Provenance, parse_writer_token
+from hilsim.provenance import Provenance
 
 T = TypeVar("T")
 LEVEL_OK, LEVEL_WARN, LEVEL_ERROR = 0, 1, 2
@@ -244,16 +244,6 @@ class Service:
         """True when physics waits for this service (at its :meth:`lockstep_period`)."""
         return self.sc.clock.mode == "lockstep" and self.lockstep_period(self.sc) is not None
 
-    def _on_writer(self, sample: Any) -> None:
-        parsed = parse_writer_token(str(sample.key_expr))
-        if parsed is None:
-            return
-        key, gid = parsed
-        if sample.kind == zenoh.SampleKind.PUT:
-            self.provenance.announce(key, gid)
-        else:
-            self.provenance.withdraw(key, gid)
-
     def ack_publisher(self) -> Publisher | None:
         """The publisher whose samples acknowledge steps (``ack_via``); the sync one by default."""
         return self._sync_pub
@@ -337,7 +327,7 @@ class Service:
         self.session = session
         # before any input: who may write which key (history: the writers that exist already)
         self._declared.append(session.liveliness().declare_subscriber(
-            self.keys.all_writers, self._on_writer, history=True))
+            self.keys.all_writers, self.provenance.on_token, history=True))
         self._health_pub = self.publisher(self.keys.health(self.name))
         self._log_pub = self.publisher(self.keys.log(self.name))
         if self.lockstep and self.ack_via == "sync":

@@ -8,64 +8,20 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
-import zenoh
+from util import Observer
 
-from hilsim import msgs, transport
-from hilsim.config import ZenohConfig, load_scenario
-from hilsim.keys import Keys
+from hilsim import transport
+from hilsim.config import load_scenario
 
 pytestmark = pytest.mark.e2e
 REPO = Path(__file__).resolve().parent.parent
 HIL = REPO / "config" / "hil" / "arm-motor-model.yaml"
-
-
-class Observer:
-    """The test's own view of a run: physics truth, the joint server's reports, task results."""
-
-    def __init__(self, endpoint: str) -> None:
-        self.keys = Keys()
-        self.session = transport.open_session(ZenohConfig(connect=[endpoint]))
-        self.lock = threading.Lock()
-        self.truth: list[tuple[int, list[float]]] = []
-        self.server: list[tuple[int, list[float]]] = []
-        self.results: dict[str, tuple[int, bool]] = {}
-        s = self.session
-        self.subs = [
-            s.declare_subscriber(self.keys.truth("joint_states"), self._on_truth),
-            s.declare_subscriber(self.keys.server_state("motor-model"), self._on_server),
-            s.declare_subscriber(self.keys.topic("planner/result"), self._on_result),
-        ]
-
-    def _on_truth(self, sample: zenoh.Sample) -> None:
-        m = msgs.decode(msgs.JointState, sample.payload.to_bytes())
-        with self.lock:
-            self.truth.append((msgs.ns_of(m.header.stamp), list(m.position)))
-
-    def _on_server(self, sample: zenoh.Sample) -> None:
-        m = msgs.decode(msgs.JointState, sample.payload.to_bytes())
-        with self.lock:
-            self.server.append((msgs.ns_of(m.header.stamp), list(m.position)))
-
-    def _on_result(self, sample: zenoh.Sample) -> None:
-        m = msgs.decode(msgs.MoveResult, sample.payload.to_bytes())
-        with self.lock:
-            self.results[m.goal_id] = (msgs.ns_of(m.header.stamp), m.success)
-
-    def truth_at(self, ns: int) -> np.ndarray:
-        with self.lock:
-            return np.array(min(self.truth, key=lambda t: abs(t[0] - ns))[1])
-
-    def close(self) -> None:
-        for s in self.subs:
-            s.undeclare()
-        self.session.close()
 
 
 @pytest.fixture

@@ -2,8 +2,17 @@
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from hilsim import msgs, transport
+from hilsim.config import ZenohConfig
+from hilsim.keys import Keys
 
 
 def wait_until(cond: Callable[[], bool], timeout: float = 5.0) -> bool:
@@ -14,3 +23,61 @@ def wait_until(cond: Callable[[], bool], timeout: float = 5.0) -> bool:
             return True
         time.sleep(0.005)
     return cond()
+
+
+class Observer:
+    """The test's own view of a run: physics truth, the joint server's reports, task results."""
+
+    def __init__(self, endpoint: str) -> None:
+        self.keys = Keys()
+        self.session = transport.open_session(ZenohConfig(connect=[endpoint]))
+        self.lock = threading.Lock()
+        self.truth: list[tuple[int, list[float]]] = []
+        self.server: list[tuple[int, list[float]]] = []
+        self.results: dict[str, tuple[int, bool]] = {}
+        s = self.session
+        self.subs = [
+            s.declare_subscriber(self.keys.truth("joint_states"), self._on_truth),
+            s.declare_subscriber(self.keys.server_state("motor-model"), self._on_server),
+            s.declare_subscriber(self.keys.topic("planner/result"), self._on_result),
+        ]
+
+    def _on_truth(self, sample: zenoh.Sample) -> None:
+        m = self._decode(sample, msgs.JointState)
+        if m is None:
+            return
+        with self.lock:
+            self.truth.append((msgs.ns_of(m.header.stamp), list(m.position)))
+
+    def _on_server(self, sample: zenoh.Sample) -> None:
+        m = self._decode(sample, msgs.JointState)
+        if m is None:
+            return
+        with self.lock:
+            self.server.append((msgs.ns_of(m.header.stamp), list(m.position)))
+
+    def _on_result(self, sample: zenoh.Sample) -> None:
+        m = self._decode(sample, msgs.MoveResult)
+        if m is None:
+            return
+        with self.lock:
+            self.results[m.goal_id] = (msgs.ns_of(m.header.stamp), m.success)
+
+    @staticmethod
+    def _decode(sample: zenoh.Sample, cls: type) -> Any:
+        """Only well-formed samples from a hilsim writer (a test may run an injector)."""
+        if transport.read_attachment(sample) is None:
+            return None
+        try:
+            return msgs.decode(cls, sample.payload.to_bytes())
+        except msgs.BadMessage:
+            return None
+
+    def truth_at(self, ns: int) -> np.ndarray:
+        with self.lock:
+            return np.array(min(self.truth, key=lambda t: abs(t[0] - ns))[1])
+
+    def close(self) -> None:
+        for s in self.subs:
+            s.undeclare()
+        self.session.close()

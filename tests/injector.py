@@ -1,0 +1,135 @@
+"""A bad-input injector, run as its own process against a running simulation (tests only).
+
+It listens to every key of the simulation and, for each key it has seen, publishes bad and
+mutated copies of real samples: empty, random bytes, truncated, bit-flipped, 1 MiB, a well-formed
+message with a NaN in it, and well-formed copies of real samples from an unannounced writer (with
+no attachment, and with an attachment of its own). It prints how many of each it sent, as JSON,
+when stopped (SIGINT/SIGTERM) or after ``--seconds``.
+
+    python tests/injector.py --connect tcp/127.0.0.1:7447 [--prefix hilsim] [--rate 300] [--seconds 30]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import random
+import signal
+import threading
+import time
+from collections import Counter
+
+import zenoh
+
+from hilsim import msgs, transport
+from hilsim.config import ZenohConfig
+from hilsim.keys import UnknownKey, message_type
+
+KINDS = ("empty", "random", "truncated", "bitflip", "huge", "nan", "copy_no_attachment", "copy_foreign_writer")
+
+
+def poison(msg: object) -> bool:
+    """Put a NaN into the first float list or float field found; False if there is none."""
+    for name in getattr(msg, "__dataclass_fields__", {}):
+        v = getattr(msg, name)
+        if isinstance(v, float):
+            setattr(msg, name, math.nan)
+            return True
+        if isinstance(v, list) and v and isinstance(v[0], float):
+            v[0] = math.nan
+            return True
+        if hasattr(v, "__dataclass_fields__") and poison(v):
+            return True
+    return False
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--connect", required=True)
+    ap.add_argument("--prefix", default="hilsim")
+    ap.add_argument("--rate", type=float, default=300.0, help="bad samples per second, all keys together")
+    ap.add_argument("--seconds", type=float, default=600.0)
+    args = ap.parse_args()
+    rng = random.Random(1)
+    gid = os.urandom(16)
+    session = transport.open_session(ZenohConfig(connect=[args.connect]))
+    latest: dict[str, bytes] = {}
+    lock = threading.Lock()
+
+    def on_sample(s: zenoh.Sample) -> None:
+        att = transport.read_attachment(s)
+        if att is None or att.gid == gid:
+            return  # keep real samples only, not our own
+        with lock:
+            latest[str(s.key_expr)] = s.payload.to_bytes()
+
+    sub = session.declare_subscriber(f"{args.prefix}/**", on_sample)
+    pubs: dict[str, zenoh.Publisher] = {}
+    sent: Counter[str] = Counter()
+    seqs: Counter[str] = Counter()
+    stop = threading.Event()
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    end = time.monotonic() + args.seconds
+    period = 1.0 / args.rate
+    while not stop.is_set() and time.monotonic() < end:
+        with lock:
+            items = list(latest.items())
+        if not items:
+            stop.wait(0.05)
+            continue
+        key, good = rng.choice(items)
+        try:
+            cls = message_type(key)
+        except UnknownKey:
+            continue
+        kind = KINDS[sent.total() % len(KINDS)]
+        att = None
+        if kind == "empty":
+            data = b""
+        elif kind == "random":
+            data = rng.randbytes(rng.randint(1, 300))
+        elif kind == "truncated":
+            data = good[: max(1, len(good) // 2)]
+        elif kind == "bitflip":
+            b = bytearray(good)
+            for _ in range(3):
+                i = rng.randrange(len(b))
+                b[i] ^= 1 << rng.randrange(8)
+            data = bytes(b)
+        elif kind == "huge":
+            data = good[:4] + rng.randbytes(1 << 20)
+        elif kind == "nan":
+            try:
+                m = msgs.decode(cls, good)
+            except msgs.BadMessage:
+                continue
+            if not poison(m):
+                continue
+            data = msgs.encode(m)
+        else:
+            data = good  # a real sample, replayed by a stranger
+            if kind == "copy_foreign_writer":
+                seqs[key] += 1  # consecutive per key, like a real writer's
+                att = transport.attachment_bytes(seqs[key], gid)
+        pub = pubs.get(key)
+        if pub is None:
+            pub = pubs[key] = session.declare_publisher(key)
+        if att is None:
+            pub.put(data)
+        else:
+            pub.put(data, attachment=att)
+        sent[kind] += 1
+        stop.wait(period)
+    sub.undeclare()
+    for p in pubs.values():
+        p.undeclare()
+    session.close()
+    print(json.dumps(dict(sent)), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
