@@ -1,4 +1,5 @@
-"""The docs name only files that exist: every backticked repository path in README.md and docs/."""
+"""The docs name only files that exist: every backticked repository path in README.md and docs/,
+and every test they cite as ``tests/file.py::test_name`` exists in that file."""
 
 from __future__ import annotations
 
@@ -22,4 +23,7 @@ def test_docs_name_only_existing_files() -> None:
     docs = [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]
     for doc in docs:
         for p in _paths(doc.read_text()):
-            assert (REPO / p).exists(), f"{doc.relative_to(REPO)} names {p}, which does not exist"
+            path, _, test = p.partition("::")
+            assert (REPO / path).exists(), f"{doc.relative_to(REPO)} names {path}, which does not exist"
+            if test:
+                assert f"def {test}(" in (REPO / path).read_text(), f"{doc.relative_to(REPO)} cites {p}: no such test"
