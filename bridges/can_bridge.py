@@ -47,7 +47,7 @@ import can
 from pydantic import BaseModel, ConfigDict, Field
 
 from hilsim import msgs
-from hilsim.bridges.can_bus import BusConfig, CanLink, JointMap, finite
+from hilsim.bridges.can_bus import BusConfig, CanLink, JointMap, finite, raise_priority
 from hilsim.bridges.can_profiles import DriveCommand, Estimate, FrameError, Heartbeat, make_profile
 from hilsim.config import ConfigError, Scenario
 from hilsim.service import Service
@@ -63,9 +63,12 @@ class BridgeConfig(BaseModel):
     joints: dict[str, JointMap] = Field(default_factory=dict, description="joint -> node id, gear ratio, …")
     heartbeat_period: float = Field(0.1, gt=0, description="the drives' heartbeat period [s]")
     heartbeat_misses: int = Field(3, ge=1, description="missed heartbeats that make a drive faulted")
-    startup_timeout: float = Field(2.0, gt=0, description="[s] a drive may take to enter closed-loop control")
+    startup_timeout: float = Field(3.0, gt=0, description="[s] a drive may take to send its first heartbeat "
+                                   "after the bus comes up, and to enter closed-loop control when asked")
     recover_interval: float = Field(0.5, gt=0, description="[s] between attempts to bring a faulted drive back")
     reconnect_interval: float = Field(1.0, gt=0, description="[s] between attempts to reopen a failed bus")
+    realtime_priority: int = Field(0, ge=0, le=99, description="SCHED_FIFO priority to ask for (0: none); "
+                                   "physics asks for 10")
     rejoin_velocity: float = Field(0.5, gt=0, description="[rad/s] a recovered position joint moves to its command")
     command_rate_hz: float | None = Field(None, gt=0, description="at most this many setpoints per drive and "
                                           "second (default: one per joint_commands message)")
@@ -335,7 +338,7 @@ class CanBridgeService(Service):
             if j.status in (OK, STARTING) and not fresh:
                 self._fault(j, f"heartbeat lost (none for more than {self.hb_timeout:g} s, "
                                f"{c.heartbeat_misses} missed)")
-            elif j.status == WAITING and now - self.bus_up_t > self.hb_timeout:
+            elif j.status == WAITING and now - self.bus_up_t > max(self.hb_timeout, c.startup_timeout):
                 self._fault(j, f"no heartbeat from node {j.node} since the bus came up (is the drive powered, "
                                f"on this bus, with this node id and bitrate?)")
             elif j.status == STARTING and now - j.since > c.startup_timeout:
@@ -348,6 +351,7 @@ class CanBridgeService(Service):
                 self._setup(j)
 
     def loop(self) -> None:
+        raise_priority(self.cfg.realtime_priority, self.log)
         while not self.stop_event.wait(0.02):
             with self.lock:
                 self._supervise()

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -217,6 +218,20 @@ def _bus_state(bus: can.BusABC) -> Any:
         return bus.state
     except Exception:
         return None
+
+
+def raise_priority(priority: int, log: logging.Logger) -> None:
+    """Ask for SCHED_FIFO ``priority`` for every thread of this process (as physics does in realtime):
+    a drive and its bridge live on the wall clock, and a loaded machine must not starve their
+    heartbeats. Without the privilege (root or CAP_SYS_NICE), say so and go on. 0: do not ask."""
+    if priority <= 0:
+        return
+    try:
+        for tid in sorted(int(t) for t in os.listdir("/proc/self/task")):
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+        log.info("running with SCHED_FIFO priority %d", priority)
+    except (PermissionError, AttributeError, OSError) as e:
+        log.warning("could not get a real-time scheduling class (%s); heartbeats may be late on a loaded machine", e)
 
 
 def finite(*xs: float) -> bool:

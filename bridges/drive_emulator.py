@@ -45,7 +45,7 @@ import can
 from pydantic import BaseModel, ConfigDict, Field
 
 from hilsim import msgs
-from hilsim.bridges.can_bus import BusConfig, CanLink, JointMap
+from hilsim.bridges.can_bus import BusConfig, CanLink, JointMap, raise_priority
 from hilsim.bridges.can_profiles import DriveCommand, DriveProfile, Estimate, FrameError, Heartbeat, make_profile
 from hilsim.config import SIM, ConfigError, Scenario
 from hilsim.service import Service
@@ -64,6 +64,8 @@ class DriveEmulatorConfig(BaseModel):
     heartbeat_period: float = Field(0.1, gt=0, description="[s]")
     encoder_period: float = Field(0.01, gt=0, description="cyclic encoder estimates [s]")
     reconnect_interval: float = Field(1.0, gt=0, description="[s] between attempts to reopen a failed bus")
+    realtime_priority: int = Field(0, ge=0, le=99, description="SCHED_FIFO priority to ask for (0: none); "
+                                   "physics asks for 10")
     natural_frequency: float = Field(40.0, gt=0, description="model: position loop ω_n [rad/s]")
     damping_ratio: float = Field(1.0, gt=0, description="model: ζ")
     inertia: float = Field(0.01, gt=0, description="model: rotor + load at the motor [kg·m²]")
@@ -329,6 +331,7 @@ class DriveEmulatorService(Service):
 
     def loop(self) -> None:
         c = self.cfg
+        raise_priority(c.realtime_priority, self.log)
         next_enc = next_hb = time.monotonic()
         while not self.stop_event.is_set():
             now = time.monotonic()

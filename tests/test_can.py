@@ -111,6 +111,9 @@ class Rig:
             "drive-emulator.heartbeat_period": 0.05,
             "drive-emulator.encoder_period": 0.005,
             "drive-emulator.initial_position": {"joint_1": 0.1},
+            # both in this process: no real-time scheduling class for the test's threads
+            "bridge-can.realtime_priority": 0,
+            "drive-emulator.realtime_priority": 0,
         }
         o.update(extra)
         self.sc = load_scenario("arm", o, overlays=[CAN_HIL])

@@ -6,6 +6,7 @@ emulated drives of the simulated arm and reads back encoder estimates that follo
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import random
@@ -269,3 +270,16 @@ def test_controller_in_the_loop_a_can_host_drives_the_simulated_joints(observed:
     assert min(moved) < 0.05 and max(moved) > 0.45 and math.isfinite(sum(moved))
     log = (tmp_path / "run" / "drive-emulator.log").read_text()
     assert "CAN bus udp_multicast" in log, log
+
+
+def test_bench_can_measures_both_directions_against_python_can() -> None:
+    """``hilsim bench can --json`` (small): every probe comes through each path, figures present."""
+    p = subprocess.run([sys.executable, "-m", "hilsim.cli", "bench", "can", "--json", "--samples", "60",
+                        "--seconds", "0.5", "--port", str(can_port())], capture_output=True, text=True, cwd=REPO,
+                       timeout=180)
+    assert p.returncode == 0, p.stdout + p.stderr
+    r = json.loads(p.stdout)
+    for path in ("python_can", "zenoh_to_can", "can_to_zenoh"):
+        assert r[path]["latency"]["n"] >= 55, r  # a probe may be lost on a loaded machine, not many
+        assert 0 < r[path]["latency"]["p50_us"] <= r[path]["latency"]["p99_us"], r
+    assert r["zenoh_to_can"]["frames_per_s"] > 100 and r["can_to_zenoh"]["samples_per_s"] > 100, r
