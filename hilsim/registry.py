@@ -49,6 +49,7 @@ BUILTIN: dict[str, dict[str, str]] = {
     },
     "controllers": {
         "joint_trajectory": "hilsim.services.controller:ControllerService",
+        "four_wheel_steer": "hilsim.services.rover_controller:FourWheelSteerController",
     },
 }
 

@@ -186,6 +186,13 @@ class PhysicsService(Service):
             return
         self.acked[who] = max(self.acked[who], ns)
         if self.started and not self.done and self._all_acked():
+            self._advance_lockstep()
+
+    def _advance_lockstep(self) -> None:
+        """Step, then keep stepping through the steps at which no participant is due (e.g. a
+        100 Hz controller over 500 Hz physics acknowledges every 5th step only)."""
+        self._advance()
+        while not self.done and self._all_acked():
             self._advance()
 
     def _all_acked(self) -> bool:
@@ -304,7 +311,7 @@ class PhysicsService(Service):
             self.started = True
             self._publish_step()  # step 0: the state before any command
             if self.participants and self._all_acked():
-                self._advance()
+                self._advance_lockstep()
         if self.sc.clock.mode == "realtime":
             self._realtime_loop()
             return
@@ -327,7 +334,7 @@ class PhysicsService(Service):
                     self.state = "running"
                     self.log.info("all participants present again; lockstep resumes")
                     if self._all_acked():
-                        self._advance()
+                        self._advance_lockstep()
 
     def _raise_priority(self) -> None:
         """Realtime: ask the kernel for a real-time scheduling class, as HIL setups do; the

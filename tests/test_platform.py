@@ -132,8 +132,12 @@ def test_controller_type_picks_the_control_law() -> None:
     from hilsim.services.controller import ControllerService
 
     assert registry.service_class("controller", sc) is ControllerService
-    sc2 = load_scenario("arm", {"controller.type": "four_wheel_steer"})
-    with pytest.raises(ConfigError, match="unknown controller 'four_wheel_steer'; available: joint_trajectory"):
+    from hilsim.services.rover_controller import FourWheelSteerController
+
+    assert registry.service_class("controller", load_scenario("rover")) is FourWheelSteerController
+    sc2 = load_scenario("arm", {"controller.type": "skid_steer"})
+    with pytest.raises(ConfigError, match="unknown controller 'skid_steer'; available: joint_trajectory, "
+                       "four_wheel_steer"):
         registry.service_class("controller", sc2)
 
 

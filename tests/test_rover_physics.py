@@ -102,3 +102,33 @@ def test_fixed_base_publishes_no_odom(scenario: Any, session: zenoh.Session, run
     sc = scenario("arm", {"services": ["physics"], "duration": 0.005})
     seen = _order(sc, session, run_service)
     assert {k for k, _ in seen} == {"truth/imu", "truth/joint_states"}
+
+
+def test_lockstep_steps_through_steps_nobody_is_due_at(scenario: Any, session: zenoh.Session,
+                                                      run_service: Any) -> None:
+    """A 100 Hz controller over 500 Hz physics acknowledges every 5th step: physics takes the four
+    steps between on its own and waits again at the next control step."""
+    from hilsim import transport
+
+    sc = scenario("rover", {"services": ["physics", "controller"]})
+    keys = Keys(sc.prefix, sc.robot)
+    clocks: list[int] = []
+    sub = session.declare_subscriber(keys.clock, lambda s: clocks.append(
+        msgs.ns_of(msgs.decode(msgs.Clock, s.payload.to_bytes()).clock)))
+    gid = transport.new_gid()
+    cmd = transport.publisher(session, keys.topic("joint_commands"))
+    tokens = [session.liveliness().declare_token(keys.lockstep("controller", 5, "joint_commands", gid.hex())),
+              session.liveliness().declare_token(keys.alive("controller"))]
+    with run_service(PhysicsService(sc)) as svc:
+        deadline = time.monotonic() + 10
+        while not clocks and time.monotonic() < deadline:
+            time.sleep(0.01)
+        names = svc.world.joint_names
+        for k, step in enumerate((0, 5)):
+            js = msgs.JointState(header=msgs.header(step * sc.dt_ns), name=names, effort=[0.0] * len(names))
+            cmd.put(msgs.encode(js), attachment=transport.attachment_bytes(k + 1, gid))
+            time.sleep(0.5)
+        assert clocks == [k * sc.dt_ns for k in range(11)], clocks  # waits at step 10 for its ack
+    sub.undeclare()
+    for t in tokens:
+        t.undeclare()
