@@ -123,7 +123,10 @@ def test_arm_reaches_its_targets_with_joint_1_on_a_can_drive(observed: tuple[str
     the drive's encoder estimates said (physics follows the drive)."""
     ep, obs = observed
     p = up("arm", "--hil", str(EMULATED), "--router", ep, "--no-logger", "--out", str(tmp_path / "run"),
-           "--set", f"bridge-can.bus.port={can_port()}")
+           "--set", f"bridge-can.bus.port={can_port()}",
+           # judged here: joint_1 on the bus. On a loaded 2-core machine a plan of 1 s wall can fail and
+           # the drive's process can be starved for 0.3 s (heartbeat faults: test_can.py and the test below)
+           "--set", "planner.planning_time=2.0", "--set", "bridge-can.heartbeat_misses=10")
     out = finish(p, 240)
     assert p.returncode == 0, out
     assert "bridge-can (pid " in out and "drive-emulator (pid " in out, out
