@@ -100,9 +100,18 @@ def inverse(vx: float, vy: float, wz: float, g: Geometry, current: Sequence[floa
     return angles, speeds
 
 
-def forward(angles: Sequence[float], speeds: Sequence[float], g: Geometry) -> tuple[float, float, float]:
+def forward(angles: Sequence[float], speeds: Sequence[float], g: Geometry,
+            yaw_rate: float | None = None) -> tuple[float, float, float]:
     """Body twist ``(vx, vy, wz)`` that best explains the wheels' angles and speeds [rad/s]
-    (least squares over the 2·n wheel velocity components): wheel odometry."""
+    (least squares over the 2·n wheel velocity components): wheel odometry. With ``yaw_rate``
+    (e.g. an IMU's, which a slipping wheel does not fool) only ``vx, vy`` are fitted."""
+    if yaw_rate is not None:
+        vxs, vys = [], []
+        for (x, y), a, w in zip(g.positions, angles, speeds, strict=True):
+            v = w * g.radius
+            vxs.append(v * math.cos(a) + yaw_rate * y)
+            vys.append(v * math.sin(a) - yaw_rate * x)
+        return float(np.mean(vxs)), float(np.mean(vys)), float(yaw_rate)
     rows, rhs = [], []
     for (x, y), a, w in zip(g.positions, angles, speeds, strict=True):
         v = w * g.radius

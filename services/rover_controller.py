@@ -5,12 +5,14 @@ each wheel's steering angle and traction speed (:mod:`hilsim.steering`: Ackerman
 axles in opposite phase, crab, turn in place; a wheel is reversed rather than steered past its
 limit), and one PID per wheel and motor closes the steering-angle and the traction-speed loop
 (gains ``controller.gains.steering`` / ``.traction``, or per joint name, falling back to ``default``).
-Wheel odometry (the least-squares body twist of the measured wheel angles and speeds, integrated)
-is published on ``odom``. It is the lockstep participant like the arm's controller: its
-``joint_commands`` of a step is its acknowledgement.
+Wheel odometry (the least-squares body twist of the measured wheel angles and speeds, with the
+yaw rate of the IMU's gyro when ``params.imu_yaw_rate``, integrated) is published on ``odom``.
+It is the lockstep participant like the arm's controller: its ``joint_commands`` of a step is
+its acknowledgement.
 
 Reads (``<prefix>/<robot>/…``):
   ``joint_states`` (sensor_msgs/JointState, measured; one control step per message),
+  ``imu`` (sensor_msgs/Imu: the gyro's yaw rate for the odometry, unless ``params.imu_yaw_rate: false``),
   ``cmd_vel`` (geometry_msgs/Twist: linear.x, linear.y [m/s], angular.z [rad/s] in base_link; held
   for ``params.cmd_timeout`` sim seconds, then the rover stops).
 Writes:
@@ -50,6 +52,8 @@ class FourWheelSteerParams(BaseModel):
     max_yaw_rate: float = Field(1.5, gt=0, description="[rad/s]")
     cmd_timeout: float = Field(0.5, gt=0, description="sim seconds a cmd_vel is held")
     wheels: list[str] = Field(default_factory=lambda: ["fl", "fr", "rl", "rr"])
+    imu_yaw_rate: bool = Field(True, description="odometry takes its yaw rate from the imu (gyro z; the imu "
+                               "frame is the chassis') when one of this control step is there, else the wheels")
     script: list[tuple[float, float, float, float]] = Field(
         default_factory=list, description="[t, vx, vy, wz] from sim time t on (until a fresh cmd_vel)")
 
@@ -132,6 +136,7 @@ class FourWheelSteerController(Service):
         self.pose = (0.0, 0.0, 0.0)  # wheel odometry: x, y, yaw in the odom frame
         self.odom_twist = (0.0, 0.0, 0.0)
         self.drive_ref_pos: np.ndarray | None = None
+        self.gyro: tuple[int, float] | None = None  # latest imu: stamp, yaw rate
         self.steps = 0
 
     def _gains(self, gains: dict[str, PidGains], where: str) -> list[PidGains]:
@@ -156,6 +161,8 @@ class FourWheelSteerController(Service):
         self.odom_pub = self.publisher(self.keys.topic("odom"))
         self.subscribe(self.keys.topic("joint_states"), msgs.JointState, self.on_joint_states)
         self.subscribe(self.keys.topic("cmd_vel"), msgs.Twist, self.on_cmd_vel)
+        if self.p.imu_yaw_rate:
+            self.subscribe(self.keys.topic("imu"), msgs.Imu, self.on_imu)
         self.queryable(
             self.keys.topic("controller/set_parameters"), msgs.SetParameters, self.on_set_parameters,
             reject=lambda reason: msgs.SetParametersResult(successful=False, reason=reason),
@@ -165,6 +172,9 @@ class FourWheelSteerController(Service):
         # a Twist has no stamp: it counts from the sim time it arrived at
         self.cmd = (msg.linear.x, msg.linear.y, msg.angular.z)
         self.cmd_ns = self.sim_ns
+
+    def on_imu(self, msg: msgs.Imu, key: str) -> None:
+        self.gyro = (msgs.ns_of(msg.header.stamp), msg.angular_velocity.z)
 
     def target(self, now_ns: int) -> tuple[float, float, float]:
         """The twist asked for now: a fresh cmd_vel, else the script, else standing still; limited."""
@@ -200,7 +210,9 @@ class FourWheelSteerController(Service):
         # odometry from the encoders of this step
         if self.steps:
             self.pose = steering.integrate(self.pose, self.odom_twist, self.dt)
-        self.odom_twist = steering.forward(angles, speeds, self.geom)
+        # the sensors publish the imu of a step before its joint_states: the gyro of this step, if any
+        fresh = self.gyro is not None and stamp - self.gyro[0] < round(self.dt * 1e9)
+        self.odom_twist = steering.forward(angles, speeds, self.geom, self.gyro[1] if fresh and self.gyro else None)
         # kinematics: wheel references for the twist asked for
         self.twist = self.target(stamp)
         a_ref, w_ref = steering.inverse(*self.twist, self.geom, angles.tolist(), self.max_wheel_speed)

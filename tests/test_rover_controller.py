@@ -89,6 +89,12 @@ def test_wheel_odometry_integrates_the_measured_wheels() -> None:
         c.on_joint_states(states(c, k * 10_000_000, speed=2.0), "k")
     o = c.odom_pub.got[-1]  # type: ignore[attr-defined]
     assert o.pose.pose.position.x == pytest.approx(0.3) and o.twist.twist.linear.x == pytest.approx(0.3)
+    # with a gyro sample of the same step its yaw rate wins (wheels straight, yet turning: slip)
+    c.on_imu(msgs.Imu(header=msgs.header(1_010_000_000), angular_velocity=msgs.Vector3(z=0.2)), "k")
+    c.on_joint_states(states(c, 1_010_000_000, speed=2.0), "k")
+    assert c.odom_pub.got[-1].twist.twist.angular.z == pytest.approx(0.2)  # type: ignore[attr-defined]
+    c.on_joint_states(states(c, 1_020_000_000, speed=2.0), "k")  # the sample is a step old: wheels again
+    assert c.odom_pub.got[-1].twist.twist.angular.z == pytest.approx(0.0)  # type: ignore[attr-defined]
 
 
 @pytest.mark.parametrize(("over", "field"), [

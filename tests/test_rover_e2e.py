@@ -126,6 +126,8 @@ def test_rover_drives_as_commanded_over_cmd_vel(router: str, tmp_path: Path) -> 
     odom = {msgs.ns_of(o.header.stamp): o for o in cap.decoded("odom", msgs.Odometry)}
     o_mid = odom[min(odom, key=lambda k: abs(k - 3_500_000_000))]
     assert o_mid.pose.pose.position.x == pytest.approx(mid.pose.pose.position.x, abs=0.1)
+    o_end = odom[max(odom)]  # and on the turn (yaw rate from the IMU)
+    assert yaw_of(o_end) - yaw_of(o_mid) == pytest.approx(turned, abs=0.1)
     # the sensors at their rates: scan 10 Hz, gps/fix 5 Hz over 7.5 s of sim
     scans = cap.decoded("scan", msgs.LaserScan)
     fixes = cap.decoded("gps/fix", msgs.NavSatFix)

@@ -88,3 +88,11 @@ def test_integrate_exact_on_arcs() -> None:
 def test_traction_scale() -> None:
     assert steering.traction_scale(0.0) == 1.0 and steering.traction_scale(2.0) == 0.0
     assert steering.traction_scale(math.pi / 3) == pytest.approx(0.5)
+
+
+def test_odometry_with_a_measured_yaw_rate() -> None:
+    a, w = steering.inverse(0.4, 0.1, 0.5, G)
+    assert np.allclose(steering.forward(a, w, G, yaw_rate=0.5), (0.4, 0.1, 0.5), atol=1e-12)
+    # a gyro that disagrees with the wheels wins the rotation; the translation is still fitted
+    vx, vy, wz = steering.forward(a, w, G, yaw_rate=0.0)
+    assert wz == 0.0 and vx == pytest.approx(0.4) and vy == pytest.approx(0.1)
