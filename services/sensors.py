@@ -13,8 +13,8 @@ Writes:
   measured them (a real encoder needs no emulated noise), merged at each step;
   ``sync/sensors`` (lockstep, only in scenarios without a controller, whose command would
   otherwise be the proof): the acknowledgement of step ``t_k`` once ``truth/joint_states`` of
-  ``t_k`` is handled (physics publishes ``truth/imu`` before it, so every truth of the step has
-  been handled by then).
+  ``t_k`` is handled (physics publishes ``truth/imu`` and ``truth/odom`` before it, so every truth
+  of the step has been handled by then).
 
 Noise comes from generators seeded by ``seed`` and the sensor name: the same scenario and the
 same truth give the same outputs, bit for bit.

@@ -91,3 +91,14 @@ def test_climbs_the_outdoor_slope() -> None:
     pos, yaw = _drive("outdoor.xml", (6.0, -10.0, 0.26), [((0.5, 0, 0), 14.0)])
     assert pos[0] > 12.0 and pos[2] > 0.9, pos  # up the 10 degree slope, not sliding back
     assert abs(pos[1] + 10.0) < 0.1 and abs(yaw) < 0.05
+
+
+def test_crabs_sideways_and_turns_ackermann_like() -> None:
+    pos, yaw = _drive("indoor.xml", (0, 0, 0.255), [((0, 0.3, 0), 3.0), ((0, 0, 0), 0.5)])
+    # 0.9 m less the quarter turn of the wheels at the start (while they turn they roll along x a little)
+    assert pos[1] == pytest.approx(0.85, abs=0.06) and abs(pos[0]) < 0.1 and abs(yaw) < 0.03, (pos, yaw)
+    # R = vx / wz = 1 m to the left for 2 s: about a quarter circle and a bit
+    pos, yaw = _drive("outdoor.xml", (0, 0, 0.255), [((0.5, 0, 0.5), 2.0), ((0, 0, 0), 0.5)])
+    assert yaw == pytest.approx(0.9, abs=0.15), yaw
+    # on an arc about (0, 1) m; a little wider, as the wheels steer in during the first moments
+    assert 0.95 <= math.hypot(pos[0], pos[1] - 1.0) <= 1.15 and pos[1] > 0.25, pos

@@ -139,7 +139,7 @@ def test_gps_north_is_plus_x_and_east_is_plus_y(tmp_path: Path) -> None:
     lat, lon, _ = gps.geodetic(0, 1000.0, 0)  # 1 km along +Y
     assert lon - lon0 == pytest.approx(1000 / (111_320 * math.cos(math.radians(lat0))), rel=0.01)
     assert abs(lat - lat0) < 0.001
-    # the antenna's offset on the chassis counts: at the origin, turned, it is 0.2 m behind the centre
+    # the antenna's offset on the chassis counts: 0.2 m behind the chassis centre (south), 0.5 m up
     fix = gps.measure(odom(z=0.0), 0)
     assert fix.altitude == pytest.approx(90.5) and fix.latitude < lat0
     assert fix.status.status == 0 and fix.position_covariance_type == 2
