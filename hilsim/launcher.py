@@ -456,8 +456,9 @@ def cmd_up(args: argparse.Namespace) -> int:
         la.start()
         if la.wait_ready():
             if not sc.task.targets and sc.duration is None:
-                print("no task targets and no --duration: running until Ctrl-C "
-                      f"(send goals with `hilsim goal {sc.robot} --joints …`)", flush=True)
+                how = (f"send goals with `hilsim goal {sc.robot} --joints …`" if "planner" in sc.services
+                       else f"drive it with geometry_msgs/Twist on {Keys(sc.prefix, sc.robot).topic('cmd_vel')}")
+                print(f"no task targets and no --duration: running until Ctrl-C ({how})", flush=True)
             la.follow()
     except KeyboardInterrupt:
         la.outcome.interrupted = True
