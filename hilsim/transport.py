@@ -16,8 +16,7 @@ import socket
 import struct
 import threading
 import time
-from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import zenoh
 
@@ -80,6 +79,7 @@ def publisher(session: zenoh.Session, key: str, *, drop_when_congested: bool = F
 # [ns, wall clock], the publisher's 16-byte global id as a fixed-size array). Receivers use the
 # sequence number to count lost samples and the id to tell writers apart.
 ATTACHMENT = struct.Struct("<qq16s")
+_ATT_SIZE, _unpack = ATTACHMENT.size, ATTACHMENT.unpack
 
 
 def new_gid() -> bytes:
@@ -87,8 +87,8 @@ def new_gid() -> bytes:
     return os.urandom(16)
 
 
-@dataclass(frozen=True, slots=True)
-class Attachment:
+class Attachment(NamedTuple):
+    # a tuple: built once per received sample, so it must be cheap (a frozen dataclass is not)
     seq: int
     source_ns: int
     gid: bytes
@@ -108,14 +108,13 @@ def attachment_bytes(seq: int, gid: bytes) -> bytes:
 
 def read_attachment(sample: Any) -> Attachment | None:
     """The attachment of a received sample, or None if it has none or not in hilsim's layout."""
-    att = getattr(sample, "attachment", None)
+    att = sample.attachment
     if att is None:
         return None
-    raw = att.to_bytes() if hasattr(att, "to_bytes") else bytes(att)
-    if len(raw) != ATTACHMENT.size:
+    raw = att.to_bytes()
+    if len(raw) != _ATT_SIZE:
         return None
-    seq, ns, gid = ATTACHMENT.unpack(raw)
-    return Attachment(seq, ns, gid)
+    return Attachment._make(_unpack(raw))
 
 
 # ---------------------------------------------------------------- command-line tools

@@ -119,7 +119,13 @@ class World:
                 m.actuator_gainprm[i, 0] = 0.0
                 m.actuator_biasprm[i, :3] = 0.0
         self._effort = np.array([c.interface == "effort" and c.server == SIM for c in cfg])
+        self._all_effort = bool(self._effort.all())
         self.index = {n: i for i, n in enumerate(self.joint_names)}
+        ff_gain = [kv / kp if f == "position" and kp else 0.0
+                   for f, kp, kv in zip(self.interfaces, self._servo_kp, self._servo_kv, strict=True)]
+        # per joint name: (actuator index, interface or None when served externally, feed-forward gain)
+        self._how = {n: (i, None if self.external[i] else self.interfaces[i], ff_gain[i])
+                     for n, i in self.index.items()}
         self._cmd = np.zeros(m.nu)
         # external joints: the latest measured (position, velocity) from their server
         self._follow_pos = np.zeros(len(self.ext_index))
@@ -158,24 +164,24 @@ class World:
         joint also its ``velocity``, as feed-forward, when given); external joints are skipped:
         their server reads the same message. All-or-nothing: a bad entry changes nothing."""
         n = len(cmd.name)
+        fields = {"effort": cmd.effort, "position": cmd.position, "velocity": cmd.velocity}
+        ff = cmd.velocity if len(cmd.velocity) == n else None
         new: list[tuple[int, float]] = []
         for k, jn in enumerate(cmd.name):
-            i = self.index.get(jn)
-            if i is None:
+            how = self._how.get(jn)  # (actuator index, interface or None if external, feed-forward gain)
+            if how is None:
                 raise msgs.BadMessage(f"joint command names unknown joint {jn!r}")
-            if self.external[i]:
+            i, iface, gain = how
+            if iface is None:
                 continue
-            iface = self.interfaces[i]
-            values = cmd.effort if iface == "effort" else cmd.position if iface == "position" else cmd.velocity
+            values = fields[iface]
             if len(values) != n:
                 raise msgs.BadMessage(f"joint command has no {iface} values for joint {jn!r} ({iface} interface)")
-            v = values[k]
-            if iface == "position" and len(cmd.velocity) == n and self._servo_kp[i] > 0:
-                # velocity feed-forward through the affine servo: kp·(p + kv/kp·v) − kp·q − kv·q̇
-                v += self._servo_kv[i] / self._servo_kp[i] * cmd.velocity[k]
-            new.append((i, v))
+            # position joints: velocity feed-forward through the affine servo, kp·(p + kv/kp·v) − kp·q − kv·q̇
+            new.append((i, values[k] + gain * ff[k] if gain and ff is not None else values[k]))
+        c = self._cmd
         for i, v in new:
-            self._cmd[i] = v
+            c[i] = v
 
     def command_array(self, u: np.ndarray) -> None:
         self._cmd[:] = u
@@ -197,10 +203,15 @@ class World:
             self._follow_vel[self.ext_index.index(self.index[jn])] = 0.0
 
     def step(self) -> None:
-        u = np.where(self._effort, np.clip(self._cmd, -self.effort_limit, self.effort_limit), self._cmd)
+        if self._all_effort:  # the common case, kept lean: every joint a simulated effort joint
+            u = np.clip(self._cmd, -self.effort_limit, self.effort_limit)
+        else:
+            u = np.where(self._effort, np.clip(self._cmd, -self.effort_limit, self.effort_limit), self._cmd)
         # velocity limit as a drive enforces it: no torque that pushes further past the limit
         v = self.data.qvel[self.dof_adr]
-        over = self._effort & (np.abs(v) > self.velocity_limit) & (np.sign(u) == np.sign(v))
+        over = (np.abs(v) > self.velocity_limit) & (np.sign(u) == np.sign(v))
+        if not self._all_effort:
+            over &= self._effort
         if over.any():
             u = np.where(over, 0.0, u)
         self.data.ctrl[:] = u

@@ -5,12 +5,13 @@ Reads (``<prefix>/<robot>/…``):
   ``joint_trajectory`` (trajectory_msgs/JointTrajectory).
 Writes:
   ``joint_commands`` (sensor_msgs/JointState) stamped like the joint_states it answers, every
-  joint in every message, all three fields filled so each joint's server (physics or an external
-  one) reads the field of its interface (``joints.<name>.interface``): ``effort`` = the PID output
-  (effort joints; 0 for the others), ``position`` = the reference, ``velocity`` = the reference
-  velocity (position joints: feed-forward) or, for velocity joints, the velocity command
-  ``v_ref + controller.velocity_gain·(p_ref − p)``. In lockstep mode this message is the
-  controller's acknowledgement of the step (no ``sync`` message);
+  joint in every message, so each joint's server (physics or an external one) reads the field of
+  its interface (``joints.<name>.interface``): ``effort`` = the PID output (effort joints; 0 for
+  the others), ``position`` = the reference, ``velocity`` = the reference velocity (position
+  joints: feed-forward) or, for velocity joints, the velocity command
+  ``v_ref + controller.velocity_gain·(p_ref − p)``. ``position`` and ``velocity`` are filled when
+  any joint has a position or velocity interface (else they are empty: nobody reads them). In
+  lockstep mode this message is the controller's acknowledgement of the step (no ``sync`` message);
   ``controller/reference`` (sensor_msgs/JointState: reference position and velocity), same stamp.
 Serves:
   ``controller/set_parameters`` (SetParameters ``<joint>.<kp|ki|kd|i_limit|output_limit|feedforward>``
@@ -65,6 +66,8 @@ class ControllerService(Service):
         self.interfaces = [scenario.joint(n).interface for n in self.names]
         self.effort_joint = [i == "effort" for i in self.interfaces]
         self.velocity_joint = np.array([i == "velocity" for i in self.interfaces])
+        self.any_velocity = bool(self.velocity_joint.any())
+        self.setpoints = any(i != "effort" for i in self.interfaces)  # position/velocity in joint_commands
         self.velocity_gain = scenario.controller.velocity_gain
         gains = control.gains_for(scenario.controller.gains, self.names, where)
         self.pids = [
@@ -160,12 +163,16 @@ class ControllerService(Service):
                 strict=True,
             )
         ]
-        vel = ref.velocity
-        if self.velocity_joint.any():
-            # a velocity drive needs the position error closed here, as ros2_control's JTC does
-            v_cmd = self.ref_vel + self.velocity_gain * (self.ref_pos - self.pos)
-            vel = np.where(self.velocity_joint, v_cmd, self.ref_vel).tolist()
-        self.cmd_pub.put(msgs.JointState(header=header, name=self.names, position=ref.position, velocity=vel, effort=u))
+        if self.setpoints:
+            vel = ref.velocity
+            if self.any_velocity:
+                # a velocity drive needs the position error closed here, as ros2_control's JTC does
+                v_cmd = self.ref_vel + self.velocity_gain * (self.ref_pos - self.pos)
+                vel = np.where(self.velocity_joint, v_cmd, self.ref_vel).tolist()
+            cmd = msgs.JointState(header=header, name=self.names, position=ref.position, velocity=vel, effort=u)
+        else:  # every joint takes effort: the setpoints would only cost encoding and decoding
+            cmd = msgs.JointState(header=header, name=self.names, effort=u)
+        self.cmd_pub.put(cmd)
         self.ref_pub.put(ref)
         self.steps += 1
 
