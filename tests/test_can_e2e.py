@@ -22,6 +22,7 @@ import can
 import numpy as np
 import pytest
 import zenoh
+from util import finish, up
 
 from hilsim import msgs, transport
 from hilsim.bridges.can_profiles import Estimate, FrameError, Heartbeat, make_profile
@@ -91,21 +92,6 @@ def observed(router: str) -> Iterator[tuple[str, Observer]]:
     obs = Observer(router)
     yield router, obs
     obs.close()
-
-
-def up(*args: str) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "hilsim.cli", "up", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, cwd=REPO, start_new_session=True)
-
-
-def finish(p: subprocess.Popen[str], timeout: float) -> str:
-    try:
-        out, _ = p.communicate(timeout=timeout)
-    finally:
-        if p.poll() is None:
-            os.killpg(p.pid, signal.SIGKILL)
-            p.communicate()
-    return out
 
 
 def until_ready(p: subprocess.Popen[str], lines: list[str]) -> str:

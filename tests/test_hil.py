@@ -6,15 +6,13 @@ from __future__ import annotations
 
 import os
 import signal
-import subprocess
-import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
-from util import Observer
+from util import Observer, finish, up
 
 from hilsim import transport
 from hilsim.config import load_scenario
@@ -29,21 +27,6 @@ def observed(router: str) -> Iterator[tuple[str, Observer]]:
     obs = Observer(router)
     yield router, obs
     obs.close()
-
-
-def up(*args: str) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "hilsim.cli", "up", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, cwd=REPO, start_new_session=True)
-
-
-def finish(p: subprocess.Popen[str], timeout: float) -> str:
-    try:
-        out, _ = p.communicate(timeout=timeout)
-    finally:
-        if p.poll() is None:
-            os.killpg(p.pid, signal.SIGKILL)
-            p.communicate()
-    return out
 
 
 def test_arm_with_joint_1_served_by_the_motor_model(observed: tuple[str, Observer], tmp_path: Path) -> None:

@@ -5,16 +5,13 @@ rates; two lockstep runs with the same seed and a scripted drive give identical 
 from __future__ import annotations
 
 import math
-import os
-import signal
-import subprocess
-import sys
 import threading
 import time
 from pathlib import Path
 
 import pytest
 import zenoh
+from util import finish, up
 
 from hilsim import msgs, transport
 from hilsim.config import ZenohConfig
@@ -23,21 +20,6 @@ from hilsim.keys import Keys
 pytestmark = pytest.mark.e2e
 REPO = Path(__file__).resolve().parent.parent
 KEYS = Keys("hilsim", "rover")
-
-
-def up(*args: str) -> subprocess.Popen[str]:
-    return subprocess.Popen([sys.executable, "-m", "hilsim.cli", "up", *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, cwd=REPO, start_new_session=True)
-
-
-def finish(p: subprocess.Popen[str], timeout: float) -> str:
-    try:
-        out, _ = p.communicate(timeout=timeout)
-    finally:
-        if p.poll() is None:
-            os.killpg(p.pid, signal.SIGKILL)
-            p.communicate()
-    return out
 
 
 def yaw_of(o: msgs.Odometry) -> float:

@@ -2,9 +2,14 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -81,3 +86,21 @@ class Observer:
         for s in self.subs:
             s.undeclare()
         self.session.close()
+
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def up(*args: str) -> subprocess.Popen[str]:
+    return subprocess.Popen([sys.executable, "-m", "hilsim.cli", "up", *args], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, cwd=REPO, start_new_session=True)
+
+
+def finish(p: subprocess.Popen[str], timeout: float) -> str:
+    try:
+        out, _ = p.communicate(timeout=timeout)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.communicate()
+    return out
