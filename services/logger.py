@@ -9,7 +9,9 @@ Writes: only its own health and log keys (``<prefix>/<robot>/health/logger``,
 - ``recording.rrd``       the Rerun recording, timeline ``sim_time`` (message stamps), with a
   default viewer layout (``hilsim.viewer``);
 - ``scenario.yaml``       the scenario of the run (written unless already there);
-- ``record_summary.json`` ``{key: {received, recorded, rejected, lost, dropped, before_first}}``
+- ``record_summary.json`` ``{key: {received, recorded, rejected, lost, dropped, before_first,
+  unannounced}}`` (``unannounced``: samples from a writer that did not announce itself for the key,
+  recorded all the same; their sequence numbers are not ours to count losses by)
   written at exit.
 
 This module is the service's wiring: subscriptions, the queue, the worker thread, loss
@@ -102,6 +104,7 @@ class LoggerService(Service):
         self.gaps: Counter[str] = Counter()  # lost in transport: sequence numbers never received
         self.dropped: Counter[str] = Counter()  # arrived at a full queue (or as the subscriber closed)
         self.before_first: Counter[str] = Counter()  # published before a writer's first received sample
+        self.unannounced: Counter[str] = Counter()  # from writers that did not announce themselves for the key
         self.delay_s = self._delay_from_env()
         self._subs: list[Any] = []
         self._worker: threading.Thread | None = None
@@ -191,8 +194,12 @@ class LoggerService(Service):
         self._last_arrival = time.monotonic()
         # The base's health thread iterates these counters under self.lock.
         with self.lock:
-            if att is not None:
+            prov = self.provenance
+            if att is not None and (k not in prov.restricted or att.gid in prov.writers.get(k, ())):
                 self._sequence(k, att)
+            elif k in prov.restricted:
+                # recorded like everything received, but a stranger's gaps are no loss of ours
+                self.unannounced[k] += 1
             if self._closed or (self.queue_limit is not None and len(self._queue) >= self.queue_limit):
                 self.dropped[k] += 1
                 return
@@ -353,6 +360,7 @@ class LoggerService(Service):
             received = Counter(self.counts_in)
             recorded = Counter(self.recorded)
             dropped, before = Counter(self.dropped), Counter(self.before_first)
+            unannounced = Counter(self.unannounced)
         lost = self.lost()
         keys = sorted(set(received) | set(recorded) | set(lost))
         summary = {
@@ -363,6 +371,7 @@ class LoggerService(Service):
                 "lost": lost[k],
                 "dropped": dropped[k],
                 "before_first": before[k],
+                "unannounced": unannounced[k],
             }
             for k in keys
         }

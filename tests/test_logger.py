@@ -280,10 +280,40 @@ def test_logger_counts_lost_samples_per_key(
     assert hv[f"lost:{keys.clock}"] == 3 and hv[f"lost:{truth}"] == hv["dropped"] >= 6, hv
     summary = json.loads((run_dir / "record_summary.json").read_text())
     assert summary[keys.clock] == {
-        "received": 9, "recorded": 9, "rejected": 0, "lost": 3, "dropped": 0, "before_first": 4
+        "received": 9, "recorded": 9, "rejected": 0, "lost": 3, "dropped": 0, "before_first": 4, "unannounced": 0
     }, summary[keys.clock]
     t = summary[truth]
     assert t["received"] == t["recorded"] and t["received"] + t["lost"] == 10 and t["lost"] == t["dropped"] >= 6, t
+
+
+def test_a_strangers_gaps_are_not_the_recorders_losses(
+    scenario: Any, session: Any, run_service: Any, tmp_path: Path
+) -> None:
+    """Lockstep, where any loss fails the run: samples from a writer that did not announce itself
+    for the key are recorded, counted as unannounced, and their sequence gaps are no loss."""
+    from hilsim.services.logger import LoggerService
+
+    run_dir = tmp_path / "run"
+    sc = scenario("arm", {"logger.run_dir": str(run_dir)})
+    keys = Keys(sc.prefix, sc.robot)
+    svc = LoggerService(sc)
+    clock = msgs.encode(msgs.Clock(clock=msgs.stamp(0)))
+    real, stranger = transport.new_gid(), transport.new_gid()
+    token = session.liveliness().declare_token(keys.writer(real, keys.clock))
+    st = run_service(svc)
+    with st:
+        pub = session.declare_publisher(keys.clock)
+        try:
+            _wait(lambda: pub.matching_status.matching and keys.clock in svc.provenance.restricted, 10, "the logger")
+            for gid, seq in [(real, 1), (stranger, 1), (real, 2), (stranger, 5), (stranger, 9), (real, 3)]:
+                pub.put(clock, attachment=transport.attachment_bytes(seq, gid))
+            _wait(lambda: svc.counts_in[keys.clock] == 6, 10, "the clock samples")
+        finally:
+            pub.undeclare()
+    token.undeclare()
+    assert st.rc == 0
+    c = json.loads((run_dir / "record_summary.json").read_text())[keys.clock]
+    assert c["received"] == c["recorded"] == 6 and c["lost"] == 0 and c["unannounced"] == 3, c
 
 
 @pytest.mark.parametrize("mode", ["realtime", "lockstep"])
