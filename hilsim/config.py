@@ -83,6 +83,10 @@ class PhysicsConfig(_Model):
     gravity_compensation: list[str] = Field(
         default_factory=list, description="bodies whose gravity is compensated (names or glob patterns, e.g. 'link_*')"
     )
+    follow_extrapolation: float = Field(
+        0.0, ge=0, le=0.1, description="external joints: carry a server's last report forward at its velocity for "
+        "at most this many seconds (e.g. one report period of a drive that reports every 10 ms); 0 = hold it",
+    )
     server_timeout: float = Field(
         0.25, gt=0, description="wall seconds without state from an external joint server before it is a fault"
     )

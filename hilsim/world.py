@@ -131,6 +131,8 @@ class World:
         self._follow_pos = np.zeros(len(self.ext_index))
         self._follow_vel = np.zeros(len(self.ext_index))
         self._follow_ok = np.zeros(len(self.ext_index), dtype=bool)
+        self._follow_t = np.zeros(len(self.ext_index), dtype=np.int64)  # sim time of the report
+        self._extrapolate_ns = round(sc.physics.follow_extrapolation * 1e9)
         if self.imu_site:
             self._acc = m.sensor("imu_acc").adr[0]
             self._gyro = m.sensor("imu_gyro").adr[0]
@@ -196,6 +198,7 @@ class World:
             self._follow_pos[e] = position[k]
             self._follow_vel[e] = velocity[k] if velocity else 0.0
             self._follow_ok[e] = True
+            self._follow_t[e] = self.time_ns
 
     def hold(self, names: list[str]) -> None:
         """External joints whose server went silent: keep the last measured position, at rest."""
@@ -227,7 +230,13 @@ class World:
         d = self.data
         for e, i in enumerate(self.ext_index):
             if self._follow_ok[e]:
-                d.qpos[self.qpos_adr[i]] = self._follow_pos[e]
+                pos = self._follow_pos[e]
+                if self._extrapolate_ns:
+                    # a drive that reports every 10 ms would move the link in steps: carry the
+                    # last report forward at its velocity, for at most physics.follow_extrapolation
+                    age = min(self.time_ns - self._follow_t[e], self._extrapolate_ns)
+                    pos += self._follow_vel[e] * age * 1e-9
+                d.qpos[self.qpos_adr[i]] = pos
                 d.qvel[self.dof_adr[i]] = self._follow_vel[e]
             else:
                 d.qpos[self.qpos_adr[i]] -= d.qvel[self.dof_adr[i]] * self.sc.clock.dt

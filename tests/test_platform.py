@@ -171,3 +171,17 @@ def test_a_joint_entry_overrides_only_the_fields_it_sets() -> None:
                                "clock.mode": "realtime"})
     assert sc.joint("joint_1").interface == "position" and sc.joint("joint_1").server == "motor-model"
     assert sc.joint("joint_2").interface == "position" and sc.joint("joint_2").server == "sim"
+
+
+def test_follow_extrapolation_carries_a_report_forward_for_a_bounded_time() -> None:
+    """A drive reporting every 10 ms: between reports the link moves on at the reported
+    velocity (physics.follow_extrapolation), never further than that bound past the report."""
+    over = {"joints.joint_1.server": "motor-model", "clock.mode": "realtime"}
+    held = World(load_scenario("arm", over))
+    moving = World(load_scenario("arm", {**over, "physics.follow_extrapolation": 0.01}))
+    for w in (held, moving):
+        w.follow(["joint_1"], [0.2], [1.0])
+        for _ in range(25):
+            w.step()
+    assert held.positions()[0] == 0.2
+    assert moving.positions()[0] == pytest.approx(0.2 + 1.0 * 0.01)  # capped at 10 ms, not 25 ms
