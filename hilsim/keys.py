@@ -3,7 +3,8 @@
 Every key is ``<prefix>/<robot>/<topic>`` (prefix ``hilsim`` by default, so several
 simulations can share a network by choosing different prefixes), except sim time, which
 is ``<prefix>/clock``. Ground truth lives under ``<prefix>/<robot>/truth/…``.
-``docs/keys.md`` documents the same table for people; ``TOPICS`` below is the table for code.
+``docs/keys.md`` documents the same table for people; ``TOPICS`` below is the table for code,
+extended by other packages through the ``hilsim.topics`` entry-point group (:func:`plugin_topics`).
 
 No other module builds a key string by hand: services ask a :class:`Keys` instance.
 """
@@ -55,6 +56,28 @@ SERVICES: dict[str, tuple[type, type]] = {
 }
 
 
+def plugin_topics() -> dict[str, type]:
+    """Topics other packages add through the ``hilsim.topics`` entry-point group
+    (``"my_service/status" = "my_pkg.msgs:Status"``, a message class); a built-in name wins."""
+    global _PLUGIN_TOPICS
+    if _PLUGIN_TOPICS is None:
+        from importlib.metadata import entry_points
+
+        found: dict[str, type] = {}
+        for ep in entry_points(group="hilsim.topics"):
+            if ep.name in TOPICS or ep.name in SERVICES:
+                continue
+            try:
+                found[ep.name] = ep.load()
+            except Exception:  # a broken plug-in must not break the key scheme of everyone else
+                continue
+        _PLUGIN_TOPICS = found
+    return _PLUGIN_TOPICS
+
+
+_PLUGIN_TOPICS: dict[str, type] | None = None
+
+
 class UnknownKey(KeyError):
     """A key outside the scheme: no message type is known for it."""
 
@@ -67,8 +90,9 @@ class Keys:
     robot: str = "arm"
 
     def topic(self, name: str) -> str:
-        if name not in TOPICS and name not in SERVICES:
-            raise UnknownKey(f"unknown topic {name!r}; known: {', '.join(sorted(TOPICS))}")
+        if name not in TOPICS and name not in SERVICES and name not in plugin_topics():
+            known = sorted([*TOPICS, *plugin_topics()])
+            raise UnknownKey(f"unknown topic {name!r}; known: {', '.join(known)}")
         return f"{self.prefix}/{self.robot}/{name}"
 
     @property
@@ -142,6 +166,8 @@ def message_type(key: str) -> type:
         rest = "/".join(parts[2:])
         if rest in TOPICS:
             return TOPICS[rest]
+        if rest in plugin_topics():
+            return plugin_topics()[rest]
         if len(parts) == 4 and parts[2] in PER_SERVICE_TOPICS:
             return PER_SERVICE_TOPICS[parts[2]]
         if len(parts) == 5 and parts[2] == "hw" and parts[4] in SERVER_TOPICS:

@@ -27,6 +27,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from hilsim import keys as hilsim_keys
 from hilsim import msgs, registry, transport
 from hilsim.config import ZenohConfig, load_scenario
 from hilsim.keys import Keys
@@ -35,12 +36,12 @@ REPO = Path(__file__).resolve().parent.parent
 HILSIM = [sys.executable, "-m", "hilsim.cli"]
 
 DIST, VERSION, MODULE = "hilsim-plugin-demo", "0.1.0", "hilsim_plugin_demo"
-SENSOR, SERVICE = "demo-imu", "imu-counter"
+SENSOR, SERVICE, TOPIC = "demo-imu", "imu-counter", "imu-counter/last"
 FRAME = "plugin_imu"
 IMU_RATE_HZ, DURATION_S = 100, 1
 
 PLUGIN_SOURCE = '''\
-"""A hilsim plug-in made by tests/test_plugins.py: a sensor kind and a service."""
+"""A hilsim plug-in made by tests/test_plugins.py: a sensor kind, a service and its topic."""
 
 from __future__ import annotations
 
@@ -87,7 +88,8 @@ class ImuCounter(Service):
     """Counts the ``imu`` samples of one frame.
 
     Reads: ``<prefix>/<robot>/imu`` (sensor_msgs/Imu).
-    Writes: nothing of its own; its health (``<prefix>/<robot>/health/imu-counter``) carries
+    Writes: ``<prefix>/<robot>/imu-counter/last`` (sensor_msgs/Imu: each sample it counted; a topic
+    this package adds to the key scheme by entry point); its health (``<prefix>/<robot>/health/imu-counter``) carries
     ``frame_id`` (from its settings), ``counted`` (samples of that frame) and ``other_frames``.
     Settings (scenario section ``imu-counter:``): ``frame_id``.
     """
@@ -102,12 +104,14 @@ class ImuCounter(Service):
         self.other_frames = 0
 
     def setup(self) -> None:
+        self.pub = self.publisher(self.keys.topic("imu-counter/last"))
         self.subscribe(self.keys.topic("imu"), msgs.Imu, self.on_imu)
 
     def on_imu(self, m: msgs.Imu, key: str) -> None:
         self.sim_ns = max(self.sim_ns, msgs.ns_of(m.header.stamp))
         if m.header.frame_id == self.cfg.frame_id:
             self.counted += 1
+            self.pub.put(m)
         else:
             self.other_frames += 1
 
@@ -121,6 +125,9 @@ ENTRY_POINTS = f"""\
 
 [hilsim.services]
 {SERVICE} = {MODULE}:ImuCounter
+
+[hilsim.topics]
+{TOPIC} = hilsim.msgs:Imu
 """
 
 
@@ -169,6 +176,7 @@ def plugin_on_path(plugin_site: Path) -> Iterator[Path]:
     """``plugin_site`` on sys.path for one test; the registry's entry-point cache is cleared
     before and after, and the plug-in module forgotten, so no other test sees it."""
     registry._plugins.cache_clear()
+    hilsim_keys._PLUGIN_TOPICS = None
     sys.path.insert(0, str(plugin_site))
     importlib.invalidate_caches()
     try:
@@ -178,7 +186,9 @@ def plugin_on_path(plugin_site: Path) -> Iterator[Path]:
         sys.modules.pop(MODULE, None)
         importlib.invalidate_caches()
         registry._plugins.cache_clear()
+        hilsim_keys._PLUGIN_TOPICS = None
     assert SERVICE not in registry.names("services"), "the plug-in is still visible after the test"
+    assert TOPIC not in hilsim_keys.plugin_topics(), "the plug-in's topic is still known after the test"
 
 
 def write_scenario(path: Path) -> Path:
@@ -214,6 +224,9 @@ def test_the_installed_plugin_is_found_by_entry_point(plugin_on_path: Path, tmp_
     assert eps.get(SENSOR) == f"{MODULE}:DemoImu"
     assert importlib.metadata.version(DIST) == VERSION
     assert SENSOR in registry.names("sensors") and SERVICE in registry.names("services")
+    # its topic joins the key scheme: a key for it, and its message type for the recorder
+    assert Keys("hilsim", "arm").topic(TOPIC) == f"hilsim/arm/{TOPIC}"
+    assert hilsim_keys.message_type(f"hilsim/arm/{TOPIC}") is msgs.Imu
     assert registry.names("services")[:6] == ["physics", "sensors", "controller", "planner", "logger", "motor-model"]
 
     from hilsim.sensing import Sensor, sensor_class
@@ -291,6 +304,9 @@ def test_plugin_sensor_and_service_run_under_hilsim_up(plugin_site: Path, router
 
     counts = json.loads((out / "record_summary.json").read_text())
     assert counts[keys.topic("imu")]["received"] == expected, counts[keys.topic("imu")]
+    # the plug-in's own topic, recorded (the recorder decodes it with the plug-in's type)
+    mine = counts[f"{keys.prefix}/{keys.robot}/{TOPIC}"]  # spelled here: this process has no plug-in
+    assert mine["received"] == mine["recorded"] == expected and mine["rejected"] == 0, mine
 
     # the plug-in lives only in the test's directory: no file of the repository names it (but this
     # one), and the venv does not have it
