@@ -127,6 +127,7 @@ class World:
         self._how = {n: (i, None if self.external[i] else self.interfaces[i], ff_gain[i])
                      for n, i in self.index.items()}
         self._cmd = np.zeros(m.nu)
+        self.clipped = 0  # effort commands beyond the joint's limit (applied at the limit)
         # external joints: the latest measured (position, velocity) from their server
         self._follow_pos = np.zeros(len(self.ext_index))
         self._follow_vel = np.zeros(len(self.ext_index))
@@ -181,9 +182,11 @@ class World:
                 raise msgs.BadMessage(f"joint command has no {iface} values for joint {jn!r} ({iface} interface)")
             # position joints: velocity feed-forward through the affine servo, kp·(p + kv/kp·v) − kp·q − kv·q̇
             new.append((i, values[k] + gain * ff[k] if gain and ff is not None else values[k]))
-        c = self._cmd
+        c, lim = self._cmd, self.effort_limit
         for i, v in new:
             c[i] = v
+            if self._effort[i] and abs(v) > lim[i]:
+                self.clipped += 1  # applied at the limit (in step), and counted: never silently
 
     def command_array(self, u: np.ndarray) -> None:
         self._cmd[:] = u

@@ -136,6 +136,13 @@ class PhysicsService(Service):
                 self.participants[svc] = p
 
     def _on_command(self, cmd: msgs.JointState, key: str, att: Attachment | None) -> None:
+        if self.participants and self.started and not self.done:
+            # lockstep: a command belongs to the step it answers; one for another step is stale
+            # (or not what it claims to be) and must not act on this one
+            stamp = msgs.ns_of(cmd.header.stamp)
+            if stamp != self.world.time_ns:
+                raise msgs.BadMessage(f"command stamped t={stamp / 1e9:.3f}s, but the current step is "
+                                      f"t={self.world.time_ns / 1e9:.3f}s")
         self.world.command(cmd)
         if att is None:
             return
@@ -249,6 +256,7 @@ class PhysicsService(Service):
             "clock_mode": self.sc.clock.mode,
             "waiting_for": ",".join(self._missing()),
             "servers_silent": ",".join(sorted(self.server_silent)),
+            "clipped_commands": self.world.clipped,
             **self._jitter_figures(),
         }
 

@@ -78,12 +78,18 @@ def test_lockstep_waits_for_every_participant(scenario: Any, session: zenoh.Sess
         # the commanded effort moved the arm
         assert svc.world.velocities()[0] > 0
         # malformed commands: rejected and counted, no step taken, still serving
+        now = msgs.header(5 * sc.dt_ns)  # the current step: each is refused for its own fault
         cmd.put(b"\x00\x01\x00\x00garbage")
-        cmd.put(msgs.encode(msgs.JointState(header=msgs.header(0), name=["joint_9"], effort=[1.0])))
-        cmd.put(msgs.encode(msgs.JointState(header=msgs.header(0), name=names[:3], position=[1.0] * 3)))
-        cmd.put(msgs.encode(msgs.JointState(header=msgs.header(0), name=names, effort=[float("nan")] * 6)))
+        cmd.put(msgs.encode(msgs.JointState(header=now, name=["joint_9"], effort=[1.0])))
+        cmd.put(msgs.encode(msgs.JointState(header=now, name=names[:3], position=[1.0] * 3)))
+        cmd.put(msgs.encode(msgs.JointState(header=now, name=names, effort=[float("nan")] * 6)))
+        # well-formed, but for a step that is not the current one: stale, refused
+        cmd.put(msgs.encode(msgs.JointState(header=msgs.header(3 * sc.dt_ns), name=names, effort=[0.0] * 6)))
+        # beyond joint_1's effort limit: applied at the limit, and counted
+        cmd.put(msgs.encode(msgs.JointState(header=now, name=names, effort=[99.0, 0, 0, 0, 0, 0])))
         time.sleep(0.5)
-        assert sum(svc.rejected.values()) == 5, svc.rejected  # 4 above + the impostor acknowledgement
+        assert sum(svc.rejected.values()) == 6, svc.rejected  # 5 above + the impostor acknowledgement
+        assert svc.world.clipped == 1 and svc.health_values()["clipped_commands"] == 1
         assert clocks[-1] == 5 * sc.dt_ns
         # a silent participant is reported as a fault, not a hang
         time.sleep(1.5)
