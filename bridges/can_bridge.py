@@ -108,11 +108,7 @@ class CanBridgeService(Service):
         super().__init__(scenario)
         where = scenario.source or "scenario"
         c = self.cfg
-        mine = [n for n in scenario.joints if n != "default" and scenario.joint(n).server == self.name]
-        if scenario.joint("default").server == self.name:
-            raise ConfigError(f"{where}: joints.default.server: name the joints {self.name} serves one by one")
-        if not mine:
-            raise ConfigError(f"{where}: joints: no joint has server: {self.name}, so {self.name} has nothing to serve")
+        mine = scenario.served_by(self.name)
         missing = [n for n in mine if n not in c.joints]
         if missing:
             raise ConfigError(f"{where}: {self.name}.joints: no drive given for {', '.join(missing)} "

@@ -214,6 +214,17 @@ class Scenario(_Model):
             return base
         return base.model_copy(update={f: getattr(own, f) for f in own.model_fields_set})
 
+    def served_by(self, server: str) -> list[str]:
+        """The joints ``server`` serves, named one by one in ``joints`` (one-line ConfigError if
+        it serves none, or is the server of ``default``: it must know its joints by name)."""
+        where = self.source or "scenario"
+        if self.joint("default").server == server:
+            raise ConfigError(f"{where}: joints.default.server: name the joints {server} serves one by one")
+        mine = [n for n in self.joints if n != "default" and self.joint(n).server == server]
+        if not mine:
+            raise ConfigError(f"{where}: joints: no joint has server: {server}, so {server} has nothing to serve")
+        return mine
+
     def external_servers(self) -> list[str]:
         """External joint servers named in ``joints`` (in order of first mention)."""
         out: list[str] = []

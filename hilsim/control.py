@@ -174,6 +174,20 @@ def check_parameter(name: str, value: float, joints: Sequence[str]) -> tuple[int
     return joints.index(joint), field
 
 
+def set_parameters(pids: Sequence[Pid], joints: Sequence[str], params: Sequence[msgs.Parameter]) -> str | None:
+    """Live gains, all or nothing: every ``<joint>.<field>`` is checked before any is set.
+    Returns the reason of the first bad one (nothing changed), or None when all were set."""
+    changes = []
+    for p in params:
+        r = check_parameter(p.name, p.value, joints)
+        if isinstance(r, str):
+            return r
+        changes.append((r[0], r[1], p.value))
+    for j, field, value in changes:
+        pids[j].set(field, value)
+    return None
+
+
 # ---------------------------------------------------------------- trajectories
 class TrajectorySampler:
     """Samples a JointTrajectory at sim time: cubic Hermite between points, in model joint order.

@@ -214,17 +214,12 @@ class ControllerService(Service):
 
     # ------------------------------------------------------------------ live gains
     def on_set_parameters(self, req: msgs.SetParameters) -> msgs.SetParametersResult:
-        changes = []
-        for p in req.parameters:
-            r = control.check_parameter(p.name, p.value, self.names)
-            if isinstance(r, str):
-                return msgs.SetParametersResult(successful=False, reason=r)
-            changes.append((r[0], r[1], p.value))
-        for j, field, value in changes:
-            self.pids[j].set(field, value)
-        if changes:
+        why = control.set_parameters(self.pids, self.names, req.parameters)
+        if why is not None:
+            return msgs.SetParametersResult(successful=False, reason=why)
+        if req.parameters:
             self.log.info("gains changed: %s", ", ".join(f"{p.name}={p.value:g}" for p in req.parameters))
-        return msgs.SetParametersResult(successful=True, reason=f"{len(changes)} parameter(s) set")
+        return msgs.SetParametersResult(successful=True, reason=f"{len(req.parameters)} parameter(s) set")
 
     # ------------------------------------------------------------------ reporting
     def health_values(self) -> dict[str, Any]:

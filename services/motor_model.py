@@ -30,7 +30,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from hilsim import msgs
-from hilsim.config import SIM, ConfigError, Scenario
+from hilsim.config import ConfigError, Scenario
 from hilsim.service import Service
 
 
@@ -99,11 +99,7 @@ class MotorModelService(Service):
     def __init__(self, scenario: Scenario) -> None:
         super().__init__(scenario)
         where = scenario.source or "scenario"
-        mine = {n: j for n, j in scenario.joints.items() if n != "default" and j.server == self.name}
-        if scenario.joint("default").server == self.name:
-            raise ConfigError(f"{where}: joints.default.server: name the joints {self.name} serves one by one")
-        if not mine:
-            raise ConfigError(f"{where}: joints: no joint has server: {self.name}, so {self.name} has nothing to serve")
+        mine = {n: scenario.joint(n) for n in scenario.served_by(self.name)}
         for n in self.cfg.initial_position:
             if n not in mine:
                 raise ConfigError(f"{where}: {self.name}.initial_position.{n}: not a joint served by {self.name}")
@@ -115,7 +111,6 @@ class MotorModelService(Service):
         self.stamp_ns = 0
         self.commands = 0
         self.last_cmd_wall = 0.0
-        assert SIM not in self.motors
 
     def setup(self) -> None:
         self.pub = self.publisher(self.keys.server_state(self.name))

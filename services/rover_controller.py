@@ -247,15 +247,10 @@ class FourWheelSteerController(Service):
 
     # ------------------------------------------------------------------ live gains
     def on_set_parameters(self, req: msgs.SetParameters) -> msgs.SetParametersResult:
-        changes = []
-        for prm in req.parameters:
-            r = control.check_parameter(prm.name, prm.value, self.names)
-            if isinstance(r, str):
-                return msgs.SetParametersResult(successful=False, reason=r)
-            changes.append((r[0], r[1], prm.value))
-        for j, field, value in changes:
-            self.pids[j].set(field, value)
-        return msgs.SetParametersResult(successful=True, reason=f"{len(changes)} parameter(s) set")
+        why = control.set_parameters(self.pids, self.names, req.parameters)
+        if why is not None:
+            return msgs.SetParametersResult(successful=False, reason=why)
+        return msgs.SetParametersResult(successful=True, reason=f"{len(req.parameters)} parameter(s) set")
 
     def health_values(self) -> dict[str, Any]:
         vx, vy, wz = self.twist
