@@ -36,6 +36,10 @@ TOPICS: dict[str, type] = {
     "planner/feedback": msgs.MoveFeedback,
     "planner/result": msgs.MoveResult,
     "task/result": msgs.MoveResult,
+    "map": msgs.OccupancyGrid,
+    "plan": msgs.Path,
+    "navigator/feedback": msgs.MoveFeedback,
+    "navigator/result": msgs.MoveResult,
 }
 # Keys whose last segment is a service name.
 PER_SERVICE_TOPICS: dict[str, type] = {
@@ -52,6 +56,8 @@ GLOBAL_TOPICS: dict[str, type] = {"clock": msgs.Clock}
 SERVICES: dict[str, tuple[type, type]] = {
     "planner/goal": (msgs.MoveGoal, msgs.GoalResponse),
     "planner/cancel": (msgs.CancelRequest, msgs.GoalResponse),
+    "navigator/goal": (msgs.MoveGoal, msgs.GoalResponse),
+    "navigator/cancel": (msgs.CancelRequest, msgs.GoalResponse),
     "controller/set_parameters": (msgs.SetParameters, msgs.SetParametersResult),
 }
 

@@ -3,9 +3,9 @@
 from dataclasses import dataclass, field
 
 from pycdr2 import IdlStruct
-from pycdr2.types import array, float64, sequence
+from pycdr2.types import array, float32, float64, int8, sequence, uint32
 
-from hilsim.msgs.builtin import Header
+from hilsim.msgs.builtin import Header, Time
 
 
 @dataclass
@@ -78,3 +78,34 @@ class Odometry(IdlStruct, typename="nav_msgs/msg/Odometry"):
     child_frame_id: str = ""
     pose: PoseWithCovariance = field(default_factory=PoseWithCovariance)
     twist: TwistWithCovariance = field(default_factory=TwistWithCovariance)
+
+
+@dataclass
+class PoseStamped(IdlStruct, typename="geometry_msgs/msg/PoseStamped"):
+    header: Header = field(default_factory=Header)
+    pose: Pose = field(default_factory=Pose)
+
+
+@dataclass
+class Path(IdlStruct, typename="nav_msgs/msg/Path"):
+    header: Header = field(default_factory=Header)
+    poses: sequence[PoseStamped] = field(default_factory=list)
+
+
+@dataclass
+class MapMetaData(IdlStruct, typename="nav_msgs/msg/MapMetaData"):
+    map_load_time: Time = field(default_factory=Time)
+    resolution: float32 = 0.0  # metres per cell
+    width: uint32 = 0  # cells along x
+    height: uint32 = 0  # cells along y
+    origin: Pose = field(default_factory=Pose)  # world pose of cell (0, 0)'s corner
+
+
+@dataclass
+class OccupancyGrid(IdlStruct, typename="nav_msgs/msg/OccupancyGrid"):
+    """Row-major from ``info.origin``: ``data[row * width + col]``, row along y; 0 free,
+    100 occupied, -1 unknown (the ROS convention)."""
+
+    header: Header = field(default_factory=Header)
+    info: MapMetaData = field(default_factory=MapMetaData)
+    data: sequence[int8] = field(default_factory=list)

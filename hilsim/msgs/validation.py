@@ -13,6 +13,7 @@ from pycdr2 import IdlStruct
 
 from hilsim.msgs.action import MoveGoal
 from hilsim.msgs.builtin import ns_of
+from hilsim.msgs.geometry import OccupancyGrid
 from hilsim.msgs.sensor import JointState
 from hilsim.msgs.trajectory import JointTrajectory
 
@@ -90,3 +91,10 @@ def validate(msg: IdlStruct, *, n_joints: int | None = None) -> None:
                 raise BadMessage("MoveGoal.joint_names and joint_positions differ in length")
         if msg.planning_time < 0:
             raise BadMessage("MoveGoal.planning_time is negative")
+    elif isinstance(msg, OccupancyGrid):
+        if len(msg.data) != msg.info.width * msg.info.height:
+            raise BadMessage(
+                f"OccupancyGrid has {len(msg.data)} cells for {msg.info.width}x{msg.info.height}"
+            )
+        if msg.info.resolution <= 0 and msg.data:
+            raise BadMessage("OccupancyGrid.info.resolution is not positive")
