@@ -65,8 +65,9 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--out", help="run directory (default runs/<timestamp>)")
     up.add_argument("--no-logger", action="store_true", help="do not record (benchmarks)")
     up.add_argument("--router", help="connect to this Zenoh router instead of starting one")
-    up.add_argument("--hil", action="append", default=[], metavar="FILE",
-                    help="merge a hardware-in-the-loop file over the scenario (e.g. config/hil/motor-model.yaml)")
+    up.add_argument("--hil", "--overlay", dest="hil", action="append", default=[], metavar="FILE",
+                    help="merge a file over the scenario, in order (e.g. config/hil/motor-model.yaml, "
+                         "config/lean.yaml)")
     up.set_defaults(func=_lazy("hilsim.launcher", "cmd_up"))
 
     run = sub.add_parser("run", help="run one service alone (what docker compose uses)")

@@ -131,7 +131,8 @@ class PlannerConfig(_Model):
     rate_hz: float = Field(100.0, gt=0, description="how often the planner decides (starts goals, monitors)")
     library: Path | None = Field(None, description="planner library YAML (default config/planners.yaml)")
     iterations: int | None = Field(
-        None, gt=0, description="lockstep: iteration budget per plan (default: the library's)"
+        None, gt=0, description="iteration budget per plan: lockstep default the library's; in realtime "
+        "only when set, and planning_time still caps it"
     )
 
 
@@ -147,6 +148,49 @@ class LoggerConfig(_Model):
     out_dir: Path = Path("runs")
     run_dir: Path | None = Field(None, description="write here instead of <out_dir>/<timestamp> (set by `hilsim up`)")
     record: list[str] = Field(default_factory=lambda: ["**"], description="key expressions under <prefix>/")
+
+
+RestartPolicy = Literal["no", "on-failure"]
+
+
+class RestartConfig(_Model):
+    """What ``hilsim up`` does when a service dies (like compose's ``restart:``): ``no`` (report
+    and stop the run) or ``on-failure`` (start it again, at most ``max_attempts`` times per
+    service, after ``backoff`` seconds, doubled at each attempt). Physics is never restarted: it
+    holds sim time and the robot's true state, which a new process would not have."""
+
+    services: dict[str, RestartPolicy] = Field(
+        default_factory=dict, description="per service name, or 'default' for the others: no | on-failure"
+    )
+    max_attempts: int = Field(3, ge=1, le=100, description="restarts per service and run")
+    backoff: float = Field(0.5, ge=0, le=60, description="wall seconds before the first restart (doubled each time)")
+
+    @field_validator("services", mode="before")
+    @classmethod
+    def _no_is_not_false(cls, v: Any) -> Any:
+        # YAML reads a bare `no` as False (compose has the same trap): take it as the policy "no"
+        if isinstance(v, dict):
+            return {k: "no" if p is False else p for k, p in v.items()}
+        return v
+
+    @field_validator("services")
+    @classmethod
+    def _known(cls, v: dict[str, str]) -> dict[str, str]:
+        from hilsim import registry
+
+        known = registry.names("services")
+        for name, policy in v.items():
+            if name != "default" and name not in known:
+                raise ValueError(f"unknown service {name!r}; expected 'default' or one of {', '.join(known)}")
+            if name == "physics" and policy != "no":
+                raise ValueError("physics cannot be restarted: sim time and the robot's true state would be lost")
+        return v
+
+    def policy(self, service: str) -> str:
+        """The policy of ``service`` (its own entry, else ``default``, else no); physics: no."""
+        if service == "physics":
+            return "no"
+        return self.services.get(service, self.services.get("default", "no"))
 
 
 class Scenario(_Model):
@@ -172,6 +216,7 @@ class Scenario(_Model):
     planner: PlannerConfig = Field(default_factory=PlannerConfig)
     task: TaskConfig = Field(default_factory=TaskConfig)
     logger: LoggerConfig = Field(default_factory=LoggerConfig)
+    restart: RestartConfig = Field(default_factory=RestartConfig)
     source: Path | None = Field(None, exclude=True, description="file this came from")
 
     @field_validator("prefix", "robot")

@@ -387,7 +387,9 @@ class PlannerService(Service):
                 "time_limit": goal.planning_time * self.library.wall_cap_factor,
             }
         else:
-            budget = {"max_iterations": None, "time_limit": goal.planning_time}
+            # realtime plans for planning_time; with planner.iterations set they stop at that count
+            # first, so a busy machine plans as well as a quiet one, only later
+            budget = {"max_iterations": self.sc.planner.iterations, "time_limit": goal.planning_time}
         seed = self.sc.seed + self.plans
         pb = Problem(self.plan_arm, start, goal.target, seed=seed, resolution=self.library.resolution, **budget)
         w0 = time.perf_counter()

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from util import Observer, finish, up
+from util import LEAN, Observer, finish, up
 
 from hilsim import transport
 from hilsim.config import load_scenario
@@ -20,6 +20,7 @@ from hilsim.config import load_scenario
 pytestmark = pytest.mark.e2e
 REPO = Path(__file__).resolve().parent.parent
 HIL = REPO / "config" / "hil" / "arm-motor-model.yaml"
+MOTOR = REPO / "config" / "hil" / "motor-model.yaml"
 
 
 @pytest.fixture
@@ -33,12 +34,12 @@ def test_arm_with_joint_1_served_by_the_motor_model(observed: tuple[str, Observe
     """Realtime, six processes: every target reached in the physics truth, and joint_1 in the
     truth is exactly what the external server measured (physics follows the real motor)."""
     ep, obs = observed
-    p = up(str(HIL), "--router", ep, "--no-logger", "--out", str(tmp_path / "run"))
-    out = finish(p, 240)
+    p = up(LEAN, "--hil", str(MOTOR), "--router", ep, "--no-logger", "--out", str(tmp_path / "run"))
+    out = finish(p, 270)
     assert p.returncode == 0, out
     assert "ready: " in out and "motor-model (pid " in out, out
     assert "targets reached: 3/3" in out and "clock realtime" in out, out
-    sc = load_scenario(HIL)
+    sc = load_scenario(LEAN, overlays=[MOTOR])
     time.sleep(0.3)
     # judged by the physics truth at the moment the planner said "reached", not by its word
     for i, target in enumerate(sc.task.targets, 1):

@@ -19,6 +19,10 @@ from hilsim import msgs, transport
 from hilsim.config import ZenohConfig
 from hilsim.keys import Keys
 
+# The arm at half its rates (config/arm-lean.yaml): realtime end-to-end tests run on it, so a slow
+# or busy 2-core CI machine still keeps the wall clock (at 1 kHz the pipeline needs most of 2 cores)
+LEAN = str(Path(__file__).resolve().parent.parent / "config" / "arm-lean.yaml")
+
 
 def wait_until(cond: Callable[[], bool], timeout: float = 5.0) -> bool:
     """Poll ``cond`` until it holds or ``timeout`` seconds pass; the last answer is returned."""
@@ -97,8 +101,14 @@ def up(*args: str) -> subprocess.Popen[str]:
 
 
 def finish(p: subprocess.Popen[str], timeout: float) -> str:
+    """Wait for ``hilsim up`` to end; past ``timeout`` kill its process group and fail with
+    everything it printed (a hang on a slow machine must say where it got to)."""
     try:
         out, _ = p.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(p.pid, signal.SIGKILL)
+        out, _ = p.communicate()
+        raise AssertionError(f"hilsim up still running after {timeout:.0f} s; it printed:\n{out}") from None
     finally:
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
