@@ -204,6 +204,10 @@ class Scenario(_Model):
     seed: int = 0
     duration: float | None = Field(None, gt=0, description="sim seconds; None = until the task ends")
     services: list[str] = Field(default_factory=lambda: list(DEFAULT_SERVICES))
+    compose: list[list[str]] = Field(
+        default_factory=list,
+        description="groups of services run in one process each, e.g. [[physics, sensors, controller]]",
+    )
     zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
     clock: ClockConfig = Field(default_factory=ClockConfig)
     world: WorldConfig
@@ -238,6 +242,21 @@ class Scenario(_Model):
         if len(set(v)) != len(v):
             raise ValueError("a service is listed twice")
         return v
+
+    @model_validator(mode="after")
+    def _compose_groups(self) -> Scenario:
+        seen: set[str] = set()
+        for i, g in enumerate(self.compose):
+            for s in g:
+                if s not in self.processes():
+                    raise ValueError(f"compose[{i}]: {s!r} is not one of this scenario's services "
+                                     f"({', '.join(self.processes())})")
+                if s in seen:
+                    raise ValueError(f"compose[{i}]: {s!r} is in two groups")
+                seen.add(s)
+            if len(g) < 2:
+                raise ValueError(f"compose[{i}]: a group needs at least two services, got {g}")
+        return self
 
     @model_validator(mode="after")
     def _service_sections(self) -> Scenario:
@@ -281,6 +300,18 @@ class Scenario(_Model):
     def processes(self) -> list[str]:
         """Every service this scenario runs: ``services`` plus the external joint servers."""
         return [*self.services, *(s for s in self.external_servers() if s not in self.services)]
+
+    def launch_units(self) -> list[str]:
+        """The OS processes ``hilsim up`` starts: one per service, except the services of a
+        ``compose`` group, which share one named ``a+b+c`` (:mod:`hilsim.compose`)."""
+        procs = self.processes()
+        grouped = {s: "+".join(m for m in g if m in procs) for g in self.compose for s in g}
+        out: list[str] = []
+        for s in procs:
+            unit = grouped.get(s, s)
+            if unit not in out:
+                out.append(unit)
+        return out
 
     def section(self, name: str) -> dict[str, Any]:
         """Raw settings of a plug-in or server section (validated by the service that owns it)."""

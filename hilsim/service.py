@@ -49,12 +49,20 @@ class Publisher:
         self._pub = transport.publisher(service.session, key, drop_when_congested=service.sc.clock.mode == "realtime")
         self.gid = transport.new_gid()
         self.seq = 0
+        # composed (hilsim.compose): also handed, unencoded, to the subscribers in this process
+        self._local = getattr(self._pub, "deliver", None)
         # announce: receivers accept this key only from announced writers (hilsim.provenance)
         self._token = service.session.liveliness().declare_token(service.keys.writer(self.gid, key))
 
     def put(self, msg: Any) -> None:
         self.seq += 1
-        self._pub.put(msgs.encode(msg), attachment=transport.attachment_bytes(self.seq, self.gid))
+        if self._local is None:
+            self._pub.put(msgs.encode(msg), attachment=transport.attachment_bytes(self.seq, self.gid))
+        else:
+            att = transport.Attachment(self.seq, time.time_ns(), self.gid)
+            self._local(msg, att)
+            if self._pub.remote:  # encoded only while a subscriber outside the process exists
+                self._pub.put(msgs.encode(msg), attachment=att.encode())
         self._svc.counts_out[self.key] += 1
 
     def undeclare(self) -> None:
@@ -157,26 +165,38 @@ class Service:
 
         max_age_ns = round(self.sc.clock.max_age * 1e9) if self.sc.clock.mode == "realtime" else 0
 
-        def on_sample(sample: zenoh.Sample) -> None:
-            k = str(sample.key_expr)
+        def admit(k: str, att: transport.Attachment | None) -> bool:
             self.counts_in[k] += 1
-            att = transport.read_attachment(sample)
             why, gap = self.provenance.check(k, att)
             if why is not None:
-                self.reject(k, why)
-                return
+                return self.reject(k, why)
             if gap:
                 self.seq_gaps[k] += gap
             if max_age_ns and att is not None and time.time_ns() - att.source_ns > max_age_ns:
                 # realtime: a sample that waited too long in a queue (this process fell behind)
                 # is dropped, so the loop works on fresh data and catches up instead of lagging more
                 self.stale[k] += 1
+                return False
+            return True
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            k = str(sample.key_expr)
+            att = transport.read_attachment(sample)
+            if not admit(k, att):
                 return
             try:
                 msg = msgs.decode(cls, sample.payload.to_bytes(), n_joints=n_joints)
             except msgs.BadMessage as e:
                 self.reject(k, str(e))
                 return
+            handle(k, msg, att)
+
+        def on_local(k: str, msg: Any, att: transport.Attachment) -> None:
+            # composed: a message object from a service of this process, validated where it was made
+            if admit(k, att):
+                handle(k, msg, att)
+
+        def handle(k: str, msg: Any, att: transport.Attachment | None) -> None:
             try:
                 with self.lock:
                     if self.stop_event.is_set():
@@ -191,6 +211,9 @@ class Service:
                 self.fault(f"error handling {k}: {type(e).__name__}: {e}", exc=e)
 
         self._declared.append(self.session.declare_subscriber(key, on_sample))
+        local = getattr(self.session, "local_subscriber", None)
+        if local is not None:
+            self._declared.append(local(key, on_local))
 
     def queryable(
         self,
@@ -351,13 +374,22 @@ class Service:
             signal.signal(signal.SIGINT, self.request_stop)
             signal.signal(signal.SIGTERM, self.request_stop)
         try:
-            self.session = transport.open_session(self.sc.zenoh)
+            session = transport.open_session(self.sc.zenoh)
         except ConnectionError as e:
             self.log.error(str(e))
             return 2
+        try:
+            return self.serve(session)
+        finally:
+            session.close()
+
+    def serve(self, session: Any) -> int:
+        """Attach to ``session``, loop until stopped, undeclare everything; the session stays
+        open (it may be shared: :mod:`hilsim.compose`). Returns the exit code."""
+        self.session = session
         rc = 0
         try:
-            self.attach(self.session)
+            self.attach(session)
             self.log.info("ready")
             threading.Thread(target=self._health_thread, daemon=True, name="health").start()
             self.loop()
@@ -388,14 +420,23 @@ class Service:
                         d.undeclare()
                     except Exception:
                         pass
-                self.session.close()
         return rc
 
 
 def setup_logging(name: str, level: int = logging.INFO) -> None:
+    who = f"{name:<10}"
+    if "+" in name:  # composed (hilsim.compose): each line says which of the services wrote it
+        who = "%(service)-10s"
     logging.basicConfig(
         level=level,
         stream=sys.stderr,
-        format=f"%(asctime)s {name:<10} %(levelname)-7s %(message)s",
+        format=f"%(asctime)s {who} %(levelname)-7s %(message)s",
         datefmt="%H:%M:%S",
     )
+    if "+" in name:
+        def service_of(record: logging.LogRecord) -> bool:
+            record.service = record.name.removeprefix("hilsim.")
+            return True
+
+        for h in logging.getLogger().handlers:
+            h.addFilter(service_of)

@@ -96,19 +96,22 @@ def _capture(endpoint: str, key: str, sink: list[bytes]) -> tuple[zenoh.Session,
 
 
 def test_lockstep_runs_are_bit_identical(tmp_path: Path) -> None:
-    """Same seed, lockstep: the joint-state streams of two runs are equal byte for byte."""
+    """Same seed, lockstep: the joint-state streams of two runs are equal byte for byte, the
+    second with physics, sensors and the controller composed in one process (hilsim.compose):
+    composition changes how samples travel, never what happens."""
     streams: list[list[bytes]] = []
     keys = Keys()
-    for i in range(2):
+    for i, extra in enumerate([[], ["--compose", "physics,sensors,controller"]]):
         ep = f"tcp/127.0.0.1:{transport.free_port()}"
         router = transport.open_router(ep)
         got: list[bytes] = []
         ses, sub = _capture(ep, keys.topic("joint_states"), got)
         try:
             p = hilsim_up("arm", "--router", ep, "--duration", "6", "--seed", "7", "--no-logger",
-                          "--out", str(tmp_path / f"run{i}"))
+                          "--out", str(tmp_path / f"run{i}"), *extra)
             stdout, _ = p.communicate(timeout=240)
             assert p.returncode == 0, stdout
+            assert ("physics+sensors+controller (pid" in stdout) == bool(extra), stdout
             assert "task-1: reached" in stdout, stdout  # so the run includes a re-plan mid-stream
             time.sleep(0.3)
         finally:
