@@ -30,6 +30,7 @@ import numpy as np
 
 from hilsim import control, msgs, registry
 from hilsim.config import ConfigError, Scenario
+from hilsim.restart import keep, kept
 from hilsim.service import Publisher, Service
 
 
@@ -93,6 +94,13 @@ class ControllerService(Service):
         self.max_tracking_error = 0.0
         self.gaps = 0
         self.steps = 0
+        # live gain changes, kept for a restarted controller (hilsim.restart): scenario + these
+        self.live_gains: dict[str, float] = dict(kept(scenario, self.name).get("gains", {}))
+        if self.live_gains:
+            control.set_parameters(self.pids, self.names,
+                                   [msgs.Parameter(name=k, value=v) for k, v in self.live_gains.items()])
+            self.log.info("restarted: live gains taken over: %s",
+                          ", ".join(f"{k}={v:g}" for k, v in sorted(self.live_gains.items())))
 
     # ------------------------------------------------------------------ wiring
     def setup(self) -> None:
@@ -219,6 +227,8 @@ class ControllerService(Service):
             return msgs.SetParametersResult(successful=False, reason=why)
         if req.parameters:
             self.log.info("gains changed: %s", ", ".join(f"{p.name}={p.value:g}" for p in req.parameters))
+            self.live_gains.update({p.name: p.value for p in req.parameters})
+            keep(self.sc, self.name, {"gains": self.live_gains})
         return msgs.SetParametersResult(successful=True, reason=f"{len(req.parameters)} parameter(s) set")
 
     # ------------------------------------------------------------------ reporting

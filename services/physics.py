@@ -76,6 +76,11 @@ class PhysicsService(Service):
         self.announced: dict[str, Participant] = {}
         self.acked: dict[str, int] = {}
         self.present: set[str] = set()
+        # lockstep: services of the scenario that left during the run (sim time is paused until
+        # every one is back), when the last one came back, how often the run was paused
+        self.gone: dict[str, int] = {}
+        self.back_at = 0.0
+        self.pauses = 0
         self.started = False
         self.done = False
         self.end_ns = round(sc.duration * 1e9) if sc.duration else None
@@ -109,16 +114,33 @@ class PhysicsService(Service):
     def _on_alive(self, sample: zenoh.Sample) -> None:
         svc = str(sample.key_expr).rsplit("/", 1)[-1]
         with self.lock:
+            if self.stop_event.is_set() or svc == self.name:
+                return  # stopping: the others leave after us anyway
             if sample.kind == zenoh.SampleKind.PUT:
                 if svc not in self.present and svc in self.sc.processes():
                     self.log.info("%s is here", svc)
                 self.present.add(svc)
-            else:
-                self.present.discard(svc)
-                if svc in self.participants and not self.done:
-                    self.state = "fault"
-                    self.fault(f"lockstep participant {svc} left the simulation at t={self.sim_ns / 1e9:.3f}s; "
-                               f"sim time is paused until it comes back")
+                if svc in self.gone:
+                    self.back_at = time.monotonic()
+                    self.log.info("%s is back (t=%.3f s)", svc, self.sim_ns / 1e9)
+                return
+            self.present.discard(svc)
+            if not self.started or self.done or svc not in self.sc.processes():
+                return
+            if self.sc.clock.mode != "lockstep":
+                # realtime: the wall clock does not wait; a restarted service just joins again
+                self.warn(f"{svc} left the simulation at t={self.sim_ns / 1e9:.3f}s")
+                return
+            # lockstep: whatever the service was doing for the current step is lost with it (a
+            # command, the encoders, a plan, the recording); step on only once it is back
+            if not self.gone:
+                self.pauses += 1
+            self.gone[svc] = self.world.time_ns
+            self.state = "paused"
+            # a warning, not an error of physics: hilsim up reports the death (and any restart)
+            self.warn(f"{svc} left the simulation at t={self.world.time_ns / 1e9:.3f}s; "
+                      f"sim time is paused until it is back")
+            self.publish_health_async()
 
     def _on_lockstep(self, sample: zenoh.Sample) -> None:
         # <prefix>/<robot>/lockstep/<service>/<period>/<via>/<gid>
@@ -192,7 +214,7 @@ class PhysicsService(Service):
         if who not in self.acked:
             return
         self.acked[who] = max(self.acked[who], ns)
-        if self.started and not self.done and self._all_acked():
+        if self.started and not self.done and not self.gone and self._all_acked():
             self._advance_lockstep()
 
     def _advance_lockstep(self) -> None:
@@ -257,6 +279,8 @@ class PhysicsService(Service):
             "waiting_for": ",".join(self._missing()),
             "servers_silent": ",".join(sorted(self.server_silent)),
             "clipped_commands": self.world.clipped,
+            "paused_for": ",".join(sorted(self.gone)),
+            "pauses": self.pauses,
             **self._jitter_figures(),
         }
 
@@ -328,8 +352,12 @@ class PhysicsService(Service):
             while not self.stop_event.is_set() and not self.done:
                 with self.lock:
                     self._advance()
-        while not self.stop_event.wait(0.2):
+        while not self.stop_event.wait(0.05 if self.gone else 0.2):
             with self.lock:
+                if self.gone:
+                    if not self.done:
+                        self._resume_when_back()
+                    continue  # paused on purpose: not a stall
                 stalled = time.monotonic() - self.last_progress
                 if not self.done and stalled > self.sc.clock.ack_timeout and not self.waiting_reported:
                     self.waiting_reported = True
@@ -338,11 +366,26 @@ class PhysicsService(Service):
                     self.fault(f"no lockstep acknowledgement from {', '.join(self._missing())} "
                                f"for step t={self.world.time_ns / 1e9:.3f}s after {stalled:.1f}s")
                     self.publish_health_async()
-                if self.state == "fault" and all(p in self.present for p in self.participants) and not self.done:
-                    self.state = "running"
-                    self.log.info("all participants present again; lockstep resumes")
-                    if self._all_acked():
-                        self._advance_lockstep()
+
+    def _resume_when_back(self) -> None:
+        """Lockstep, paused (under self.lock): once every service that left is back, and its peers
+        had ``clock.start_delay`` to learn of its subscriptions (as before step 0), go on from the
+        step where sim time stopped. A step some participant still owes is published again: a
+        restarted process never saw it, and without it nobody would acknowledge it."""
+        if any(s not in self.present for s in self.gone):
+            return
+        if time.monotonic() - self.back_at < self.sc.clock.start_delay:
+            return
+        back = ", ".join(sorted(self.gone))
+        self.gone.clear()
+        self.state = "running"
+        self.last_progress = time.monotonic()
+        self.log.info("%s back: lockstep resumes at t=%.3f s", back, self.world.time_ns / 1e9)
+        self.publish_health_async()
+        if self._all_acked():
+            self._advance_lockstep()
+        else:
+            self._publish_step()
 
     def _raise_priority(self) -> None:
         """Realtime: ask the kernel for a real-time scheduling class, as HIL setups do; the
@@ -401,6 +444,6 @@ class PhysicsService(Service):
         h = super().health()
         if self.state == "done":
             h.status[0].level = 0
-        elif self.state in ("fault", "stalled"):
+        elif self.state in ("fault", "stalled", "paused"):
             h.status[0].level = LEVEL_ERROR
         return h

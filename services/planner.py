@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import zenoh
 
 from hilsim import msgs
 from hilsim.config import Scenario
@@ -51,6 +52,7 @@ from hilsim.planning.trajectory import (
     time_parameterize,
     to_msg,
 )
+from hilsim.restart import keep, kept
 from hilsim.service import Service
 from hilsim.tasks import TaskGoal, TaskRunner, is_reserved
 
@@ -104,6 +106,12 @@ class PlannerService(Service):
         self.pending: list[Goal] = []
         self.task_runner = TaskRunner(scenario.task.targets, self._submit_task_goal, self._report_task,
                                       planner=self.default_planner)
+        # restarted (hilsim.restart): the task goes on at the target the dead planner was on
+        task = kept(scenario, self.name).get("task")
+        if isinstance(task, dict) and 0 <= task.get("index", -1) < len(self.task_runner.targets):
+            self.task_runner.next_index, self.task_runner.reached = task["index"], task.get("reached", 0)
+            self.log.info("restarted: the task resumes at target %d (%d reached before)",
+                          task["index"] + 1, self.task_runner.reached)
         self.goal_counter = 0
         self.plans = 0
         self.goals_rejected = 0
@@ -120,6 +128,8 @@ class PlannerService(Service):
         self.pub_result = self.publisher(k.topic("planner/result"))
         self.pub_task_result = self.publisher(k.topic("task/result"))
         self.subscribe(k.topic("joint_states"), msgs.JointState, self.on_joint_states, n_joints=self.n)
+        self._declared.append(self.session.liveliness().declare_subscriber(
+            k.alive("controller"), self._on_controller, history=True))
         self.queryable(k.topic("planner/goal"), msgs.MoveGoal, self.on_goal, n_joints=self.n, reject=self._reject)
         self.queryable(k.topic("planner/cancel"), msgs.CancelRequest, self.on_cancel, reject=self._reject)
         self._worker = threading.Thread(target=self._work, daemon=True, name="planner-worker")
@@ -268,7 +278,22 @@ class PlannerService(Service):
             self.task_runner.on_goal_result(success, self.sim_ns, err)
 
     # ------------------------------------------------------------------ the scenario task (hilsim.tasks)
+    def _on_controller(self, sample: Any) -> None:
+        """A controller (re)appeared: a restarted one knows no trajectory, so the one being
+        executed is sent again (its start stamp unchanged: it picks up where the arm should be)."""
+        if sample.kind != zenoh.SampleKind.PUT:
+            return
+        with self.lock:
+            if self.stop_event.is_set():
+                return
+            goal = self.active
+            if goal is not None and goal.state in ("executing", "settling") and goal.traj_msg.points:
+                self.log.info("a controller appeared: %s's trajectory sent again", goal.goal_id)
+                self.pub_traj.put(goal.traj_msg)
+
     def _submit_task_goal(self, tg: TaskGoal) -> None:
+        keep(self.sc, self.name, {"task": {"index": self.task_runner.next_index - 1,
+                                           "reached": self.task_runner.reached}})
         goal = Goal(tg.goal_id, tg.target, self.default_planner, self.sc.planner.planning_time, True, task=True)
         goal.invalid = self.check_target(tg.target)  # reported in turn, as a failed step
         self.pending.append(goal)

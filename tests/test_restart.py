@@ -1,0 +1,171 @@
+"""The restart policy (``restart.services``): a service killed with SIGKILL during a run is
+started again by ``hilsim up``, lockstep physics pauses sim time while it is gone and resumes
+where it stopped, and the task still ends as it should, judged by the physics truth. Without the
+policy a dead service ends the run (``tests/test_e2e.py``). What a restarted process takes over
+(live gains, the task's progress) is checked in-process here too."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import psutil
+import pytest
+from util import Observer, up, wait_until
+
+from hilsim import msgs, transport
+from hilsim.config import ConfigError, load_scenario, parse_overrides
+from hilsim.restart import RESTART_ENV, keep
+
+LEFT = [0.866, -0.789, -0.399, 0.0, -0.382, 0.0]
+
+
+class Output:
+    """The launcher's output, read in a thread so the test can wait for a line while it runs."""
+
+    def __init__(self, p: Any) -> None:
+        self.lines: list[str] = []
+        self.lock = threading.Lock()
+        self.thread = threading.Thread(target=self._read, args=(p,), daemon=True)
+        self.thread.start()
+
+    def _read(self, p: Any) -> None:
+        for line in p.stdout:
+            with self.lock:
+                self.lines.append(line)
+
+    def text(self) -> str:
+        with self.lock:
+            return "".join(self.lines)
+
+    def wait(self, pattern: str, timeout: float) -> re.Match[str]:
+        found: list[re.Match[str]] = []
+
+        def seen() -> bool:
+            m = re.search(pattern, self.text(), re.M)
+            if m:
+                found.append(m)
+            return m is not None
+
+        assert wait_until(seen, timeout), f"no {pattern!r} within {timeout} s:\n{self.text()}"
+        return found[-1]
+
+
+def sim_now(obs: Observer) -> int:
+    with obs.lock:
+        return obs.truth[-1][0] if obs.truth else -1
+
+
+@pytest.mark.e2e
+def test_each_service_killed_in_turn_is_restarted_and_the_task_completes(tmp_path: Path) -> None:
+    """Lockstep arm, one target: the controller, the sensors and the planner are SIGKILLed one
+    after the other while the arm moves; each comes back, sim time stops while it is gone, and
+    the target is reached in the truth. (Physics cannot be restarted: it is the world.)"""
+    ep = f"tcp/127.0.0.1:{transport.free_port()}"
+    router = transport.open_router(ep)
+    obs = Observer(ep)
+    p = up("arm", "--router", ep, "--no-logger", "--out", str(tmp_path / "run"),
+           "--set", f"task.targets=[{LEFT}]", "--set", "restart.services.default=on-failure",
+           "--set", "restart.backoff=0.2")
+    out = Output(p)
+    pids: set[int] = set()
+    paused: dict[str, tuple[int, int]] = {}
+    try:
+        ready = out.wait(r"^ready: (.*)$", 120)[1]
+        now = {n: int(pid) for n, pid in re.findall(r"(\w+) \(pid (\d+)\)", ready)}
+        pids |= set(now.values())
+        sim_at = 0.3e9
+        # the planner first: its restart plans the target again, which would hide whether a
+        # restarted controller is sent the trajectory being executed
+        for name in ("planner", "sensors", "controller"):
+            # while the arm moves (planning the target takes no sim time in lockstep)
+            assert wait_until(lambda t=sim_at: sim_now(obs) >= t, 60), out.text()
+            psutil.Process(now[name]).send_signal(signal.SIGKILL)
+            killed_at = sim_now(obs)
+            back = out.wait(rf"^  {name} is back \(pid (\d+)\)", 60)
+            now[name] = int(back[1])
+            pids.add(now[name])
+            time.sleep(0.2)  # lockstep would have run on in the meantime had it not paused
+            paused[name] = (killed_at, sim_now(obs))
+            sim_at = sim_now(obs) + 0.3e9
+        p.wait(timeout=120)
+        out.thread.join(10)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+        obs.close()
+        router.close()
+    text = out.text()
+    assert p.returncode == 0, text
+    assert "targets reached: 1/1" in text and "result: OK" in text, text
+    for name in ("controller", "sensors", "planner"):
+        assert re.search(rf"^  restarted {name} \(exit code -9 at sim time [\d.]+ s; back after", text, re.M), text
+        assert re.search(rf"^  physics: sim time paused at t=[\d.]+ s until {name} is back", text, re.M), text
+    # sim time stood still while each was gone (at most the steps already acknowledged)
+    for name, (t_kill, t_back) in paused.items():
+        assert 0 <= t_back - t_kill <= 0.05e9, (name, t_kill, t_back)
+    # it resumed where it stopped: the truth's steps go on without a jump (a step published again
+    # for a restarted service comes twice) and never back
+    stamps = np.array([t for t, _ in obs.truth])
+    assert np.all(np.diff(stamps) >= 0) and np.diff(stamps).max() <= 1_000_000, np.diff(stamps).max()
+    # the target, judged by the physics truth once the task ended
+    sc = load_scenario("arm")
+    stamp, ok = obs.results["task-1"]
+    assert ok and np.abs(obs.truth_at(stamp) - np.asarray(LEFT)).max() <= sc.task.tolerance + 0.002
+    # no process is left: the first ones, and the restarted ones
+    assert wait_until(lambda: not any(psutil.pid_exists(pid) and psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
+                                      for pid in pids), 10), pids
+
+
+def test_restart_policy_is_checked_in_one_line() -> None:
+    def err(*sets: str) -> str:
+        with pytest.raises(ConfigError) as e:
+            load_scenario("arm", parse_overrides(sets))
+        assert "\n" not in str(e.value)
+        return str(e.value)
+
+    assert "restart.services: Value error, unknown service 'controler'" in err("restart.services.controler=on-failure")
+    assert "physics cannot be restarted" in err("restart.services.physics=on-failure")
+    assert "restart.services.default: Input should be 'no' or 'on-failure'" in err("restart.services.default=always")
+    assert "restart.max_attempts" in err("restart.max_attempts=0")
+    sc = load_scenario("arm", parse_overrides(["restart.services.default=on-failure", "restart.services.planner=no"]))
+    # YAML's bare `no` is False: read as the policy "no"; physics is never restarted
+    assert [sc.restart.policy(s) for s in ("controller", "planner", "physics")] == ["on-failure", "no", "no"]
+    assert load_scenario("arm").restart.policy("controller") == "no"  # the default: no restart
+
+
+def test_a_restarted_controller_takes_over_the_live_gains(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from hilsim.services.controller import ControllerService
+
+    sc = load_scenario("arm", {"logger.run_dir": str(tmp_path)})
+    first = ControllerService(sc)
+    res = first.on_set_parameters(msgs.SetParameters(parameters=[msgs.Parameter(name="joint_2.kp", value=123.0)]))
+    assert res.successful
+    # a fresh run does not inherit them…
+    assert ControllerService(sc).pids[1].kp == 100.0
+    # …a restarted process does, on top of the scenario's gains
+    monkeypatch.setenv(RESTART_ENV, "1")
+    again = ControllerService(sc)
+    assert again.pids[1].kp == 123.0 and again.pids[1].kd == 6.0
+    assert again.pids[0].kp == 100.0
+
+
+def test_a_restarted_planner_resumes_the_task_where_it_was(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from hilsim.services.planner import PlannerService
+
+    right = [-0.866, -0.789, -0.399, 0.0, -0.382, 0.0]
+    sc = load_scenario("arm", {"logger.run_dir": str(tmp_path), "task.targets": [LEFT, right, LEFT]})
+    keep(sc, "planner", {"task": {"index": 1, "reached": 1}})
+    monkeypatch.setenv(RESTART_ENV, "1")
+    planner = PlannerService(sc)
+    submitted: list[str] = []
+    planner.task_runner.submit = lambda tg: submitted.append(tg.goal_id)
+    planner.task_runner.on_tick()
+    assert submitted == ["task-2"] and planner.task_runner.reached == 1
