@@ -64,3 +64,18 @@ def test_lying_lengths_are_rejected() -> None:
     struct.pack_into("<I", data, 20, 10**9)  # now it claims a billion strings
     with pytest.raises(msgs.BadMessage):
         msgs.decode(msgs.JointState, bytes(data))
+
+
+@pytest.mark.parametrize("names", [["joint_1", "joint_2", "joint_3"], [], ["ä-joint", ""]])
+def test_the_cached_joint_name_block_is_right_at_every_alignment(names: list[str]) -> None:
+    """The codec keeps a robot's encoded names and the last decoded ones: the same names after
+    frame ids of every length (so at every alignment), alternating with other names, still give
+    pycdr2's bytes and the message back."""
+    for i in range(24):
+        frame = "f" * (i % 9)
+        for ns in (names, ["other"], names):
+            m = msgs.JointState(header=msgs.Header(stamp=msgs.Time(sec=i, nanosec=7), frame_id=frame),
+                                name=list(ns), position=[0.0] * len(ns), velocity=[], effort=[1.5] * len(ns))
+            raw = msgs.encode(m)
+            assert raw == msgs.codec.encode_reference(m)
+            assert msgs.decode(msgs.JointState, raw) == m

@@ -139,12 +139,26 @@ def build() -> tuple[dict[type, Callable[[Any], bytes]], dict[type, Callable[[by
         sec, ns = r.time()
         return Header(stamp=Time(sec=sec, nanosec=ns), frame_id=r.string())
 
+    # A robot's joint names are the same in every JointState: their encoded block is kept per
+    # (names, alignment) and copied in, and a decoder that meets the block it decoded last
+    # reuses its names (one bytes comparison instead of a u32 and a string per joint).
+    name_blocks: dict[tuple[tuple[str, ...], int], bytes] = {}
+    last_names: list[Any] = [b"", (), -1]
+
     def enc_joint_state(msg: Any) -> bytes:
         buf = bytearray(HEADER_LE)
         _w_header(buf, msg.header)
-        _w_u32(buf, len(msg.name))
-        for s in msg.name:
-            _w_str(buf, s)
+        key = (tuple(msg.name), (len(buf) - 4) % 4)
+        block = name_blocks.get(key)
+        if block is None:
+            start = len(buf)
+            _w_u32(buf, len(msg.name))
+            for s in msg.name:
+                _w_str(buf, s)
+            if len(name_blocks) < 64:  # a bound: names that change every message are not cached
+                name_blocks[key] = bytes(buf[start:])
+        else:
+            buf += block
         _w_dseq(buf, msg.position)
         _w_dseq(buf, msg.velocity)
         _w_dseq(buf, msg.effort)
@@ -153,7 +167,15 @@ def build() -> tuple[dict[type, Callable[[Any], bytes]], dict[type, Callable[[by
     def dec_joint_state(data: bytes) -> tuple[Any, int]:
         r = _Reader(data)
         h = header(r)
-        msg = JointState(header=h, name=r.strseq(), position=r.dseq(), velocity=r.dseq(), effort=r.dseq())
+        start = r.pos
+        block, names, align = last_names
+        if align == (start - 4) % 4 and data.startswith(block, start):
+            r.pos = start + len(block)
+            name = list(names)
+        else:
+            name = r.strseq()
+            last_names[:] = [data[start:r.pos], tuple(name), (start - 4) % 4]
+        msg = JointState(header=h, name=name, position=r.dseq(), velocity=r.dseq(), effort=r.dseq())
         return msg, r.pos
 
     def enc_imu(msg: Any) -> bytes:
