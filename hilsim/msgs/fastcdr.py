@@ -140,10 +140,10 @@ def build() -> tuple[dict[type, Callable[[Any], bytes]], dict[type, Callable[[by
         return Header(stamp=Time(sec=sec, nanosec=ns), frame_id=r.string())
 
     # A robot's joint names are the same in every JointState: their encoded block is kept per
-    # (names, alignment) and copied in, and a decoder that meets the block it decoded last
-    # reuses its names (one bytes comparison instead of a u32 and a string per joint).
+    # (names, alignment) and copied in, and a decoder that meets one of the last blocks it decoded
+    # reuses their names (one bytes comparison instead of a u32 and a string per joint).
     name_blocks: dict[tuple[tuple[str, ...], int], bytes] = {}
-    last_names: list[Any] = [b"", (), -1]
+    seen_names: list[tuple[int, bytes, tuple[str, ...]]] = []  # (alignment, block, names), newest first
 
     def enc_joint_state(msg: Any) -> bytes:
         buf = bytearray(HEADER_LE)
@@ -168,13 +168,16 @@ def build() -> tuple[dict[type, Callable[[Any], bytes]], dict[type, Callable[[by
         r = _Reader(data)
         h = header(r)
         start = r.pos
-        block, names, align = last_names
-        if align == (start - 4) % 4 and data.startswith(block, start):
-            r.pos = start + len(block)
-            name = list(names)
+        align = (start - 4) % 4
+        for a, block, names in seen_names:  # a few: truth, measurements, commands, references
+            if a == align and data.startswith(block, start):
+                r.pos = start + len(block)
+                name = list(names)
+                break
         else:
             name = r.strseq()
-            last_names[:] = [data[start:r.pos], tuple(name), (start - 4) % 4]
+            seen_names.insert(0, (align, data[start:r.pos], tuple(name)))
+            del seen_names[4:]
         msg = JointState(header=h, name=name, position=r.dseq(), velocity=r.dseq(), effort=r.dseq())
         return msg, r.pos
 
