@@ -4,10 +4,10 @@
     hilsim run SERVICE --config FILE
     hilsim topic list | echo KEY [--count N] [--json] | hz KEY
     hilsim view [RRD]
-    hilsim goal ROBOT --joints J1 … | --pose X Y Z [R P Y]
+    hilsim goal ROBOT --joints J1 … | --pose X Y Z [R P Y] | --xy X Y [--yaw THETA]
     hilsim gains ROBOT JOINT.GAIN=VALUE …
     hilsim plan evaluate --targets FILE [--criterion length|smoothness|weighted]
-    hilsim bench loop|plan|can [--json]
+    hilsim bench loop|plan|can|rover [--json]
     hilsim router [--listen ENDPOINT]
 """
 
@@ -65,6 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--out", help="run directory (default runs/<timestamp>)")
     up.add_argument("--no-logger", action="store_true", help="do not record (benchmarks)")
     up.add_argument("--router", help="connect to this Zenoh router instead of starting one")
+    up.add_argument("--world", help="the scenario's world, e.g. rover --world outdoor (config/rover-outdoor.yaml)")
     up.add_argument("--hil", "--overlay", dest="hil", action="append", default=[], metavar="FILE",
                     help="merge a file over the scenario, in order (e.g. config/hil/motor-model.yaml, "
                          "config/lean.yaml)")
@@ -101,6 +102,8 @@ def build_parser() -> argparse.ArgumentParser:
     g = goal.add_mutually_exclusive_group(required=True)
     g.add_argument("--joints", type=float, nargs="+")
     g.add_argument("--pose", type=float, nargs="+", help="x y z [roll pitch yaw]")
+    g.add_argument("--xy", type=float, nargs=2, metavar=("X", "Y"), help="a mobile robot's goal (the navigator)")
+    goal.add_argument("--yaw", type=float, help="with --xy: the final heading [rad]")
     goal.add_argument("--planner", default="")
     goal.add_argument("--timeout", type=float, default=60.0)
     _endpoint_args(goal)
@@ -115,7 +118,7 @@ def build_parser() -> argparse.ArgumentParser:
     plan = sub.add_parser("plan", help="planning tools")
     psub = plan.add_subparsers(dest="plan_cmd", required=True)
     ev = psub.add_parser("evaluate", help="plan several targets and compare them (paper Table III)")
-    ev.add_argument("--targets", required=True)
+    ev.add_argument("--targets", help="targets YAML (required for the arm; a rover scenario: default its task's goals)")
     ev.add_argument("--criterion", choices=["length", "smoothness", "weighted"], default="weighted")
     ev.add_argument("--scenario", default="arm")
     ev.add_argument("--csv", help="CSV path; the recording goes next to it (default: OUT/plan_evaluate.csv)")
@@ -140,6 +143,11 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--json", action="store_true")
     bp.add_argument("--seeds", type=int, default=10)
     bp.set_defaults(func=_lazy("hilsim.planning.bench", "cmd_bench"))
+    br = bsub.add_parser("rover", help="the rover scenario with navigation: lockstep real-time factor, laser rays/s")
+    br.add_argument("--json", action="store_true")
+    br.add_argument("--sim-seconds", type=float, default=20.0)
+    br.add_argument("--world", default="indoor", help="indoor or outdoor")
+    br.set_defaults(func=_lazy("hilsim.bench", "cmd_rover"))
 
     router = sub.add_parser("router", help="run a standalone Zenoh router on loopback")
     router.add_argument("--listen", default="tcp/127.0.0.1:7447")

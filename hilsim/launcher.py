@@ -9,7 +9,7 @@ when the task result arrives, the scenario duration is reached, a service dies, 
 physics is stopped first and the logger last so it can drain and close the recording. Children
 get SIGTERM if the launcher itself dies (PR_SET_PDEATHSIG), so no process outlives a run.
 
-Reads: ``<prefix>/<robot>/task/result`` and ``planner/result``, ``health/*``, ``log/*`` (faults,
+Reads: ``<prefix>/<robot>/task/result``, ``planner/result`` and ``navigator/result``, ``health/*``, ``log/*`` (faults,
 printed as they happen), ``alive/*``.
 """
 
@@ -119,6 +119,7 @@ class Launcher:
             # first: who writes what, so that only the services' own samples are believed
             self.session.liveliness().declare_subscriber(self.keys.all_writers, self.prov.on_token, history=True),
             self.session.declare_subscriber(self.keys.topic("planner/result"), self._on_result),
+            self.session.declare_subscriber(self.keys.topic("navigator/result"), self._on_result),
             self.session.declare_subscriber(self.keys.topic("task/result"), self._on_result),
             self.session.declare_subscriber(self.keys.health("*"), self._on_health),
             self.session.declare_subscriber(self.keys.log("*"), self._on_log),
@@ -197,8 +198,13 @@ class Launcher:
                 self.outcome.results.append(res)
                 err = max((abs(e) for e in res.execution_error), default=float("nan"))
                 status = "reached" if res.success else f"FAILED ({res.message})"
+                if str(sample.key_expr) == self.keys.topic("navigator/result"):  # a rover goal: [m, rad]
+                    pos, yaw = (*res.execution_error, float("nan"), float("nan"))[:2]
+                    what = f"position error {pos:.3f} m, yaw error {yaw:.3f} rad (odometry)"
+                else:
+                    what = f"max joint error {err:.4f} rad"
                 self.say(f"  {res.goal_id}: {status} at t={msgs.seconds(res.header.stamp):.2f}s sim, "
-                         f"planning {res.planning_time:.2f}s, max joint error {err:.4f} rad")
+                         f"planning {res.planning_time:.2f}s, {what}")
         self.changed.set()
 
     def _on_log(self, sample: zenoh.Sample) -> None:
@@ -346,7 +352,10 @@ def summarise(la: Launcher) -> int:
             err = o.task.execution_error
             names = named if len(named) == len(err) else [f"#{i}" for i in range(len(err))]
             errs = ", ".join(f"{n} {e:+.4f}" for n, e in zip(names, err, strict=True))
-            print(f"  final error per joint [rad]: {errs}")
+            if "navigator" in sc.services and len(err) == 2:  # the rover: [position m, yaw rad]
+                print(f"  final error: position {err[0]:.3f} m, yaw {err[1]:.3f} rad (odometry)")
+            else:
+                print(f"  final error per joint [rad]: {errs}")
             ok = ok and o.task.success and reached == n_targets
         else:
             print("  task: not finished")
@@ -426,6 +435,32 @@ def summarise(la: Launcher) -> int:
     return 0 if ok else 1
 
 
+def _world_of(path: Path) -> str | None:
+    try:
+        return load_scenario(path).world.model.stem
+    except Exception:  # not a scenario (an overlay), or a broken one: no world to offer
+        return None
+
+
+def world_scenario(scenario: str, world: str) -> str:
+    """``hilsim up SCENARIO --world NAME``: the scenario itself when its world is
+    ``models/worlds/NAME.xml``, else its variant ``<scenario>-NAME.yaml`` next to it (which sets that
+    world and what goes with it: the GPS and its datum, the goals); anything else is a one-line error."""
+    from hilsim.config import ConfigError, scenario_path
+
+    base = scenario_path(scenario)
+    own = load_scenario(base).world.model.stem
+    if world == own:
+        return str(base)
+    variant = base.with_name(f"{base.stem}-{world}.yaml")
+    if variant.exists():
+        return str(variant)
+    variants = {p.stem[len(base.stem) + 1:]: p for p in base.parent.glob(f"{base.stem}-*.yaml")}
+    worlds = [own, *sorted(w for w, p in variants.items() if _world_of(p) == w)]
+    raise ConfigError(f"--world {world}: scenario {base.stem} has no such world (worlds: {', '.join(worlds)}; "
+                      f"a world W needs {base.parent.name}/{base.stem}-W.yaml)")
+
+
 def cmd_up(args: argparse.Namespace) -> int:
     from hilsim.config import parse_overrides
 
@@ -436,7 +471,8 @@ def cmd_up(args: argparse.Namespace) -> int:
         overrides["duration"] = args.duration
     if args.seed is not None:
         overrides["seed"] = args.seed
-    sc = load_scenario(args.scenario, overrides, overlays=args.hil)
+    scenario = world_scenario(args.scenario, args.world) if getattr(args, "world", None) else args.scenario
+    sc = load_scenario(scenario, overrides, overlays=args.hil)
     if args.no_logger:
         sc.services = [s for s in sc.services if s != "logger"]
     run_dir = Path(args.out) if args.out else default_run_dir(sc)
@@ -457,6 +493,7 @@ def cmd_up(args: argparse.Namespace) -> int:
         if la.wait_ready():
             if not sc.task.targets and sc.duration is None:
                 how = (f"send goals with `hilsim goal {sc.robot} --joints …`" if "planner" in sc.services
+                       else f"send goals with `hilsim goal {sc.robot} --xy X Y`" if "navigator" in sc.services
                        else f"drive it with geometry_msgs/Twist on {Keys(sc.prefix, sc.robot).topic('cmd_vel')}")
                 print(f"no task targets and no --duration: running until Ctrl-C ({how})", flush=True)
             la.follow()

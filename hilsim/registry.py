@@ -35,6 +35,7 @@ BUILTIN: dict[str, dict[str, str]] = {
         "sensors": "hilsim.services.sensors:SensorService",
         "controller": "hilsim.services.controller:ControllerService",
         "planner": "hilsim.services.planner:PlannerService",
+        "navigator": "hilsim.services.navigator:NavigatorService",
         "logger": "hilsim.services.logger:LoggerService",
         "motor-model": "hilsim.services.motor_model:MotorModelService",
         "bridge-can": "hilsim.bridges.can_bridge:CanBridgeService",

@@ -1,8 +1,15 @@
 """The default layout of the Rerun viewer for a hilsim recording (stored in the ``.rrd``).
 
-Left: the robot in 3D (with the planned tool paths) above the text logs; right: tabs with one
-plot per joint and quantity (position, velocity, effort), the IMU, health and lockstep sync.
-Entity paths are those of :mod:`hilsim.rerun_rows`.
+Left: the 3D view (the world's static geometry, the robot, and for a mobile robot its laser scan,
+the trails of the truth and of the odometry, the GPS fixes, the chassis where the odometry puts
+it, the occupancy grid and the planned path; for the arm the planned tool paths) above the text
+logs. Right: tabs; for a mobile robot first the odometry against the truth (x, y, yaw and the
+body twist) and, in a world with a geodetic datum, the map (GPS fixes and the truth and odometry
+trails on Rerun's map view); then one plot per joint and quantity (position, velocity, effort),
+the IMU, health and lockstep sync. Entity paths are those of :mod:`hilsim.rerun_rows`.
+
+The map view draws OpenStreetMap tiles under the tracks, which the viewer fetches from the
+network when that tab is shown; it is not the tab shown first.
 
 Importing this module imports rerun, after turning its analytics off.
 """
@@ -17,27 +24,54 @@ from hilsim.recording import disable_analytics
 disable_analytics()  # before rerun is imported: its SDK reads the analytics config at start-up
 import rerun.blueprint as rrb  # noqa: E402
 
-from hilsim.rerun_rows import part  # noqa: E402
+from hilsim.kinematics import RobotModel  # noqa: E402
+from hilsim.rerun_rows import ODOM_QUANTITIES, WORLD_FRAME, part  # noqa: E402
+from hilsim.scene import Scene  # noqa: E402
 
 QUANTITIES = ("position", "velocity", "effort")
+# what the 3D view shows (entities of hilsim.rerun_rows)
+SPATIAL_CONTENTS = [
+    "/world/**", "/robot/**", "/joint_trajectory/tool_path", "/planner/path/tool_path",
+    "/scan", "/paths/**", "/odom/estimate", "/map", "/plan",
+]
 
 
-def blueprint(joints: Iterable[str], robot_frame: str | None) -> rrb.Blueprint:
-    """The layout for a robot with these moving joints; ``robot_frame`` (the URDF root link) is
-    None when there is no robot model, and then there is no 3D view."""
+def blueprint(joints: Iterable[str], robot_frame: str | None, scene: Scene | None = None,
+              track: str | None = None) -> rrb.Blueprint:
+    """The layout for a robot with these moving joints. ``robot_frame`` (the URDF root link) is
+    None when there is no robot model; ``scene`` the world's geometry (the 3D view is then in the
+    world frame), None if it could not be read. Without either there is no 3D view. ``track``: an
+    entity the 3D camera follows (the chassis of a mobile robot)."""
     joints = list(joints)
+    mobile = scene is not None and scene.base is not None
     left: list[Any] = []
-    if robot_frame is not None:
+    frame = WORLD_FRAME if scene is not None else robot_frame
+    if frame is not None:
+        eye = None
+        if mobile:  # behind and above the rover, following it: the outdoor world is 80 m across
+            eye = rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=(-7.0, -5.0, 6.0), look_target=(2.0, 0.0, 0.0),
+                                    eye_up=(0.0, 0.0, 1.0), tracking_entity=track)
         left.append(
             rrb.Spatial3DView(
-                name="robot",
+                name="world" if scene is not None else "robot",
                 origin="/",
-                contents=["/robot/**", "/joint_trajectory/tool_path", "/planner/path/tool_path"],
-                spatial_information=rrb.archetypes.SpatialInformation(target_frame=robot_frame),
+                contents=SPATIAL_CONTENTS,
+                spatial_information=rrb.archetypes.SpatialInformation(target_frame=frame),
+                eye_controls=eye,
             )
         )
-    left.append(rrb.TextLogView(name="log", origin="/", contents=["/log/**", "/planner/**", "/rejected/**"]))
-    tabs: list[Any] = [
+    left.append(rrb.TextLogView(name="log", origin="/", contents=[
+        "/log/**", "/planner/**", "/navigator/**", "/task/**", "/rejected/**", "/errors/**"]))
+    tabs: list[Any] = []
+    if mobile:
+        tabs.append(rrb.Grid(
+            *(rrb.TimeSeriesView(name=f"{q}: truth, odom", origin=f"/odometry/{q}")
+              for q in ODOM_QUANTITIES if q != "z"),
+            name="odometry",
+        ))
+        if scene is not None and scene.datum is not None:
+            tabs.append(rrb.MapView(name="map", origin="/geo", zoom=18.0))
+    tabs += [
         rrb.Grid(
             *(rrb.TimeSeriesView(name=f"{j} {q}", origin=f"/joints/{part(j)}/{q}") for j in joints),
             name=q,
@@ -49,4 +83,12 @@ def blueprint(joints: Iterable[str], robot_frame: str | None) -> rrb.Blueprint:
         rrb.TimeSeriesView(name="health", origin="/health"),
         rrb.TimeSeriesView(name="sync", origin="/sync"),
     ]
-    return rrb.Blueprint(rrb.Horizontal(rrb.Vertical(*left), rrb.Tabs(*tabs), column_shares=[2, 3]))
+    return rrb.Blueprint(rrb.Horizontal(rrb.Vertical(*left, row_shares=[3, 1] if len(left) == 2 else None),
+                                        rrb.Tabs(*tabs), column_shares=[3, 2] if mobile else [2, 3]))
+
+
+def default_blueprint(model: RobotModel | None, scene: Scene | None) -> rrb.Blueprint:
+    """The layout the recorder stores for a robot model and a world scene (either may be None)."""
+    if model is None:
+        return blueprint([], None, scene)
+    return blueprint(model.joints, model.root, scene, track=model.root_visual if scene and scene.base else None)

@@ -60,7 +60,8 @@ import zenoh
 from hilsim import msgs, transport
 from hilsim.config import Scenario, write_scenario
 from hilsim.keys import UnknownKey, message_type
-from hilsim.recording import RECORDING_NAME, SUMMARY_NAME, disable_analytics
+from hilsim.recording import RECORDING_NAME, SUMMARY_NAME, disable_analytics, part_name
+from hilsim.restart import restarted
 from hilsim.service import LEVEL_WARN, Service
 
 disable_analytics()  # before rerun is imported: its SDK reads the analytics config at start-up
@@ -68,10 +69,12 @@ import rerun as rr  # noqa: E402
 
 from hilsim.kinematics import RobotModel  # noqa: E402
 from hilsim.rerun_rows import RowWriter  # noqa: E402
-from hilsim.viewer import blueprint  # noqa: E402
+from hilsim.scene import Scene  # noqa: E402
+from hilsim.viewer import default_blueprint  # noqa: E402
 
 FLUSH_PERIOD_S = 0.5  # wall seconds between send_columns batches
 FLUSH_ROWS = 20_000  # …or earlier when this many rows are buffered
+FILE_FLUSH_TIMEOUT_S = 5.0  # at most this long waiting for a batch to reach the file
 # Realtime: samples waiting for the worker at most (about 2 s of its work, some 25 MB for the
 # arm's messages); a sample arriving at a full queue is dropped and counted as lost.
 REALTIME_QUEUE_LIMIT = 50_000
@@ -90,6 +93,10 @@ class LoggerService(Service):
         self.run_dir = self._choose_run_dir()
         self.rrd_path = self.run_dir / RECORDING_NAME
         self.summary_path = self.run_dir / SUMMARY_NAME
+        if restarted() and self.rrd_path.exists():
+            # restarted by hilsim up: what the killed recorder wrote stays as it is (hilsim up
+            # makes it readable); this process records the rest of the run in a part of its own
+            self.rrd_path = self.run_dir / part_name(restarted())
         self.rec: rr.RecordingStream | None = None
         self.rows: RowWriter | None = None
         self.model: RobotModel | None = None
@@ -148,14 +155,19 @@ class LoggerService(Service):
         self._load_model()
         self.rec = rr.RecordingStream("hilsim", send_properties=True)
         m = self.model
+        scene = self._load_scene()
         # file sink only: no viewer, no network
-        self.rec.save(self.rrd_path, default_blueprint=blueprint(m.joints if m else [], m.root if m else None))
+        self.rec.save(self.rrd_path, default_blueprint=default_blueprint(m, scene))
         self.rec.send_recording_name(f"{self.sc.name} {self.run_dir.name}")
-        self.rows = RowWriter(self.rec, self.sc.robot, m, self.fault)
+        self.rows = RowWriter(self.rec, self.sc.robot, m, self.fault, scene)
         try:
             self.rows.log_model()
         except Exception as e:  # a model rerun cannot log must not stop the recording
             self.warn(f"robot model {self.sc.world.urdf} not recorded: {type(e).__name__}: {e}")
+        try:
+            self.rows.log_scene()
+        except Exception as e:  # nor may the world's geometry
+            self.warn(f"world geometry of {self.sc.world.model} not recorded: {type(e).__name__}: {e}")
         self._worker = threading.Thread(target=self._work, name="logger-worker", daemon=True)
         self._worker.start()
         if self.delay_s:
@@ -181,6 +193,15 @@ class LoggerService(Service):
             self.model = RobotModel.load(urdf)
         except Exception as e:  # a model rerun cannot load must not stop the recording
             self.warn(f"robot model {urdf} not recorded: {type(e).__name__}: {e}")
+
+    def _load_scene(self) -> Scene | None:
+        """The world's static geometry and datum (``hilsim.scene``), or None if it cannot be read."""
+        m = self.model
+        try:
+            return Scene.for_scenario(self.sc, m.links if m else (), m.root if m else None)
+        except Exception as e:  # the recording goes on without the world's geometry
+            self.warn(f"world geometry of {self.sc.world.model} not recorded: {type(e).__name__}: {e}")
+            return None
 
     # ------------------------------------------------------------------ receiving (Zenoh thread)
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -273,9 +294,16 @@ class LoggerService(Service):
         self._pending[key] += 1
 
     def _flush(self) -> None:
-        """Send every buffered row, then count the samples they came from as recorded."""
-        assert self.rows is not None
+        """Send every buffered row and push it through Rerun's batcher into the file, then count
+        the samples they came from as recorded. A recorder killed with SIGKILL (no footer
+        written) thus leaves a file that holds everything up to its last flush, FLUSH_PERIOD_S
+        ago at most; ``hilsim.recording.recover_rrd`` makes it a complete .rrd again."""
+        assert self.rows is not None and self.rec is not None
         if self.rows.flush():
+            try:
+                self.rec.flush(timeout_sec=FILE_FLUSH_TIMEOUT_S)
+            except Exception as e:  # a slow disk: the rows are still on their way to the file
+                self.warn(f"the recording was not written to {self.rrd_path} within {FILE_FLUSH_TIMEOUT_S:g} s: {e}")
             with self.lock:
                 self.recorded.update(self._pending)
         self._pending.clear()

@@ -184,6 +184,12 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     quiet_ompl_at_exit()
     sc = load_scenario(args.scenario)
+    if "navigator" in sc.services:  # a mobile robot: rover goals (hilsim.navigation.evaluate)
+        from hilsim.navigation.evaluate import cmd_evaluate_goals
+
+        return cmd_evaluate_goals(sc, args)
+    if not args.targets:
+        raise ConfigError("hilsim plan evaluate: --targets FILE is required for an arm scenario")
     arm = ArmModel(sc.world.model, sc.planner.clearance)
     names, targets, start = load_targets(args.targets, arm.n)
     start = np.zeros(arm.n) if start is None else start
