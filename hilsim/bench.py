@@ -10,6 +10,10 @@ holding position under 1 kHz PID control with its sensors:
   process (:mod:`hilsim.compose`), planner and logger separate, recording everything.
 Ratios are distributed / in_process and distributed / bare: compare ratios, not absolute times.
 
+``ring``: a bare zenoh-python ring of three processes (:mod:`hilsim.ring`), the transport floor
+of one distributed step; the distributed step time is reported against ring round + in-process
+step time.
+
 Then ``realtime``: the same pipeline with ``--clock realtime`` for ``--realtime-seconds``;
 physics reports its tick jitter (p50, p99) and the share of missed deadlines.
 """
@@ -142,6 +146,11 @@ def cmd_loop(args: argparse.Namespace) -> int:
     say("  in-process (same service code, no Zenoh) …")
     res["in_process_rtf"] = bench_in_process(sim)
     say(f"    {res['in_process_rtf']:.2f}x real time")
+    say("  transport floor: a bare zenoh-python ring of three processes …")
+    from hilsim.ring import PAYLOAD_BYTES, round_trip_us
+
+    res["ring_round_us"] = round_trip_us()
+    say(f"    {res['ring_round_us']:.0f} µs per round ({PAYLOAD_BYTES}-byte payloads, median)")
     with TemporaryDirectory(prefix="hilsim-bench-") as d:
         say("  distributed (5 processes over Zenoh, logging on) …")
         res["distributed_rtf"] = bench_distributed(sim, Path(d))
@@ -153,6 +162,11 @@ def cmd_loop(args: argparse.Namespace) -> int:
             say(f"  realtime mode for {args.realtime_seconds:g} s …")
             res["realtime"] = bench_realtime(args.realtime_seconds, Path(d))
     res["ratio_distributed_vs_in_process"] = res["distributed_rtf"] / res["in_process_rtf"]
+    # per 1 ms step: what the distributed pipeline spends against its floor (one ring round for the
+    # three hops of a step, plus the services' own work as measured in one process)
+    step_us = {k: 1000.0 / res[f"{k}_rtf"] for k in ("distributed", "in_process", "composed")}
+    res["step_us"] = step_us
+    res["ratio_distributed_vs_floor"] = step_us["distributed"] / (res["ring_round_us"] + step_us["in_process"])
     res["ratio_distributed_vs_bare"] = res["distributed_rtf"] / res["bare_rtf"]
     if args.json:
         print(json.dumps(res, indent=2))
@@ -163,6 +177,10 @@ def cmd_loop(args: argparse.Namespace) -> int:
     for k in ("bare", "in_process", "distributed", "composed"):
         v = res[f"{k}_rtf"]
         print(f"| {k} | {v:.2f}x | {v / res['in_process_rtf']:.3f} | {v / res['bare_rtf']:.3f} |")
+    fl = res["ring_round_us"] + step_us["in_process"]
+    print(f"\nper step: distributed {step_us['distributed']:.0f} µs, floor {fl:.0f} µs (ring round "
+          f"{res['ring_round_us']:.0f} + in-process {step_us['in_process']:.0f}): ratio "
+          f"{res['ratio_distributed_vs_floor']:.2f} (goal <= 1.5); composed {step_us['composed']:.0f} µs")
     if "realtime" in res:
         r = res["realtime"]
         print(f"\nrealtime 1 kHz, {args.realtime_seconds:g} s: tick jitter p50 {r['jitter_p50_ms']:.3f} ms, "
