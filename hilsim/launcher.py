@@ -9,6 +9,14 @@ when the task result arrives, the scenario duration is reached, a service dies, 
 physics is stopped first and the logger last so it can drain and close the recording. Children
 get SIGTERM if the launcher itself dies (PR_SET_PDEATHSIG), so no process outlives a run.
 
+Restart policy (``restart.services``, :class:`hilsim.config.RestartConfig`): a service with
+``on-failure`` that exits with a non-zero code (a crash, SIGKILL) is started again after
+``restart.backoff`` seconds (doubled at each attempt), at most ``restart.max_attempts`` times,
+with ``HILSIM_RESTART=<attempt>`` in its environment (:mod:`hilsim.restart`); its log continues
+in the same file. In lockstep physics pauses sim time while it is gone and resumes when it is
+back. Without the policy, or once the attempts are used up, a dead service ends the run. Each
+restart is printed as it happens and listed in the summary.
+
 Reads: ``<prefix>/<robot>/task/result``, ``planner/result`` and ``navigator/result``, ``health/*``, ``log/*`` (faults,
 printed as they happen), ``alive/*``.
 """
@@ -19,6 +27,7 @@ import argparse
 import ctypes
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -35,8 +44,10 @@ from hilsim import msgs, transport
 from hilsim.config import Scenario, load_scenario, write_scenario
 from hilsim.keys import Keys
 from hilsim.provenance import Provenance
+from hilsim.restart import RESTART_ENV, STATE_DIR
 
 LOGGER_NICE = 10
+RESTART_READY_TIMEOUT = 120.0  # wall seconds a restarted service has to announce itself
 
 
 def stop_order(sc: Scenario) -> list[str]:
@@ -44,8 +55,8 @@ def stop_order(sc: Scenario) -> list[str]:
     first, the recorder last); they start in the reverse order."""
     from hilsim.registry import service_class
 
-    names = sc.processes()
-    return sorted(names, key=lambda n: (service_class(n, sc).stop_rank, names.index(n)))
+    names = sc.launch_units()  # a composed process a+b+c stops at the rank of its first-stopping member
+    return sorted(names, key=lambda n: (min(service_class(m, sc).stop_rank for m in n.split("+")), names.index(n)))
 
 
 def _pdeathsig() -> None:
@@ -70,7 +81,21 @@ class Child:
     name: str
     proc: subprocess.Popen[bytes]
     log_path: Path
-    ready: bool = False
+    ready: bool = False  # every service of the process has announced itself
+    alive: set[str] = field(default_factory=set)  # those that have (a composed process has several)
+    restarts: int = 0
+    restart_at: float | None = None  # monotonic time of the pending restart
+    died_at: float = 0.0  # monotonic time its last process was found dead
+
+
+@dataclass
+class Restart:
+    """One restart of a service, for the summary."""
+
+    name: str
+    rc: int
+    sim_time: str  # physics' sim time when the death was noticed (its last health)
+    back_after: float | None = None  # wall seconds from the death to its liveliness token
 
 
 @dataclass
@@ -83,6 +108,7 @@ class Outcome:
     faults: list[str] = field(default_factory=list)
     stalled: str = ""  # physics waited longer than clock.ack_timeout for a lockstep participant
     interrupted: bool = False
+    restarts: list[Restart] = field(default_factory=list)
 
 
 class Launcher:
@@ -99,6 +125,7 @@ class Launcher:
         self.lock = threading.Lock()
         self.prov = Provenance()
         self.untrusted = 0  # samples on the keys it follows from writers other than the services
+        self.paused_for = ""  # lockstep: the services physics waits for to come back (its health)
 
     def say(self, text: str) -> None:
         if not self.quiet:
@@ -114,6 +141,9 @@ class Launcher:
         self.sc.logger.run_dir = self.run_dir.resolve()
         cfg = self.run_dir / "scenario.yaml"
         write_scenario(self.sc, cfg)
+        self.cfg_path = cfg
+        # what restarted services take over (hilsim.restart) belongs to this run only
+        shutil.rmtree(self.run_dir / STATE_DIR, ignore_errors=True)
         self.session = transport.open_session(self.sc.zenoh)
         self._subs = [
             # first: who writes what, so that only the services' own samples are believed
@@ -125,28 +155,37 @@ class Launcher:
             self.session.declare_subscriber(self.keys.log("*"), self._on_log),
             self.session.liveliness().declare_subscriber(self.keys.all_alive, self._on_alive, history=True),
         ]
-        env = dict(os.environ)
-        env.setdefault("PYTHONUNBUFFERED", "1")
         self.order = stop_order(self.sc)
         for name in reversed(self.order):
-            log_path = self.run_dir / f"{name}.log"
-            with open(log_path, "wb") as logf:
-                proc = subprocess.Popen(
-                    [sys.executable, "-m", "hilsim.cli", "run", name, "--config", str(cfg)],
-                    stdout=logf if name != "logger" else subprocess.PIPE,
-                    stderr=logf,
-                    stdin=subprocess.DEVNULL,
-                    env=env,
-                    preexec_fn=_recorder_child if name == "logger" else _pdeathsig,
-                )
-            self.children[name] = Child(name, proc, log_path)
-            if name == "logger":
-                # the logger's stdout is its per-key summary, shown to the user at the end
-                assert proc.stdout is not None
-                threading.Thread(target=self._pump, args=(proc.stdout, log_path), daemon=True).start()
+            self.children[name] = Child(name, self._spawn(name, 0), self.run_dir / f"{name}.log")
 
-    def _pump(self, stream: Any, log_path: Path) -> None:
-        with open(log_path.with_suffix(".out"), "wb") as f:
+    def _spawn(self, name: str, attempt: int) -> subprocess.Popen[bytes]:
+        """Start ``hilsim run NAME``; a restart (``attempt`` > 0) appends to the same log."""
+        env = dict(os.environ)
+        env.setdefault("PYTHONUNBUFFERED", "1")
+        if attempt:
+            env[RESTART_ENV] = str(attempt)
+        log_path = self.run_dir / f"{name}.log"
+        with open(log_path, "ab" if attempt else "wb") as logf:
+            if attempt:
+                logf.write(f"--- hilsim up: restart {attempt} of {name} ---\n".encode())
+                logf.flush()
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "hilsim.cli", "run", name, "--config", str(self.cfg_path)],
+                stdout=logf if name != "logger" else subprocess.PIPE,
+                stderr=logf,
+                stdin=subprocess.DEVNULL,
+                env=env,
+                preexec_fn=_recorder_child if name == "logger" else _pdeathsig,
+            )
+        if name == "logger":
+            # the logger's stdout is its per-key summary, shown to the user at the end
+            assert proc.stdout is not None
+            threading.Thread(target=self._pump, args=(proc.stdout, log_path, attempt), daemon=True).start()
+        return proc
+
+    def _pump(self, stream: Any, log_path: Path, attempt: int = 0) -> None:
+        with open(log_path.with_suffix(".out"), "ab" if attempt else "wb") as f:
             for line in stream:
                 f.write(line)
                 f.flush()
@@ -169,10 +208,24 @@ class Launcher:
 
     # ------------------------------------------------------------------ follow
     def _on_alive(self, sample: zenoh.Sample) -> None:
-        name = str(sample.key_expr).rsplit("/", 1)[-1]
+        svc = str(sample.key_expr).rsplit("/", 1)[-1]
+        name = next((u for u in self.children if svc in u.split("+")), svc)  # its process
         with self.lock:
-            if name in self.children and sample.kind == zenoh.SampleKind.PUT:
-                self.children[name].ready = True
+            c = self.children.get(name)
+            if c is None:
+                return
+            if sample.kind == zenoh.SampleKind.PUT:
+                c.alive.add(svc)
+            else:
+                c.alive.discard(svc)
+            if sample.kind == zenoh.SampleKind.PUT and not c.ready and c.alive >= set(name.split("+")):
+                c.ready = True
+                if c.restarts:
+                    back = time.monotonic() - c.died_at
+                    r = next((r for r in reversed(self.outcome.restarts) if r.name == name), None)
+                    if r is not None:
+                        r.back_after = back
+                    self.say(f"  {name} is back (pid {c.proc.pid}), {back:.1f} s after it died")
         self.changed.set()
 
     def _trusted(self, sample: zenoh.Sample) -> bool:
@@ -235,20 +288,65 @@ class Launcher:
                     self.outcome.physics_done = True
                 if st.name == "physics" and vals.get("state") == "stalled" and not self.outcome.stalled:
                     self.outcome.stalled = vals.get("last_error", "lockstep stalled")
+                if st.name == "physics":
+                    self._paused(vals)
         self.changed.set()
 
+    def _paused(self, vals: dict[str, str]) -> None:
+        """Lockstep physics pauses sim time while a service is gone (under self.lock): say so once
+        per pause, and take the sim time it stopped at for the restarts it waits for."""
+        gone = vals.get("paused_for", "")
+        if gone and gone != self.paused_for:
+            self.say(f"  physics: sim time paused at t={vals.get('sim_time', '?')} s until {gone} is back")
+            for r in self.outcome.restarts:
+                if r.name in gone.split(",") and r.back_after is None:
+                    r.sim_time = vals.get("sim_time", r.sim_time)
+        elif not gone and self.paused_for:
+            self.say(f"  physics: sim time runs again from t={vals.get('sim_time', '?')} s")
+        self.paused_for = gone
+
     def check_children(self) -> bool:
-        """True if a service died (recorded in the outcome)."""
+        """True if a service died and is not restarted (recorded in the outcome); a service
+        whose restart policy allows it is started again once its backoff has passed."""
         dead = False
+        now = time.monotonic()
         for c in self.children.values():
+            if c.restart_at is not None:
+                if now >= c.restart_at:
+                    c.restart_at = None
+                    c.proc = self._spawn(c.name, c.restarts)
+                    self.say(f"  restarted {c.name} (pid {c.proc.pid}, attempt {c.restarts}/"
+                             f"{self.sc.restart.max_attempts})")
+                continue
             rc = c.proc.poll()
-            if rc is not None and (c.name, rc) not in self.outcome.died:
-                self.outcome.died.append((c.name, rc))
-                tail = _tail(c.log_path)
-                why = f": {tail}" if tail else ""
-                self.say(f"error: service {c.name} (pid {c.proc.pid}) exited with code {rc}{why}")
-                dead = True
+            if rc is None or (c.name, rc) in self.outcome.died:
+                continue
+            tail = _tail(c.log_path)
+            why = f": {tail}" if tail else ""
+            self.say(f"error: service {c.name} (pid {c.proc.pid}) exited with code {rc}{why}")
+            rs = self.sc.restart
+            if rc != 0 and rs.policy(c.name) == "on-failure" and c.restarts < rs.max_attempts:
+                c.restarts += 1
+                delay = rs.backoff * 2 ** (c.restarts - 1)
+                with self.lock:
+                    c.ready = False
+                    c.died_at = now
+                    sim = self.outcome.health.get("physics", {}).get("sim_time", "?")
+                    self.outcome.restarts.append(Restart(c.name, rc, sim))
+                c.restart_at = now + delay
+                self.say(f"  restart policy on-failure: restarting {c.name} in {delay:.1f} s "
+                         f"(attempt {c.restarts}/{rs.max_attempts})")
+                continue
+            if rc != 0 and rs.policy(c.name) == "on-failure":
+                self.say(f"error: {c.name} died {c.restarts + 1} times; restart.max_attempts "
+                         f"({rs.max_attempts}) used up")
+            self.outcome.died.append((c.name, rc))
+            dead = True
         return dead
+
+    def restarting(self) -> list[str]:
+        """Services that died and are not back yet (restart pending or not announced)."""
+        return [c.name for c in self.children.values() if c.restarts and (c.restart_at is not None or not c.ready)]
 
     def follow(self, wall_timeout: float | None = None) -> None:
         """Wait for the end of the run: task result, duration, a dead service, or Ctrl-C."""
@@ -266,6 +364,13 @@ class Launcher:
             if wall_timeout is not None and time.monotonic() - t0 > wall_timeout:
                 self.say(f"error: run did not finish within {wall_timeout:.0f}s wall")
                 return
+            late = [c for c in self.children.values() if c.restarts and c.restart_at is None and not c.ready
+                    and time.monotonic() - c.died_at > RESTART_READY_TIMEOUT]
+            if late:
+                names = ", ".join(c.name for c in late)
+                self.say(f"error: restarted {names} did not announce itself within {RESTART_READY_TIMEOUT:.0f}s")
+                self.outcome.died.extend((c.name, -1) for c in late)
+                return
             if time.monotonic() - last_print > 10.0:
                 last_print = time.monotonic()
                 ph = self.outcome.health.get("physics", {})
@@ -280,6 +385,7 @@ class Launcher:
             c = self.children.get(name)
             if c is None:
                 continue
+            c.restart_at = None  # a restart still pending when the run ends does not happen
             if c.proc.poll() is None:
                 c.proc.send_signal(signal.SIGINT)
                 c.proc.send_signal(signal.SIGCONT)  # a stopped (suspended) service must handle it too
@@ -370,6 +476,10 @@ def summarise(la: Launcher) -> int:
             print(f"  {name}: {h.get('rejected')} rejected, {h.get('errors')} errors (last: {h.get('last_error', '')})")
     rrd = la.run_dir / "recording.rrd"
     if "logger" in sc.services:
+        # a recorder that died left no footer (and no counts): make its file whole, say what it holds
+        logger_restarted = any(r.name == "logger" for r in o.restarts)
+        if logger_restarted or any(n == "logger" for n, _ in o.died):
+            ok = _recover_recordings(la.run_dir) and ok
         summary = la.run_dir / "record_summary.json"
         if summary.exists():
             counts = json.loads(summary.read_text())
@@ -416,6 +526,13 @@ def summarise(la: Launcher) -> int:
                 keys = ", ".join(f"{short(k)} {n}" for k, n in top[:8]) + (", …" if len(top) > 8 else "")
                 print(f"  {sum(unseen.values())} published samples never reached the recorder: {keys}")
                 n_lost += sum(unseen.values())
+            if logger_restarted:
+                # what the killed recorder had received is in its part of the recording, but its
+                # counts died with it, and what it had not flushed yet is lost: reported, not
+                # judged (the restart policy asked for the run to go on)
+                print("  (the recorder was restarted: these counts are its last process's; samples the killed "
+                      "one had not written yet are lost)")
+                n_lost = 0
             # realtime: a loss is reported, not a failure; lockstep promises that nothing is lost
             ok = ok and not mismatch and (realtime or not n_lost)
         else:
@@ -429,6 +546,9 @@ def summarise(la: Launcher) -> int:
         print(f"  stalled: {o.stalled}")
     if o.faults:
         print(f"  faults reported: {len(o.faults)} (first: {o.faults[0]})")
+    for r in o.restarts:
+        back = f"back after {r.back_after:.1f} s" if r.back_after is not None else "not back"
+        print(f"  restarted {r.name} (exit code {r.rc} at sim time {r.sim_time} s; {back})")
     if la.untrusted:
         print(f"  ignored {la.untrusted} samples on results, health and logs from writers other than the services")
     print("result: " + ("OK" if ok else "FAILED"))
@@ -461,6 +581,26 @@ def world_scenario(scenario: str, world: str) -> str:
                       f"a world W needs {base.parent.name}/{base.stem}-W.yaml)")
 
 
+def _recover_recordings(run_dir: Path) -> bool:
+    """After a recorder died: make each part of the run's recording complete (a SIGKILL leaves no
+    RRD footer) and say what it holds; False if a part could not be recovered."""
+    from hilsim.recording import RecordingError, contents, recording_parts, recover_rrd
+
+    ok = True
+    for part in recording_parts(run_dir):
+        try:
+            rewritten = recover_rrd(part)
+            c = contents(part)
+        except RecordingError as e:
+            print(f"  recording {part}: NOT RECOVERED: {str(e).splitlines()[0]}")
+            ok = False
+            continue
+        upto = f"up to t={c.last_sim_ns / 1e9:.3f} s sim" if c.last_sim_ns is not None else "no sim time"
+        how = "the recorder was killed: recovered, verified" if rewritten else "complete, verified"
+        print(f"  recording {part}: {sum(c.rows.values())} rows on {len(c.rows)} entities {upto} ({how})")
+    return ok
+
+
 def cmd_up(args: argparse.Namespace) -> int:
     from hilsim.config import parse_overrides
 
@@ -471,6 +611,8 @@ def cmd_up(args: argparse.Namespace) -> int:
         overrides["duration"] = args.duration
     if args.seed is not None:
         overrides["seed"] = args.seed
+    if args.compose:
+        overrides["compose"] = [[n.strip() for n in g.split(",") if n.strip()] for g in args.compose]
     scenario = world_scenario(args.scenario, args.world) if getattr(args, "world", None) else args.scenario
     sc = load_scenario(scenario, overrides, overlays=args.hil)
     if args.no_logger:

@@ -11,6 +11,14 @@ Nothing here imports rerun at module level, so importing this module changes not
 :func:`disable_analytics` must run before ``import rerun`` in a process that records.
 
     hilsim view [RRD] [--runs DIR]     open the viewer on RRD, or on the newest <DIR>/*/recording.rrd
+
+A recorder killed with SIGKILL cannot write the RRD footer (Rerun writes it when the file is
+closed), so ``rerun rrd verify`` refuses the file although every message in it is whole up to
+the recorder's last flush (``services/logger.py`` flushes twice a second).
+:func:`recover_rrd` rewrites such a file with ``rerun rrd merge`` into a complete one, checks
+that it holds every row of the original and passes ``rerun rrd verify``, and only then replaces
+it; ``hilsim up`` does so for the recording of a recorder that died. A recorder restarted by
+``hilsim up`` records the rest of the run in ``recording.restart-<n>.rrd`` (:func:`part_name`).
 """
 
 from __future__ import annotations
@@ -18,11 +26,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
 import tempfile
+import warnings
 from collections import Counter
+from dataclasses import dataclass
 from pathlib import Path
 
 RECORDING_NAME = "recording.rrd"
@@ -129,16 +140,106 @@ def verify_rrd(path: str | Path) -> None:
 
 def entity_rows(path: str | Path) -> dict[str, int]:
     """Rows stored per entity path (static rows included) of the first recording in an .rrd file."""
+    return contents(path).rows
+
+
+CLOCK_ENTITY = "/clock"  # where the recorder puts <prefix>/clock: how far sim time got
+
+
+@dataclass
+class Contents:
+    """What a recording holds: rows per entity path and each one's latest ``sim_time`` (ns)."""
+
+    rows: dict[str, int]
+    last_ns: dict[str, int]
+
+    @property
+    def last_sim_ns(self) -> int | None:
+        """How far the recording goes in sim time: its clock's latest (other entities, e.g. a
+        planned path, can carry stamps of the future), else the latest of any entity."""
+        if CLOCK_ENTITY in self.last_ns:
+            return self.last_ns[CLOCK_ENTITY]
+        return max(self.last_ns.values(), default=None)
+
+
+def contents(path: str | Path) -> Contents:
+    """Read a recording back with Rerun's Python API; a file without a footer (its writer was
+    killed) is read by scanning it, as far as its messages are whole."""
     disable_analytics()
+    import pyarrow.compute as pc
     from rerun.chunk import RrdReader  # experimental API of rerun 0.41
 
     p = Path(path)
     if not p.is_file():
         raise RecordingError(f"{p}: no such recording")
     rows: Counter[str] = Counter()
-    for chunk in RrdReader(p).stream().to_chunks():
-        rows[chunk.entity_path] += chunk.num_rows
-    return dict(rows)
+    last: dict[str, int] = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "no footer": expected of a killed recorder's file
+        chunks = RrdReader(p).stream().to_chunks()
+        for chunk in chunks:
+            rows[chunk.entity_path] += chunk.num_rows
+            if "sim_time" in chunk.timeline_names and chunk.num_rows:
+                t = pc.max(chunk.to_record_batch().column("sim_time").cast("int64")).as_py()
+                if t is not None:
+                    last[chunk.entity_path] = max(last.get(chunk.entity_path, t), t)
+    return Contents(dict(rows), last)
+
+
+def part_name(attempt: int) -> str:
+    """The file a recorder restarted for the ``attempt``-th time records to, in the run directory."""
+    return f"recording.restart-{attempt}.rrd"
+
+
+def recording_parts(run_dir: str | Path) -> list[Path]:
+    """A run's recording files in order: ``recording.rrd``, then the restarted recorders' parts."""
+    d = Path(run_dir)
+    parts = [p for p in d.glob("recording.restart-*.rrd") if p.stem.rsplit("-", 1)[-1].isdigit()]
+    first = [d / RECORDING_NAME] if (d / RECORDING_NAME).is_file() else []
+    return first + sorted(parts, key=lambda p: int(p.stem.rsplit("-", 1)[-1]))
+
+
+def _printed_rows(path: Path) -> Counter[str]:
+    """Rows per entity path as ``rerun rrd print`` lists the chunks of a file."""
+    r = _run_rerun(["rrd", "print", str(path)])
+    if r.returncode != 0:
+        raise RecordingError(f"{path}: rerun rrd print failed (exit {r.returncode}):\n{(r.stdout + r.stderr).strip()}")
+    rows: Counter[str] = Counter()
+    for m in re.finditer(r"^Chunk\(\S+\) with (\d+) rows .*? - (\S+) - ", r.stdout, re.M):
+        rows[m[2]] += int(m[1])
+    return rows
+
+
+def recover_rrd(path: str | Path) -> bool:
+    """Make a recording whose writer was killed complete again (see the module docstring).
+
+    Returns False if it was complete already, True if it was rewritten; raises
+    :class:`RecordingError` if its messages cannot be read, or the rewrite loses a row (the
+    original is then left as it is)."""
+    p = Path(path)
+    try:
+        verify_rrd(p)
+        return False
+    except RecordingError:
+        pass
+    r = _run_rerun(["rrd", "verify", "--check-footers", "false", str(p)])
+    if r.returncode != 0:
+        raise RecordingError(f"{p}: unreadable, even without its footer:\n{(r.stdout + r.stderr).strip()}")
+    tmp = p.with_name(p.name + ".recovering")
+    r = _run_rerun(["rrd", "merge", str(p), "-o", str(tmp)])
+    try:
+        if r.returncode != 0:
+            raise RecordingError(f"{p}: rerun rrd merge failed (exit {r.returncode}):\n{(r.stdout + r.stderr).strip()}")
+        verify_rrd(tmp)
+        # Rerun's CLI reads up to the last whole message (its Python reader refuses a cut one)
+        before, after = _printed_rows(p), _printed_rows(tmp)
+        if before != after:
+            raise RecordingError(f"{p}: the rewritten recording lacks rows ({sum(after.values())} of "
+                                 f"{sum(before.values())}); the original is kept")
+        os.replace(tmp, p)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return True
 
 
 def entity_paths(path: str | Path) -> list[str]:
