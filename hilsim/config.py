@@ -187,7 +187,10 @@ class RestartConfig(_Model):
         return v
 
     def policy(self, service: str) -> str:
-        """The policy of ``service`` (its own entry, else ``default``, else no); physics: no."""
+        """The policy of ``service`` (its own entry, else ``default``, else no); physics: no. A
+        composed process ``a+b`` (:mod:`hilsim.compose`) is restarted only if each of its members is."""
+        if "+" in service:
+            return "on-failure" if all(self.policy(s) == "on-failure" for s in service.split("+")) else "no"
         if service == "physics":
             return "no"
         return self.services.get(service, self.services.get("default", "no"))

@@ -139,6 +139,9 @@ def test_restart_policy_is_checked_in_one_line() -> None:
     # YAML's bare `no` is False: read as the policy "no"; physics is never restarted
     assert [sc.restart.policy(s) for s in ("controller", "planner", "physics")] == ["on-failure", "no", "no"]
     assert load_scenario("arm").restart.policy("controller") == "no"  # the default: no restart
+    # a composed process (hilsim.compose) is restarted only if each of its services may be
+    assert sc.restart.policy("sensors+controller") == "on-failure"
+    assert sc.restart.policy("physics+sensors") == "no" and sc.restart.policy("controller+planner") == "no"
 
 
 def test_a_restarted_controller_takes_over_the_live_gains(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
