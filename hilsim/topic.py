@@ -3,6 +3,11 @@
 Connects as a Zenoh peer to ``--connect`` (default: ``HILSIM_ZENOH_CONNECT`` or the
 launcher's well-known ``tcp/127.0.0.1:7447``, see :func:`hilsim.transport.tool_endpoints`),
 decodes payloads by key through :func:`hilsim.keys.message_type`, and never publishes anything.
+
+``hz`` believes only the key's rightful writer: once a publisher has announced itself for the key
+(``<prefix>/writers/…``, :mod:`hilsim.provenance`), a sample without an attachment, from another
+writer, or a duplicate or reordered one is not counted (it says how many it ignored), so an
+impostor on ``clock`` cannot change the figures; ``--any-writer`` counts every sample.
 """
 
 from __future__ import annotations
@@ -20,6 +25,9 @@ import zenoh
 
 from hilsim import msgs, transport
 from hilsim.keys import Keys, UnknownKey, message_type
+from hilsim.provenance import Provenance
+
+WRITERS_SETTLE_S = 0.5  # hz: time for the announced writers (liveliness history) to arrive
 
 
 def _session(args: argparse.Namespace) -> zenoh.Session:
@@ -124,9 +132,19 @@ def cmd_hz(args: argparse.Namespace) -> int:
     arrivals: deque[float] = deque(maxlen=args.window)
     stamps: deque[float] = deque(maxlen=args.window)
     lock = threading.Lock()
+    prov = Provenance()
+    check = not getattr(args, "any_writer", False)
+    ignored = 0
 
     def on_sample(s: zenoh.Sample) -> None:
+        nonlocal ignored
         now = time.perf_counter()
+        if check:
+            why, _ = prov.check(str(s.key_expr), transport.read_attachment(s))
+            if why is not None:  # not from the key's announced writer: not part of its rate
+                with lock:
+                    ignored += 1
+                return
         st = None
         if cls is not None:
             try:
@@ -142,11 +160,16 @@ def cmd_hz(args: argparse.Namespace) -> int:
     t_end = time.monotonic() + args.duration if args.duration else math.inf
     printed = 0
     with _session(args) as ses:
+        writers = None
+        if check:
+            prefix = args.key.split("/", 1)[0]
+            writers = ses.liveliness().declare_subscriber(Keys(prefix).all_writers, prov.on_token, history=True)
+            time.sleep(WRITERS_SETTLE_S)
         sub = ses.declare_subscriber(args.key, on_sample)
         try:
             while not stop.wait(1.0):
                 with lock:
-                    a, s = list(arrivals), list(stamps)
+                    a, s, n_ignored = list(arrivals), list(stamps), ignored
                 if len(a) >= 2:
                     d = [b - c for b, c in zip(a[1:], a, strict=False)]
                     mean = sum(d) / len(d)
@@ -155,6 +178,8 @@ def cmd_hz(args: argparse.Namespace) -> int:
                             f"max {max(d) * 1e3:.3f} ms  std {sd * 1e3:.3f} ms  window {len(a)}")
                     if len(s) >= 2 and s[-1] > s[0]:
                         line += f"  |  {(len(s) - 1) / (s[-1] - s[0]):.2f} Hz (sim time)"
+                    if n_ignored:
+                        line += f"  |  ignored {n_ignored} samples not from the announced writer"
                     print(line, flush=True)
                     printed += 1
                 else:
@@ -164,4 +189,6 @@ def cmd_hz(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             pass
         sub.undeclare()
+        if writers is not None:
+            writers.undeclare()
     return 0 if printed else 1

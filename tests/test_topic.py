@@ -1,0 +1,72 @@
+"""``hilsim topic hz`` and the launcher's summary believe only a key's announced writer: with the
+project's injector (``tests/injector.py``) publishing garbage and replayed copies of real samples
+on every key, ``clock`` included, the rate figures and the summary's sim time stay those of
+physics, and ``hz`` says how many samples it ignored."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+
+import pytest
+from util import LEAN, REPO, finish, up
+
+from hilsim import transport
+
+pytestmark = pytest.mark.e2e
+HZ = re.compile(r"average rate: ([\d.]+) Hz \(wall\).*?\|  ([\d.]+) Hz \(sim time\)(?:  \|  ignored (\d+) samples)?")
+
+
+def hz(ep: str, *extra: str) -> list[tuple[float, float, int]]:
+    """The figures ``hilsim topic hz hilsim/clock`` printed over 3 s: (wall Hz, sim-time Hz, ignored)."""
+    r = subprocess.run([sys.executable, "-m", "hilsim.cli", "topic", "hz", "hilsim/clock", "--connect", ep,
+                        "--duration", "3", "--window", "400", *extra],
+                       capture_output=True, text=True, timeout=60, cwd=REPO)
+    found = [(float(m[1]), float(m[2]), int(m[3] or 0)) for m in HZ.finditer(r.stdout)]
+    assert found, r.stdout + r.stderr
+    return found
+
+
+def test_an_impostor_on_the_clock_changes_neither_hz_nor_the_summary() -> None:
+    """Physics alone, realtime at 500 Hz (the lean arm), for 9 s of sim time; the injector runs
+    through the whole of it and after the end."""
+    ep = f"tcp/127.0.0.1:{transport.free_port()}"
+    router = transport.open_router(ep)
+    p = up(LEAN, "--router", ep, "--clock", "realtime", "--no-logger", "--set", "services=[physics]",
+           "--set", "task.targets=[]", "--duration", "9")
+    inj: subprocess.Popen[str] | None = None
+    try:
+        assert p.stdout is not None
+        head = []
+        for line in p.stdout:
+            head.append(line)
+            if line.startswith("ready:"):
+                break
+        inj = subprocess.Popen([sys.executable, str(REPO / "tests" / "injector.py"), "--connect", ep,
+                                "--rate", "400"], stdout=subprocess.PIPE, text=True, start_new_session=True)
+        rightful = hz(ep)
+        anyone = hz(ep, "--any-writer")
+        out = "".join(head) + finish(p, 60)
+        inj.send_signal(signal.SIGINT)
+        sent = json.loads(inj.communicate(timeout=30)[0].strip().splitlines()[-1])
+    finally:
+        for proc in (p, inj):
+            if proc is not None and proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.communicate()
+        router.close()
+    assert sent.get("copy_foreign_writer", 0) >= 5 and sent.get("copy_no_attachment", 0) >= 5, sent
+    # only physics' clock: exactly one sample per 2 ms step in sim time, about 500 Hz of wall time
+    # (a loaded machine delays some ticks), and the impostor's samples were seen and ignored
+    wall, sim, ignored = rightful[-1]
+    assert abs(sim - 500.0) < 0.5 and 350 < wall < 650 and ignored > 0, rightful
+    # counting everyone, the replayed stamps of the past and the extra samples show
+    assert any(abs(s - 500.0) >= 0.5 or w > 650 for w, s, _ in anyone), anyone
+    # the launcher's summary: physics' own sim time, not a replayed health sample's
+    assert p.returncode == 0, out
+    assert re.search(r"^  sim time 9\.000 s", out, re.M), out
+    assert re.search(r"^  ignored \d+ samples on results, health and logs", out, re.M), out
