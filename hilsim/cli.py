@@ -98,6 +98,8 @@ def build_parser() -> argparse.ArgumentParser:
     view.set_defaults(func=_lazy("hilsim.recording", "cmd_view"))
 
     goal = sub.add_parser("goal", help="send a move goal to a running planner and print feedback")
+            t.add_argument("--any-writer", action="store_true",
+                           help="count every sample, not only those of the key's announced writer")
     goal.add_argument("robot")
     g = goal.add_mutually_exclusive_group(required=True)
     g.add_argument("--joints", type=float, nargs="+")
