@@ -204,12 +204,19 @@ def test_bench_reports_against_baseline() -> None:
     lib = PlannerLibrary.load()
     lib.iterations = 100
     one = {"table_obstacle": scenes["table_obstacle"]}
-    rep = bench.run_bench(1, ("rrtstar", "improved_rrtstar"), scenes=one, library=lib)
+    rep = bench.run_bench(1, ("rrtstar", "improved_rrtstar"), scenes=one, library=lib, equal_time=True)
     rows = {r["planner"]: r for r in rep["results"]}
     assert rows["rrtstar"]["runs"] == 1 and rows["improved_rrtstar"]["runs"] == 1
     if rows["rrtstar"]["success_rate"]:
         assert rows["rrtstar"]["turn_vs_rrtstar"] == pytest.approx(1.0)
-    assert "| table_obstacle | improved_rrtstar |" in bench.format_report(rep)
+    assert rows["rrtstar"]["iteration_time_vs_rrtstar"] == pytest.approx(1.0)
+    assert rows["improved_rrtstar"]["median_iteration_us"] > 0
+    # equal wall time: every planner got the time RRT* took, and no iteration budget
+    same = {r["planner"]: r for r in rep["equal_time"]["results"]}
+    assert {r["wall_budget_s"] for r in same.values()} == {rows["rrtstar"]["median_time_s"]}
+    assert all(r["iterations_per_query"] is None for r in same.values())
+    text = bench.format_report(rep)
+    assert "| table_obstacle | improved_rrtstar | 100 it |" in text and "Equal wall time" in text
 
 
 def test_stop_on_segment_brakes_on_the_checked_segment() -> None:

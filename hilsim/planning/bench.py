@@ -4,7 +4,9 @@ Scenes are in ``config/scenes/scenes.yaml`` (free space, the table with its obst
 passage); each has start/goal queries. Every planner solves every query once per seed with the
 same deterministic iteration budget (``iterations`` of ``config/planners.yaml``). Reported per
 scene and planner: success rate, median planning time, median path length and median summed
-turning angle of the successful paths, and the last two as ratios to RRT* (the baseline).
+turning angle of the successful paths, time per iteration, and the last three as ratios to
+RRT* (the baseline). Then the same again at equal wall time: each query gets the time RRT*
+needed on its scene (``--no-equal-time`` skips this pass).
 
 Seeds: the improved RRT* draws from a generator seeded per run; OMPL planners share OMPL's
 process-wide generator (seeded once), so their runs differ by their position in the sequence.
@@ -57,9 +59,24 @@ def run_bench(
     time_cap: float = 30.0,
     scenes: dict[str, dict[str, Any]] | None = None,
     library: PlannerLibrary | None = None,
+    equal_time: bool = False,
 ) -> dict[str, Any]:
+    """Every planner with the library's iteration budget; with ``equal_time`` then again, each
+    query given the wall time RRT* took for it (its median per scene), iterations unbounded —
+    planners judged on the same time budget, not only the same iteration count."""
     lib = library or PlannerLibrary.load()
     scenes = scenes or load_scenes()
+    rep = _run(seeds, planners, clearance, scenes, lib, {s: None for s in scenes}, time_cap)
+    rep.update({"seeds": seeds, "iterations": lib.iterations, "baseline": BASELINE})
+    if equal_time:
+        budget = {r["scene"]: r["median_time_s"] for r in rep["results"] if r["planner"] == BASELINE}
+        rep["equal_time"] = _run(seeds, planners, clearance, scenes, lib, budget, time_cap)
+    return rep
+
+
+def _run(seeds: int, planners: tuple[str, ...], clearance: float, scenes: dict[str, dict[str, Any]],
+         lib: PlannerLibrary, wall: dict[str, float | None], time_cap: float) -> dict[str, Any]:
+    """One pass; ``wall[scene]``: None = the iteration budget, else that many seconds per query."""
     rows = []
     for sname, scene in scenes.items():
         arm = ArmModel(scene["model"], clearance)
@@ -68,14 +85,17 @@ def run_bench(
                 if bad is not None:
                     raise ConfigError(f"scene {sname}: a query is invalid: {bad[1]}")
         for pname in planners:
-            times, lengths, turns, ok, runs = [], [], [], 0, 0
+            times, per_it, lengths, turns, ok, runs = [], [], [], [], 0, 0
             for seed in range(seeds):
                 for qi, (q_start, q_goal) in enumerate(scene["queries"]):
-                    pb = Problem(arm, q_start, q_goal, seed=1000 * seed + qi, max_iterations=lib.iterations,
-                                 time_limit=time_cap, resolution=lib.resolution)
+                    w = wall[sname]
+                    pb = Problem(arm, q_start, q_goal, seed=1000 * seed + qi,
+                                 max_iterations=lib.iterations if w is None else None,
+                                 time_limit=time_cap if w is None else w, resolution=lib.resolution)
                     res = lib.create(pname).solve(pb)
                     runs += 1
                     times.append(res.planning_time)
+                    per_it.append(res.planning_time / max(res.iterations, 1))
                     if res.path is not None:
                         ok += 1
                         lengths.append(path_length(res.path))
@@ -86,35 +106,49 @@ def run_bench(
                 "runs": runs,
                 "success_rate": ok / runs,
                 "median_time_s": statistics.median(times),
+                "median_iteration_us": 1e6 * statistics.median(per_it),
+                "iterations_per_query": lib.iterations if wall[sname] is None else None,
+                "wall_budget_s": wall[sname],
                 "median_length_rad": statistics.median(lengths) if lengths else None,
                 "median_turn_rad": statistics.median(turns) if turns else None,
             })
     base = {r["scene"]: r for r in rows if r["planner"] == BASELINE}
     for r in rows:
         b = base.get(r["scene"])
-        for key, out in (("median_length_rad", "length_vs_rrtstar"), ("median_turn_rad", "turn_vs_rrtstar")):
+        for key, out in (("median_length_rad", "length_vs_rrtstar"), ("median_turn_rad", "turn_vs_rrtstar"),
+                         ("median_iteration_us", "iteration_time_vs_rrtstar")):
             ok = b is not None and r[key] is not None and b[key]
             r[out] = r[key] / b[key] if ok else None
-    return {"seeds": seeds, "iterations": lib.iterations, "baseline": BASELINE, "results": rows}
+    return {"results": rows}
 
 
 def format_report(rep: dict[str, Any]) -> str:
     def f(v: Any, fmt: str) -> str:
         return "—" if v is None else format(v, fmt)
 
-    lines = [
-        f"seeds {rep['seeds']}, budget {rep['iterations']} iterations per query, baseline {rep['baseline']}",
-        "",
-        "| scene | planner | success | median time [s] | median length [rad] | median turn [rad] "
-        "| length / RRT* | turn / RRT* |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    for r in rep["results"]:
-        lines.append(
-            f"| {r['scene']} | {r['planner']} | {100 * r['success_rate']:.0f} % | {f(r['median_time_s'], '.3f')} "
-            f"| {f(r['median_length_rad'], '.2f')} | {f(r['median_turn_rad'], '.2f')} "
-            f"| {f(r['length_vs_rrtstar'], '.2f')} | {f(r['turn_vs_rrtstar'], '.2f')} |"
-        )
+    def table(rows: list[dict[str, Any]], budget: str) -> list[str]:
+        out = [
+            f"| scene | planner | {budget} | success | median time [s] | time per iteration [µs] "
+            "| median length [rad] | median turn [rad] | iteration time / RRT* | length / RRT* | turn / RRT* |",
+            "|---|---|---|---|---|---|---|---|---|---|---|",
+        ]
+        for r in rows:
+            b = f"{r['iterations_per_query']} it" if r["wall_budget_s"] is None else f"{r['wall_budget_s']:.3f} s"
+            out.append(
+                f"| {r['scene']} | {r['planner']} | {b} | {100 * r['success_rate']:.0f} % "
+                f"| {f(r['median_time_s'], '.3f')} | {f(r['median_iteration_us'], '.0f')} "
+                f"| {f(r['median_length_rad'], '.2f')} | {f(r['median_turn_rad'], '.2f')} "
+                f"| {f(r['iteration_time_vs_rrtstar'], '.2f')} | {f(r['length_vs_rrtstar'], '.2f')} "
+                f"| {f(r['turn_vs_rrtstar'], '.2f')} |"
+            )
+        return out
+
+    lines = [f"seeds {rep['seeds']}, budget {rep['iterations']} iterations per query, baseline {rep['baseline']}", ""]
+    lines += table(rep["results"], "budget")
+    if "equal_time" in rep:
+        lines += ["", "Equal wall time: each query gets the median time RRT* took on its scene above, "
+                  "iterations unbounded.", ""]
+        lines += table(rep["equal_time"]["results"], "budget")
     return "\n".join(lines)
 
 
@@ -125,6 +159,6 @@ def cmd_bench(args: argparse.Namespace) -> int:
     if args.seeds < 1:
         print("hilsim bench plan: --seeds must be at least 1")
         return 2
-    rep = run_bench(args.seeds)
+    rep = run_bench(args.seeds, equal_time=not args.no_equal_time)
     print(json.dumps(rep, indent=2) if args.json else format_report(rep))
     return 0

@@ -77,6 +77,35 @@ class ImprovedRRTStar:
             turn = 0.0 if pp < 0 else turn_angle(X[pp], X[p], c)
             return wl * float(np.linalg.norm(c - X[p])) + wt * turn
 
+        def turns(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+            """turn_angle for rows of incoming (u) and outgoing (v) segments at once."""
+            nu = np.sqrt(np.einsum("ij,ij->i", u, u))
+            nv = np.sqrt(np.einsum("ij,ij->i", v, v))
+            ok = (nu >= 1e-12) & (nv >= 1e-12)
+            cos = np.einsum("ij,ij->i", u, v) / np.where(ok, nu * nv, 1.0)
+            return np.where(ok, np.arccos(np.clip(cos, -1.0, 1.0)), 0.0)
+
+        def edges_into(ps: np.ndarray, c: np.ndarray) -> np.ndarray:
+            """edge(p, c) for every p in ps (choose-parent)."""
+            xp = X[ps]
+            v = c - xp
+            length = np.sqrt(np.einsum("ij,ij->i", v, v))
+            pp = np.asarray([parent[int(p)] for p in ps])
+            has = pp >= 0
+            t = np.zeros(len(ps))
+            if has.any():
+                t[has] = turns(xp[has] - X[pp[has]], v[has])
+            return wl * length + wt * t
+
+        def edges_out(p: int, cs: np.ndarray) -> np.ndarray:
+            """edge(p, X[c]) for every c in cs (rewire through p)."""
+            v = X[cs] - X[p]
+            length = np.sqrt(np.einsum("ij,ij->i", v, v))
+            pp = parent[p]
+            if pp < 0:
+                return wl * length
+            return wl * length + wt * turns(np.broadcast_to(X[p] - X[pp], v.shape), v)
+
         def add(x: np.ndarray, p: int, c: float) -> int:
             nonlocal X, size, cap
             if size == cap:
@@ -99,7 +128,9 @@ class ImprovedRRTStar:
 
         def insert(x_new: np.ndarray, near: np.ndarray, nearest: int) -> int:
             """Choose the cheapest valid parent among ``near`` (nearest is known valid), add, rewire."""
-            cands = sorted((cost[int(i)] + edge(int(i), x_new), int(i)) for i in near)
+            costs = np.asarray(cost)
+            via = costs[near] + edges_into(near, x_new) if len(near) else np.zeros(0)
+            cands = sorted(zip(via.tolist(), near.tolist(), strict=True))
             best = nearest
             best_cost = cost[nearest] + edge(nearest, x_new)
             for c, i in cands:
@@ -109,11 +140,10 @@ class ImprovedRRTStar:
                     best, best_cost = i, c
                     break
             k = add(x_new, best, best_cost)
-            for i in near:
-                i = int(i)
+            through = best_cost + edges_out(k, near) if len(near) else np.zeros(0)
+            for i, c_new in zip(near.tolist(), through.tolist(), strict=True):
                 if i in (best, 0):
                     continue
-                c_new = best_cost + edge(k, X[i])
                 if c_new >= cost[i] - 1e-12:
                     continue
                 old_p = parent[i]
@@ -164,11 +194,16 @@ class ImprovedRRTStar:
                 continue
             # target orientation: a node that sees the goal within range connects to it directly
             dg = float(np.linalg.norm(goal - x_new))
-            if dg <= rmax and arm.motion_valid(x_new, goal, res):
-                c = cost[k] + edge(k, goal)
+            if dg > rmax:
+                continue
+            c = cost[k] + edge(k, goal)
+            # the cost first: a connection that would not improve the goal's is not worth checking
+            if goal_node >= 0 and (c >= cost[goal_node] or children[goal_node]):
+                continue
+            if arm.motion_valid(x_new, goal, res):
                 if goal_node < 0:
                     goal_node = add(goal.copy(), k, c)
-                elif c < cost[goal_node] and not children[goal_node]:
+                else:
                     children[parent[goal_node]].remove(goal_node)
                     parent[goal_node] = k
                     children[k].append(goal_node)
