@@ -91,11 +91,11 @@ TRAJECTORY_TOPICS = ("joint_trajectory", "planner/path")
 ODOM_SOURCES = {"truth/odom": "truth", "odom": "odom"}
 ODOM_QUANTITIES = ("x", "y", "z", "yaw", "vx", "vy", "wz")  # pose in the world, twist in the chassis frame
 COLOURS = {  # RGB of the 3D and map entities
-    "truth": (40, 190, 60),
-    "odom": (255, 140, 0),
-    "gps": (220, 30, 30),
-    "scan": (230, 0, 200),
-    "plan": (30, 110, 255),
+    "truth": (40, 190, 60),  # green
+    "odom": (0, 190, 240),  # cyan: not the rover's own orange
+    "gps": (220, 30, 30),  # red
+    "scan": (230, 0, 200),  # magenta
+    "plan": (255, 210, 0),  # yellow
 }
 
 JOINT_SOURCES = {
