@@ -7,7 +7,7 @@
     hilsim goal ROBOT --joints J1 … | --pose X Y Z [R P Y] | --xy X Y [--yaw THETA]
     hilsim gains ROBOT JOINT.GAIN=VALUE …
     hilsim plan evaluate --targets FILE [--criterion length|smoothness|weighted]
-    hilsim bench loop|plan|can|mavlink|rover [--json]
+    hilsim bench loop|plan|can|rover [--json]
     hilsim router [--listen ENDPOINT]
 """
 
@@ -26,18 +26,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     from hilsim.service import setup_logging
 
     setup_logging(args.service, logging.DEBUG if args.verbose else logging.INFO)
-    names = args.service.split("+")  # a+b+c: composed in one process (hilsim.compose)
     try:
-        for n in names:
-            service_class(n)  # an unknown name is said before the scenario is read
+        service_class(args.service)  # an unknown name is said before the scenario is read
     except UnknownService as e:
         print(f"hilsim run: {e}", file=sys.stderr)
         return 2
     sc = load_scenario(args.config, parse_overrides(args.set))
-    if len(names) > 1:
-        from hilsim import compose
-
-        return compose.run(names, sc)
     return int(service_class(args.service, sc)(sc).run())
 
 
@@ -75,8 +69,6 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--hil", "--overlay", dest="hil", action="append", default=[], metavar="FILE",
                     help="merge a file over the scenario, in order (e.g. config/hil/motor-model.yaml, "
                          "config/lean.yaml)")
-    up.add_argument("--compose", action="append", default=[], metavar="A,B,...",
-                    help="run these services in one process (e.g. physics,sensors,controller); repeatable")
     up.set_defaults(func=_lazy("hilsim.launcher", "cmd_up"))
 
     run = sub.add_parser("run", help="run one service alone (what docker compose uses)")
@@ -149,15 +141,9 @@ def build_parser() -> argparse.ArgumentParser:
     bc.add_argument("--seconds", type=float, default=3.0, help="flat-out duration per direction")
     bc.add_argument("--port", type=int, default=None, help="udp_multicast port (default: a random one)")
     bc.set_defaults(func=_lazy("hilsim.bridges.can_bench", "cmd_can"))
-    bm = bsub.add_parser("mavlink", help="MAVLink bridge: added latency GPS message -> Zenoh sample vs pymavlink alone")
-    bm.add_argument("--json", action="store_true")
-    bm.add_argument("--samples", type=int, default=1000, help="paced latency probes per path")
-    bm.add_argument("--seconds", type=float, default=3.0, help="flat-out duration")
-    bm.set_defaults(func=_lazy("hilsim.bridges.mavlink_bench", "cmd_mavlink"))
     bp = bsub.add_parser("plan", help="planners on the shipped scenes")
     bp.add_argument("--json", action="store_true")
     bp.add_argument("--seeds", type=int, default=10)
-    bp.add_argument("--no-equal-time", action="store_true", help="skip the equal-wall-time pass")
     bp.set_defaults(func=_lazy("hilsim.planning.bench", "cmd_bench"))
     br = bsub.add_parser("rover", help="the rover scenario with navigation: lockstep real-time factor, laser rays/s")
     br.add_argument("--json", action="store_true")
