@@ -10,7 +10,9 @@ Usage::
 
 Goals go to the queryable ``planner/goal`` (MoveGoal → GoalResponse), cancels to
 ``planner/cancel``; feedback (``planner/feedback``) and results (``planner/result``) are
-subscribed from construction on, so nothing published after ``send`` is missed.
+subscribed from construction on, so nothing published after ``send`` is missed. A mobile robot's
+goals go to its navigator the same way: ``MoveClient(session, keys, service="navigator")`` uses
+``navigator/goal``, ``navigator/cancel``, ``navigator/feedback`` and ``navigator/result``.
 """
 
 from __future__ import annotations
@@ -32,9 +34,11 @@ from hilsim.keys import Keys
 
 
 class MoveClient:
-    def __init__(self, session: zenoh.Session, keys: Keys, *, query_timeout: float = 30.0) -> None:
+    def __init__(self, session: zenoh.Session, keys: Keys, *, query_timeout: float = 30.0,
+                 service: str = "planner") -> None:
         self.session = session
         self.keys = keys
+        self.service = service  # who serves the action: the planner (arm) or the navigator (rover)
         self.query_timeout = query_timeout
         self._lock = threading.Lock()
         self._results: dict[str, msgs.MoveResult] = {}
@@ -42,8 +46,8 @@ class MoveClient:
         self._cond = threading.Condition(self._lock)
         self._planner_seen = False
         self._subs = [
-            session.declare_subscriber(keys.topic("planner/feedback"), self._on_feedback),
-            session.declare_subscriber(keys.topic("planner/result"), self._on_result),
+            session.declare_subscriber(keys.topic(f"{service}/feedback"), self._on_feedback),
+            session.declare_subscriber(keys.topic(f"{service}/result"), self._on_result),
         ]
 
     def _on_feedback(self, s: zenoh.Sample) -> None:
@@ -68,7 +72,7 @@ class MoveClient:
         """Wait until the planner's liveliness token is seen. A session that has just opened
         does not yet know the planner's queryable: a query sent then reaches nobody. The token
         is declared after the queryable, so seeing it means the query will be routed."""
-        return transport.wait_for_service(self.session, self.keys, "planner", timeout)
+        return transport.wait_for_service(self.session, self.keys, self.service, timeout)
 
     def _query(self, topic: str, payload: bytes, goal_id: str) -> msgs.GoalResponse:
         if not self._planner_seen:
@@ -78,17 +82,18 @@ class MoveClient:
             if reply.ok is not None:
                 return msgs.decode(msgs.GoalResponse, reply.ok.payload.to_bytes())
             return msgs.GoalResponse(goal_id=goal_id, accepted=False, reason=reply.err.payload.to_string())
-        return msgs.GoalResponse(goal_id=goal_id, accepted=False, reason="no planner answered (is it running?)")
+        return msgs.GoalResponse(goal_id=goal_id, accepted=False,
+                                 reason=f"no {self.service} answered (is it running?)")
 
     def send(self, goal: msgs.MoveGoal) -> msgs.GoalResponse:
         return self.send_raw(msgs.encode(goal), goal.goal_id)
 
     def send_raw(self, payload: bytes, goal_id: str = "") -> msgs.GoalResponse:
         """Send a goal payload as it is (tests use it for malformed goals)."""
-        return self._query("planner/goal", payload, goal_id)
+        return self._query(f"{self.service}/goal", payload, goal_id)
 
     def cancel(self, goal_id: str) -> msgs.GoalResponse:
-        return self._query("planner/cancel", msgs.encode(msgs.CancelRequest(goal_id=goal_id)), goal_id)
+        return self._query(f"{self.service}/cancel", msgs.encode(msgs.CancelRequest(goal_id=goal_id)), goal_id)
 
     def result(self, goal_id: str) -> msgs.MoveResult | None:
         with self._lock:
@@ -138,6 +143,14 @@ class MoveClient:
 
 def goal_from_args(args: argparse.Namespace) -> msgs.MoveGoal:
     gid = f"cli-{int(time.time() * 1000) % 10_000_000}"
+    if getattr(args, "xy", None) is not None:  # a mobile robot: x, y in the world, optional yaw
+        yaw = getattr(args, "yaw", None)
+        pose = msgs.Pose(position=msgs.Point(x=args.xy[0], y=args.xy[1]))
+        if yaw is not None:
+            pose.orientation = msgs.Quaternion(z=math.sin(yaw / 2), w=math.cos(yaw / 2))
+        return msgs.MoveGoal(goal_id=gid, target_kind="pose", pose=pose, use_orientation=yaw is not None)
+    if getattr(args, "yaw", None) is not None:
+        raise ValueError("--yaw goes with --xy")
     if args.joints is not None:
         return msgs.MoveGoal(goal_id=gid, target_kind="joints", joint_positions=list(args.joints), planner=args.planner)
     p = list(args.pose)
@@ -169,7 +182,8 @@ def cmd_goal(args: argparse.Namespace) -> int:
     except ConnectionError as e:
         print(f"hilsim goal: {e}", file=sys.stderr)
         return 2
-    client = MoveClient(session, Keys(prefix, args.robot))
+    rover = getattr(args, "xy", None) is not None
+    client = MoveClient(session, Keys(prefix, args.robot), service="navigator" if rover else "planner")
     try:
         resp = client.send(goal)
         if not resp.accepted:
@@ -190,6 +204,12 @@ def cmd_goal(args: argparse.Namespace) -> int:
             print(f"no result within {args.timeout:g} s")
             return 1
         err = ", ".join(f"{e:.4f}" for e in res.execution_error)
+        if rover:
+            pos, yaw_err = (*res.execution_error, float("nan"), float("nan"))[:2]
+            print(f"{'succeeded' if res.success else 'failed'} (code {res.error_code}): {res.message}; "
+                  f"planner {res.planner}, planning {res.planning_time:.3f} s, "
+                  f"position error {pos:.3f} m, yaw error {yaw_err:.3f} rad (odometry)")
+            return 0 if res.success else 1
         print(
             f"{'succeeded' if res.success else 'failed'} (code {res.error_code}): {res.message}; "
             f"planner {res.planner}, "
