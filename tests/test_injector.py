@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from util import Observer
 
-from hilsim import transport
+from hilsim import recording, transport
 from hilsim.config import load_scenario
 
 pytestmark = pytest.mark.e2e
@@ -74,3 +74,14 @@ def test_the_arm_reaches_its_targets_while_every_key_is_attacked(tmp_path: Path)
     # (garbage, NaN and truncated samples come from a stranger too: they are refused for that
     # before anything is decoded; the decoder's own checks are unit-tested in test_core.py)
     assert "has not announced itself for this key" in logs and "no attachment" in logs
+    # "recorded" means in the file: read back with Rerun's own reader, the rows match the
+    # recorder's counts, and what it could not decode is kept too (rejected/<key>, its bytes' story)
+    counts = json.loads((run / "record_summary.json").read_text())
+    rows = recording.entity_rows(run / "recording.rrd")
+    clock = counts["hilsim/clock"]
+    assert clock["rejected"] > 0, clock  # the injector's garbage on the clock
+    rejected_clock = rows["/rejected/hilsim\\/clock"]  # the whole key, as one entity path part
+    assert rejected_clock == clock["rejected"], (rejected_clock, clock)
+    assert rows["/clock"] + rejected_clock == clock["recorded"] == clock["received"], (rows["/clock"], clock)
+    rejected_rows = sum(n for e, n in rows.items() if e.startswith("/rejected/"))
+    assert rejected_rows == sum(c["rejected"] for c in counts.values()), rejected_rows

@@ -1,0 +1,65 @@
+"""Failure paths of ``hilsim up``: a missed target is exit 1 with its reason, and a launcher
+stopped with SIGTERM or killed with SIGKILL leaves no process behind. (A silent participant:
+tests/test_e2e.py::test_a_silent_participant_ends_the_run_non_zero; Ctrl-C:
+tests/test_e2e.py::test_ctrl_c_stops_everything.)"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import psutil
+import pytest
+from util import finish, up, wait_until
+
+LEFT = [0.866, -0.789, -0.399, 0.0, -0.382, 0.0]
+
+
+def test_a_missed_target_exits_1_with_the_reason(tmp_path: Path) -> None:
+    # a tolerance below the encoders' noise: the target is never held, however well the arm tracks
+    p = up("arm", "--no-logger", "--out", str(tmp_path / "run"), "--set", f"task.targets=[{LEFT}]",
+           "--set", "task.tolerance=0.00001", "--set", "task.target_timeout=3")
+    out = finish(p, 180)
+    assert p.returncode == 1, out
+    assert "task-1: FAILED (target not held within 1e-05 rad" in out, out
+    assert "targets reached: 0/1" in out and out.rstrip().endswith("result: FAILED"), out
+
+
+def _started(tmp_path: Path) -> tuple[subprocess.Popen[str], list[psutil.Process]]:
+    p = up("arm", "--no-logger", "--out", str(tmp_path / "run"), "--set", "task.targets=[]")
+    assert p.stdout is not None
+    lines = []
+    for line in p.stdout:
+        lines.append(line)
+        if line.startswith("ready:"):
+            break
+    else:
+        raise AssertionError("".join(lines))
+    kids = psutil.Process(p.pid).children(recursive=True)
+    assert len(kids) >= 4, kids  # physics, sensors, controller, planner
+    return p, kids
+
+
+def _all_gone(kids: list[psutil.Process]) -> bool:
+    return all(not k.is_running() or k.status() == psutil.STATUS_ZOMBIE for k in kids)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL], ids=["SIGTERM", "SIGKILL"])
+def test_a_stopped_or_killed_launcher_leaves_no_process(tmp_path: Path, sig: signal.Signals) -> None:
+    """SIGTERM: hilsim up stops its services and exits; SIGKILL: it cannot, and the kernel tells
+    every child (PR_SET_PDEATHSIG) to stop."""
+    p, kids = _started(tmp_path)
+    try:
+        time.sleep(0.5)
+        os.kill(p.pid, sig)  # the launcher only, not its process group
+        p.wait(timeout=60)
+        assert wait_until(lambda: _all_gone(kids), 30.0), [k for k in kids if k.is_running()]
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+        for k in kids:
+            if k.is_running():
+                k.kill()
