@@ -32,6 +32,7 @@ TOPICS: dict[str, type] = {
     "truth/joint_states": msgs.JointState,
     "truth/imu": msgs.Imu,
     "truth/odom": msgs.Odometry,
+    "truth/contacts": msgs.Contacts,
     "planner/path": msgs.JointTrajectory,
     "planner/feedback": msgs.MoveFeedback,
     "planner/result": msgs.MoveResult,

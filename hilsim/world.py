@@ -251,6 +251,27 @@ class World:
     def velocities(self) -> np.ndarray:
         return self.data.qvel[self.dof_adr].copy()
 
+    def contact_pairs(self) -> frozenset[tuple[int, int]]:
+        """The geom pairs in contact now (cheap: compared every step to publish changes only)."""
+        d = self.data
+        if not d.ncon:
+            return frozenset()
+        return frozenset(zip(d.contact.geom1[: d.ncon].tolist(), d.contact.geom2[: d.ncon].tolist(), strict=True))
+
+    def contacts(self) -> msgs.Contacts:
+        """Every contact now, with its bodies' and geoms' names (unnamed geoms: ``geom<id>``)."""
+        m, d = self.model, self.data
+        out = []
+        for c in d.contact[: d.ncon]:
+            g1, g2 = int(c.geom1), int(c.geom2)
+            out.append(msgs.Contact(
+                body1=m.body(int(m.geom_bodyid[g1])).name, body2=m.body(int(m.geom_bodyid[g2])).name,
+                geom1=m.geom(g1).name or f"geom{g1}", geom2=m.geom(g2).name or f"geom{g2}",
+                position=msgs.Point(x=float(c.pos[0]), y=float(c.pos[1]), z=float(c.pos[2])),
+                depth=-float(c.dist),
+            ))
+        return msgs.Contacts(header=msgs.header(self.time_ns, "world"), contacts=out)
+
     def joint_states(self) -> msgs.JointState:
         d = self.data
         return msgs.JointState(

@@ -16,6 +16,8 @@ Writes (every step, stamped with the step's sim time):
                                           (mobile robots only)
   ``<prefix>/<robot>/truth/joint_states`` sensor_msgs/JointState (position, velocity, applied effort)
   ``<prefix>/clock``                      rosgraph_msgs/Clock
+  ``<prefix>/<robot>/truth/contacts``     hilsim_msgs/Contacts: every contact, published at step 0
+                                          and whenever the set of touching geom pairs changes
 
 Lockstep (default): step k+1 happens only once every participant acknowledged step k (see
 docs/keys.md). Participants announce themselves (``lockstep/<service>/<period>/<via>/<gid>``),
@@ -92,6 +94,11 @@ class PhysicsService(Service):
         self.pub_tf = self.publisher(self.keys.topic("tf")) if self.world.base else None
         self.pub_js = self.publisher(self.keys.truth("joint_states"))
         self.pub_clock = self.publisher(self.keys.clock)
+        # contacts: published when the set of touching geom pairs changes (and once at start), so
+        # every contact is in the record without a message per step
+        self.pub_contacts = self.publisher(self.keys.truth("contacts"))
+        self._contact_pairs: frozenset[tuple[int, int]] | None = None
+        self.contact_steps = 0
         self.subscribe(self.keys.topic("joint_commands"), msgs.JointState, self._on_command, with_attachment=True)
         self.subscribe(self.keys.sync("*"), msgs.Clock, self._on_sync, with_attachment=True)
         # external joint servers: which joints each serves, when it last reported (wall clock)
@@ -239,6 +246,15 @@ class PhysicsService(Service):
             # before truth/joint_states: the sensors' step is complete once they handled that one
             self.pub_odom.put(w.base.odometry(w.time_ns))
             self.pub_tf.put(w.base.transforms(w.time_ns))
+        if w.data.ncon or self._contact_pairs:  # the arm: nothing to look at on almost every step
+            self.contact_steps += w.data.ncon > 0
+            pairs = w.contact_pairs()
+            if pairs != self._contact_pairs:
+                self._contact_pairs = pairs
+                self.pub_contacts.put(w.contacts())
+        elif self._contact_pairs is None:
+            self._contact_pairs = frozenset()
+            self.pub_contacts.put(w.contacts())
         self.pub_js.put(w.joint_states())
         self.pub_clock.put(msgs.Clock(clock=msgs.stamp(w.time_ns)))
 
@@ -279,6 +295,7 @@ class PhysicsService(Service):
             "waiting_for": ",".join(self._missing()),
             "servers_silent": ",".join(sorted(self.server_silent)),
             "clipped_commands": self.world.clipped,
+            "contact_steps": self.contact_steps,
             "paused_for": ",".join(sorted(self.gone)),
             "pauses": self.pauses,
             **self._jitter_figures(),

@@ -11,11 +11,14 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import psutil
 import pytest
 import zenoh
+from util import Observer
 
 from hilsim import msgs, transport
+from hilsim.config import load_scenario
 from hilsim.keys import Keys
 from hilsim.planning.client import MoveClient
 
@@ -57,16 +60,31 @@ def wait_line(proc: subprocess.Popen[str], needle: str, timeout: float, sink: li
 
 
 def test_arm_scenario_end_to_end(tmp_path: Path) -> None:
-    """The main job: all targets reached within 0.01 rad, a verified recording with every joint."""
+    """The main job: all targets reached within 0.01 rad in the physics truth, never touching the
+    table or the obstacle on the way, and a verified recording with every joint."""
     out = tmp_path / "run"
-    p = hilsim_up("arm", "--out", str(out), "--set", f"logger.out_dir={tmp_path}")
+    ep = f"tcp/127.0.0.1:{transport.free_port()}"
+    router = transport.open_router(ep)
+    obs = Observer(ep)
+    p = hilsim_up("arm", "--out", str(out), "--set", f"logger.out_dir={tmp_path}", "--router", ep)
     try:
         stdout, _ = p.communicate(timeout=300)
+        time.sleep(0.3)
     finally:
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
+        obs.close()
+        router.close()
     assert p.returncode == 0, stdout
     assert "targets reached: 3/3" in stdout, stdout
+    # judged by the truth: each target within tolerance when the planner said so, and no contact ever
+    sc = load_scenario("arm")
+    for i, target in enumerate(sc.task.targets, 1):
+        stamp, ok = obs.results[f"task-{i}"]
+        assert ok and np.abs(obs.truth_at(stamp) - np.asarray(target)).max() <= sc.task.tolerance + 0.002, i
+    assert obs.contacts, "physics published no truth/contacts"  # at least the one of step 0
+    touched = [c for m in obs.contacts for c in m.contacts]
+    assert not touched, touched[:5]
     ready = next(ln for ln in stdout.splitlines() if ln.startswith("ready:"))
     pids = {part.split("(pid ")[0].strip(): int(part.split("(pid ")[1].rstrip(")")) for part in ready[6:].split(", ")}
     assert set(pids) == {"physics", "sensors", "controller", "planner", "logger"}

@@ -132,3 +132,20 @@ def test_lockstep_steps_through_steps_nobody_is_due_at(scenario: Any, session: z
     sub.undeclare()
     for t in tokens:
         t.undeclare()
+
+
+def test_contacts_in_the_truth_name_what_touches(scenario: Any) -> None:
+    """A rover standing on its wheels touches the floor with four wheels, and only with them; the
+    arm at rest touches nothing. (tests/test_e2e.py::test_arm_scenario_end_to_end checks, from
+    truth/contacts, that the arm never touches the table or the obstacle.)"""
+    w = World(scenario("rover"))
+    for _ in range(500):
+        w.step()
+    c = w.contacts()
+    assert c.contacts and w.contact_pairs()
+    wheels = {x.body1 if "wheel" in x.body1 else x.body2 for x in c.contacts}
+    assert len(wheels) == 4 and all("wheel" in b for b in wheels), wheels
+    assert all(x.depth > -0.01 and abs(x.position.z) < 0.2 for x in c.contacts), c.contacts
+    arm = World(scenario("arm"))
+    arm.step()
+    assert arm.contacts().contacts == [] and arm.contact_pairs() == frozenset()

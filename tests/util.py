@@ -44,8 +44,10 @@ class Observer:
         self.truth: list[tuple[int, list[float]]] = []
         self.server: list[tuple[int, list[float]]] = []
         self.results: dict[str, tuple[int, bool]] = {}
+        self.contacts: list[msgs.Contacts] = []
         s = self.session
         self.subs = [
+            s.declare_subscriber(self.keys.truth("contacts"), self._on_contacts),
             s.declare_subscriber(self.keys.truth("joint_states"), self._on_truth),
             s.declare_subscriber(self.keys.server_state("motor-model"), self._on_server),
             s.declare_subscriber(self.keys.topic("planner/result"), self._on_result),
@@ -64,6 +66,12 @@ class Observer:
             return
         with self.lock:
             self.server.append((msgs.ns_of(m.header.stamp), list(m.position)))
+
+    def _on_contacts(self, sample: zenoh.Sample) -> None:
+        m = self._decode(sample, msgs.Contacts)
+        if m is not None:
+            with self.lock:
+                self.contacts.append(m)
 
     def _on_result(self, sample: zenoh.Sample) -> None:
         m = self._decode(sample, msgs.MoveResult)

@@ -16,6 +16,7 @@ split them by concern:
 - :mod:`~hilsim.msgs.geometry` — geometry_msgs, tf2_msgs, nav_msgs;
 - :mod:`~hilsim.msgs.sensor` — sensor_msgs; :mod:`~hilsim.msgs.trajectory` — trajectory_msgs;
 - :mod:`~hilsim.msgs.diagnostics` — diagnostic_msgs and the service log;
+- :mod:`~hilsim.msgs.contact` — contacts in the physics truth;
 - :mod:`~hilsim.msgs.parameters` — live parameters; :mod:`~hilsim.msgs.action` — the move action
   and its error codes;
 - :mod:`~hilsim.msgs.validation` — :class:`BadMessage`, :func:`validate`;
@@ -44,6 +45,7 @@ from hilsim.msgs.action import (
 )
 from hilsim.msgs.builtin import Clock, Duration, Header, Time, duration, header, ns_of, seconds, stamp
 from hilsim.msgs.codec import decode, encode, encode_reference, prepare, to_dict, type_name
+from hilsim.msgs.contact import Contact, Contacts
 from hilsim.msgs.diagnostics import DiagnosticArray, DiagnosticStatus, KeyValue, Log
 from hilsim.msgs.geometry import (
     MapMetaData,
@@ -81,6 +83,8 @@ __all__ = [
     "BadMessage",
     "CancelRequest",
     "Clock",
+    "Contact",
+    "Contacts",
     "DiagnosticArray",
     "DiagnosticStatus",
     "Duration",
