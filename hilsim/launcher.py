@@ -294,13 +294,14 @@ class Launcher:
 
     def _paused(self, vals: dict[str, str]) -> None:
         """Lockstep physics pauses sim time while a service is gone (under self.lock): say so once
-        per pause, and take the sim time it stopped at for the restarts it waits for."""
+        per pause. Physics also says at which sim time each service left: the restarts' time."""
+        for r in self.outcome.restarts:
+            left = f"left:{r.name.split('+')[0]}"  # a composed process: its first service
+            if r.back_after is None and left in vals:
+                r.sim_time = vals[left]
         gone = vals.get("paused_for", "")
         if gone and gone != self.paused_for:
             self.say(f"  physics: sim time paused at t={vals.get('sim_time', '?')} s until {gone} is back")
-            for r in self.outcome.restarts:
-                if r.name in gone.split(",") and r.back_after is None:
-                    r.sim_time = vals.get("sim_time", r.sim_time)
         elif not gone and self.paused_for:
             self.say(f"  physics: sim time runs again from t={vals.get('sim_time', '?')} s")
         self.paused_for = gone

@@ -46,6 +46,7 @@ from hilsim.world import World
 
 SPIN_NS = 80_000  # realtime: busy-wait at most this long before a deadline
 REALTIME_PRIORITY = 10
+CONTROLLER = "controller"  # the service that writes joint_commands (every control law's name)
 JITTER_BINS = 20_000  # SCHED_FIFO priority of physics in realtime mode (if permitted)
 
 
@@ -81,6 +82,7 @@ class PhysicsService(Service):
         # lockstep: services of the scenario that left during the run (sim time is paused until
         # every one is back), when the last one came back, how often the run was paused
         self.gone: dict[str, int] = {}
+        self.left: dict[str, int] = {}  # sim time each service last left at (for hilsim up's report)
         self.back_at = 0.0
         self.pauses = 0
         self.started = False
@@ -134,9 +136,13 @@ class PhysicsService(Service):
             self.present.discard(svc)
             if not self.started or self.done or svc not in self.sc.processes():
                 return
+            self.left[svc] = self.world.time_ns
+            self.publish_health_async()
             if self.sc.clock.mode != "lockstep":
                 # realtime: the wall clock does not wait; a restarted service just joins again
                 self.warn(f"{svc} left the simulation at t={self.sim_ns / 1e9:.3f}s")
+                if svc == CONTROLLER:
+                    self._safe_commands()
                 return
             # lockstep: whatever the service was doing for the current step is lost with it (a
             # command, the encoders, a plan, the recording); step on only once it is back
@@ -147,7 +153,17 @@ class PhysicsService(Service):
             # a warning, not an error of physics: hilsim up reports the death (and any restart)
             self.warn(f"{svc} left the simulation at t={self.world.time_ns / 1e9:.3f}s; "
                       f"sim time is paused until it is back")
-            self.publish_health_async()
+
+    def _safe_commands(self) -> None:
+        """Realtime, the controller gone: as a drive's command watchdog does, the simulated joints
+        stop obeying its last command (a torque held for seconds would throw the arm about):
+        effort joints get no torque, position joints hold where they are, velocity joints stop.
+        The first command of a controller that comes back replaces this."""
+        js = self.world.joint_states()
+        n = len(js.name)
+        self.world.command(msgs.JointState(name=list(js.name), position=list(js.position),
+                                           velocity=[0.0] * n, effort=[0.0] * n))
+        self.log.info("controller gone: simulated joints without torque until it is back")
 
     def _on_lockstep(self, sample: zenoh.Sample) -> None:
         # <prefix>/<robot>/lockstep/<service>/<period>/<via>/<gid>
@@ -297,6 +313,7 @@ class PhysicsService(Service):
             "clipped_commands": self.world.clipped,
             "contact_steps": self.contact_steps,
             "paused_for": ",".join(sorted(self.gone)),
+            **{f"left:{s}": f"{t / 1e9:.3f}" for s, t in self.left.items()},
             "pauses": self.pauses,
             **self._jitter_figures(),
         }

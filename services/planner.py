@@ -280,9 +280,17 @@ class PlannerService(Service):
     # ------------------------------------------------------------------ the scenario task (hilsim.tasks)
     def _on_controller(self, sample: Any) -> None:
         """A controller (re)appeared: a restarted one knows no trajectory, so the one being
-        executed is sent again (its start stamp unchanged: it picks up where the arm should be)."""
+        executed is sent again (its start stamp unchanged: it picks up where the arm should be),
+        at once and after ``clock.start_delay``: a sample sent before the peers' own links to the
+        new process exist can be lost (see physics' start of the run)."""
         if sample.kind != zenoh.SampleKind.PUT:
             return
+        self._resend_trajectory()
+        t = threading.Timer(self.sc.clock.start_delay, self._resend_trajectory)
+        t.daemon = True
+        t.start()
+
+    def _resend_trajectory(self) -> None:
         with self.lock:
             if self.stop_event.is_set():
                 return

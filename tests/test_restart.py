@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import psutil
 import pytest
-from util import Observer, up, wait_until
+from util import LEAN, Observer, up, wait_until
 
 from hilsim import msgs, transport
 from hilsim.config import ConfigError, load_scenario, parse_overrides
@@ -122,6 +122,44 @@ def test_each_service_killed_in_turn_is_restarted_and_the_task_completes(tmp_pat
     # no process is left: the first ones, and the restarted ones
     assert wait_until(lambda: not any(psutil.pid_exists(pid) and psutil.Process(pid).status() != psutil.STATUS_ZOMBIE
                                       for pid in pids), 10), pids
+
+
+@pytest.mark.e2e
+def test_in_realtime_a_restarted_controller_just_rejoins(tmp_path: Path) -> None:
+    """Realtime (the lean arm): the wall clock does not wait. While the controller is gone physics
+    gives the simulated joints no torque instead of its last command (a drive's watchdog), the
+    restarted controller picks up the trajectory being executed, and the target is reached."""
+    ep = f"tcp/127.0.0.1:{transport.free_port()}"
+    router = transport.open_router(ep)
+    obs = Observer(ep)
+    p = up(LEAN, "--router", ep, "--clock", "realtime", "--no-logger", "--out", str(tmp_path / "run"),
+           "--set", f"task.targets=[{LEFT}]", "--set", "restart.services.controller=on-failure")
+    out = Output(p)
+    try:
+        ready = out.wait(r"^ready: (.*)$", 120)[1]
+        pid = int(re.search(r"controller \(pid (\d+)\)", ready)[1])  # type: ignore[index]
+        # while the arm moves towards the target
+        assert wait_until(lambda: bool(obs.truth) and obs.truth[-1][1][0] > 0.1, 60), out.text()
+        psutil.Process(pid).send_signal(signal.SIGKILL)
+        killed_at = sim_now(obs)
+        out.wait(r"^  controller is back \(pid (\d+)\)", 60)
+        p.wait(timeout=120)
+        out.thread.join(10)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+        obs.close()
+        router.close()
+    text = out.text()
+    assert p.returncode == 0 and "targets reached: 1/1" in text, text
+    # sim time went on meanwhile (realtime), and the restart is reported with the time it happened
+    m = re.search(r"^  restarted controller \(exit code -9 at sim time ([\d.]+) s; back after", text, re.M)
+    assert m and abs(float(m[1]) * 1e9 - killed_at) < 0.3e9, (text, killed_at)
+    assert "paused" not in text, text
+    stamp, ok = obs.results["task-1"]
+    sc = load_scenario(LEAN)
+    assert ok and np.abs(obs.truth_at(stamp) - np.asarray(LEFT)).max() <= sc.task.tolerance + 0.002
 
 
 def test_restart_policy_is_checked_in_one_line() -> None:
