@@ -3,6 +3,7 @@ leak checks (no session or child process may outlive its test)."""
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -96,6 +97,17 @@ def no_leaks() -> Iterator[None]:
     assert not kids, f"test left processes running: {[(k.pid, ' '.join(k.cmdline()[-4:])) for k in kids]}"
     leaked = [t for t in threading.enumerate() if t.ident not in before and t.name.startswith("svc:")]
     assert not leaked, f"test left service threads running: {[t.name for t in leaked]}"
+    # a real-time scheduling class (physics' realtime loop, as root) must stay in its own process:
+    # a pytest thread left SCHED_FIFO would starve the services of every later test
+    rt = [tid for tid in os.listdir("/proc/self/task") if _policy(int(tid)) != os.SCHED_OTHER]
+    assert not rt, f"test left threads of the test process in a real-time scheduling class: {rt}"
+
+
+def _policy(tid: int) -> int:
+    try:
+        return os.sched_getscheduler(tid)
+    except OSError:  # the thread ended meanwhile
+        return os.SCHED_OTHER
 
 
 def pytest_unconfigure(config: pytest.Config) -> None:
