@@ -6,9 +6,12 @@ policy a dead service ends the run (``tests/test_e2e.py``). What a restarted pro
 
 from __future__ import annotations
 
+import itertools
 import os
 import re
 import signal
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -21,6 +24,7 @@ from util import LEAN, Observer, up, wait_until
 
 from hilsim import msgs, transport
 from hilsim.config import ConfigError, load_scenario, parse_overrides
+from hilsim.keys import Keys
 from hilsim.restart import RESTART_ENV, keep
 
 LEFT = [0.866, -0.789, -0.399, 0.0, -0.382, 0.0]
@@ -70,6 +74,9 @@ def test_each_service_killed_in_turn_is_restarted_and_the_task_completes(tmp_pat
     ep = f"tcp/127.0.0.1:{transport.free_port()}"
     router = transport.open_router(ep)
     obs = Observer(ep)
+    clock: list[int] = []
+    clock_sub = obs.session.declare_subscriber(
+        Keys().clock, lambda s: clock.append(msgs.ns_of(msgs.decode(msgs.Clock, s.payload.to_bytes()).clock)))
     p = up("arm", "--router", ep, "--no-logger", "--out", str(tmp_path / "run"),
            "--set", f"task.targets=[{LEFT}]", "--set", "restart.services.default=on-failure",
            "--set", "restart.backoff=0.2")
@@ -100,11 +107,14 @@ def test_each_service_killed_in_turn_is_restarted_and_the_task_completes(tmp_pat
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
             p.wait()
+        clock_sub.undeclare()
         obs.close()
         router.close()
     text = out.text()
     assert p.returncode == 0, text
     assert "targets reached: 1/1" in text and "result: OK" in text, text
+    # the clock never went back, through every pause and restart
+    assert len(clock) > 1000 and all(b >= a for a, b in itertools.pairwise(clock)), clock[:10]
     for name in ("controller", "sensors", "planner"):
         assert re.search(rf"^  restarted {name} \(exit code -9 at sim time [\d.]+ s; back after", text, re.M), text
         assert re.search(rf"^  physics: sim time paused at t=[\d.]+ s until {name} is back", text, re.M), text
@@ -180,6 +190,41 @@ def test_restart_policy_is_checked_in_one_line() -> None:
     # a composed process (hilsim.compose) is restarted only if each of its services may be
     assert sc.restart.policy("sensors+controller") == "on-failure"
     assert sc.restart.policy("physics+sensors") == "no" and sc.restart.policy("controller+planner") == "no"
+
+
+def test_restarts_are_bounded_and_a_clean_exit_is_not_restarted(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """The launcher's bookkeeping alone, with processes that exit at once instead of services:
+    on-failure restarts a failing one max_attempts times, then the run ends on it; exit code 0
+    (a service that finished) and a service without the policy are never restarted."""
+    from hilsim.launcher import Child, Launcher
+
+    sc = load_scenario("arm", parse_overrides(["restart.services.controller=on-failure", "restart.max_attempts=2",
+                                               "restart.backoff=0.01"]))
+    la = Launcher(sc, tmp_path)
+    spawned: list[tuple[str, int]] = []
+
+    def spawn(name: str, attempt: int) -> subprocess.Popen[bytes]:
+        spawned.append((name, attempt))
+        return subprocess.Popen([sys.executable, "-c", "raise SystemExit(3)"])
+
+    monkeypatch.setattr(la, "_spawn", spawn)
+    la.children["controller"] = Child("controller", spawn("controller", 0), tmp_path / "controller.log")
+    deadline = time.monotonic() + 30
+    while not la.check_children():
+        assert time.monotonic() < deadline, spawned
+        time.sleep(0.01)
+    assert spawned == [("controller", 0), ("controller", 1), ("controller", 2)]
+    assert la.outcome.died == [("controller", 3)] and len(la.outcome.restarts) == 2
+    assert "died 3 times; restart.max_attempts (2) used up" in capsys.readouterr().out
+    # a clean exit, and a service without the policy: the run ends on them, nothing restarted
+    for name, code in (("controller", 0), ("sensors", 3)):
+        la = Launcher(sc, tmp_path)
+        monkeypatch.setattr(la, "_spawn", spawn)
+        spawned.clear()
+        la.children[name] = Child(name, subprocess.Popen([sys.executable, "-c", f"raise SystemExit({code})"]),
+                                  tmp_path / f"{name}.log")
+        assert wait_until(la.check_children, 30) and spawned == [] and la.outcome.died == [(name, code)]
 
 
 def test_a_restarted_controller_takes_over_the_live_gains(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
