@@ -45,6 +45,7 @@ class Observer:
         self.server: list[tuple[int, list[float]]] = []
         self.results: dict[str, tuple[int, bool]] = {}
         self.contacts: list[msgs.Contacts] = []
+        self.truth_wall: list[tuple[int, float]] = []  # (sim stamp, wall time it arrived)
         s = self.session
         self.subs = [
             s.declare_subscriber(self.keys.truth("contacts"), self._on_contacts),
@@ -59,6 +60,7 @@ class Observer:
             return
         with self.lock:
             self.truth.append((msgs.ns_of(m.header.stamp), list(m.position)))
+            self.truth_wall.append((msgs.ns_of(m.header.stamp), time.monotonic()))
 
     def _on_server(self, sample: zenoh.Sample) -> None:
         m = self._decode(sample, msgs.JointState)
