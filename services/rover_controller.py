@@ -12,7 +12,8 @@ its acknowledgement.
 
 Reads (``<prefix>/<robot>/…``):
   ``joint_states`` (sensor_msgs/JointState, measured; one control step per message),
-  ``imu`` (sensor_msgs/Imu: the gyro's yaw rate for the odometry, unless ``params.imu_yaw_rate: false``),
+  ``imu`` (sensor_msgs/Imu: the gyro's yaw rate for the odometry, unless ``params.imu_yaw_rate: false``;
+  in lockstep a control step whose imu is due waits for it, so the odometry is reproducible),
   ``cmd_vel`` (geometry_msgs/Twist: linear.x, linear.y [m/s], angular.z [rad/s] in base_link; held
   for ``params.cmd_timeout`` sim seconds, then the rover stops).
 Writes:
@@ -137,6 +138,16 @@ class FourWheelSteerController(Service):
         self.odom_twist = (0.0, 0.0, 0.0)
         self.drive_ref_pos: np.ndarray | None = None
         self.gyro: tuple[int, float] | None = None  # latest imu: stamp, yaw rate
+        # lockstep: physics steps whose imu the odometry waits for. imu and joint_states are two keys,
+        # and nothing orders them on the way here: a control step whose imu has not come yet is held
+        # until it comes, so the odometry (which a navigator closes its loop on) never depends on
+        # which of them arrived first
+        self.imu_every = 0
+        if self.p.imu_yaw_rate and scenario.clock.mode == "lockstep":
+            rates = [c.rate_hz for c in scenario.sensors.values() if c.type == "imu" and c.enabled]
+            if rates:
+                self.imu_every = round(1.0 / (rates[0] * scenario.clock.dt))
+        self.held: tuple[msgs.JointState, str] | None = None
         self.steps = 0
 
     def _gains(self, gains: dict[str, PidGains], where: str) -> list[PidGains]:
@@ -175,6 +186,10 @@ class FourWheelSteerController(Service):
 
     def on_imu(self, msg: msgs.Imu, key: str) -> None:
         self.gyro = (msgs.ns_of(msg.header.stamp), msg.angular_velocity.z)
+        if self.held is not None and msgs.ns_of(self.held[0].header.stamp) == self.gyro[0]:
+            js, k = self.held
+            self.held = None
+            self.on_joint_states(js, k)
 
     def target(self, now_ns: int) -> tuple[float, float, float]:
         """The twist asked for now: a fresh cmd_vel, else the script, else standing still; limited."""
@@ -195,6 +210,10 @@ class FourWheelSteerController(Service):
     # ------------------------------------------------------------------ control step
     def on_joint_states(self, msg: msgs.JointState, key: str) -> None:
         stamp = msgs.ns_of(msg.header.stamp)
+        if (self.imu_every and (stamp // self.sc.dt_ns) % self.imu_every == 0
+                and (self.gyro is None or self.gyro[0] < stamp)):
+            self.held = (msg, key)  # this step's imu is on its way (see __init__)
+            return
         if not msg.position or not msg.velocity:
             self.reject(key, "JointState without positions or velocities")
             return
