@@ -328,9 +328,10 @@ class Service:
 
     def publish_health(self) -> None:
         if self._health_pub is not None:
+            # under the lock: the health thread and an immediate report (e.g. physics pausing) must
+            # not number their samples alike or send them out of order (receivers drop those)
             with self.lock:
-                h = self.health()
-            self._health_pub.put(h)
+                self._health_pub.put(self.health())
 
     def _health_thread(self) -> None:
         while not self.stop_event.wait(1.0):
