@@ -26,7 +26,9 @@ class Sink:
 
 
 def controller(**over: Any) -> FourWheelSteerController:
-    c = FourWheelSteerController(load_scenario("config/rover.yaml", over))
+    # realtime: a control step runs on its joint_states alone (in lockstep it also waits for its imu,
+    # test_lockstep_step_waits_for_its_imu)
+    c = FourWheelSteerController(load_scenario("config/rover.yaml", {"clock.mode": "realtime", **over}))
     c.cmd_pub, c.odom_pub = Sink(), Sink()  # type: ignore[assignment]
     return c
 
@@ -95,6 +97,22 @@ def test_wheel_odometry_integrates_the_measured_wheels() -> None:
     assert c.odom_pub.got[-1].twist.twist.angular.z == pytest.approx(0.2)  # type: ignore[attr-defined]
     c.on_joint_states(states(c, 1_020_000_000, speed=2.0), "k")  # the sample is a step old: wheels again
     assert c.odom_pub.got[-1].twist.twist.angular.z == pytest.approx(0.0)  # type: ignore[attr-defined]
+
+
+def test_lockstep_step_waits_for_its_imu() -> None:
+    """Lockstep: joint_states and imu are two keys in no guaranteed order; a control step whose imu
+    is due (every 5 physics steps at 100 Hz) is held until that imu comes, then uses its gyro, so the
+    odometry is the same whichever arrived first."""
+    c = controller(**{"clock.mode": "lockstep"})
+    c.on_joint_states(states(c, 10_000_000, speed=2.0), "k")
+    assert c.odom_pub.got == [] and c.cmd_pub.got == []  # type: ignore[attr-defined]
+    c.on_imu(msgs.Imu(header=msgs.header(10_000_000), angular_velocity=msgs.Vector3(z=0.2)), "k")
+    assert len(c.cmd_pub.got) == 1 and msgs.ns_of(c.cmd_pub.got[0].header.stamp) == 10_000_000  # type: ignore[attr-defined]
+    assert c.odom_pub.got[-1].twist.twist.angular.z == pytest.approx(0.2)  # type: ignore[attr-defined]
+    # imu first (the usual order): the step runs at once, with the same result
+    c.on_imu(msgs.Imu(header=msgs.header(20_000_000), angular_velocity=msgs.Vector3(z=0.2)), "k")
+    c.on_joint_states(states(c, 20_000_000, speed=2.0), "k")
+    assert len(c.cmd_pub.got) == 2 and c.odom_pub.got[-1].twist.twist.angular.z == pytest.approx(0.2)  # type: ignore[attr-defined]
 
 
 @pytest.mark.parametrize(("over", "field"), [
