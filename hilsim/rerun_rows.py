@@ -243,7 +243,7 @@ class RowWriter:
             pos, quat = sc.root_pose
             rec.log(f"tf/{part(self.model.root)}", rr.Transform3D(
                 translation=pos, quaternion=quat, parent_frame=WORLD_FRAME, child_frame=self.model.root), static=True)
-        rec.log("scan", rr.Points3D.from_fields(colors=[COLOURS["scan"]], radii=[0.03]), static=True)
+        rec.log("scan", rr.Points3D.from_fields(colors=[COLOURS["scan"]], radii=[0.04]), static=True)
         if sc.base_box is not None:
             rec.log("odom/estimate", rr.Boxes3D.from_fields(
                 half_sizes=[sc.base_box[1]], colors=[COLOURS["odom"]], fill_mode="majorwireframe"),
@@ -458,8 +458,10 @@ class RowWriter:
             return
         track = self._tracks.get(source)
         if track is None:
+            # the truth wider: where the odometry is right, its line lies on the truth's, edged in green
+            radius = 0.04 if source == "truth" else 0.02
             track = self._tracks[source] = _Track(f"paths/{source}", TRACK_PERIOD_NS, [
-                rr.LineStrips3D.from_fields(colors=[COLOURS[source]], radii=[0.025]), rr.CoordinateFrame(WORLD_FRAME)])
+                rr.LineStrips3D.from_fields(colors=[COLOURS[source]], radii=[radius]), rr.CoordinateFrame(WORLD_FRAME)])
         if track.due(t):
             track.add(self.rec, t, (x, y, z))
             self.buffered += 1

@@ -10,7 +10,7 @@ meshes; height fields are not drawn (listed in :attr:`Scene.skipped`).
 :meth:`Scene.log_static` writes them once, as static Rerun entities ``world/<geom name>``
 (Boxes3D, Cylinders3D, Ellipsoids3D, Capsules3D, Mesh3D; a plane is a quad). An unbounded or very
 large plane (the outdoor ground is 200 m across) is drawn only as far as the other geometry
-reaches plus :data:`PLANE_MARGIN`, so the viewer's camera frames the world rather than the horizon.
+reaches plus a margin (:data:`PLANE_MARGIN`), so the viewer's camera frames the world rather than the horizon.
 
 Also here: the robot's placement in the world (a fixed base's root body pose; the size of a
 mobile base's chassis, drawn where the odometry thinks it is) and the world's geodetic datum
@@ -27,7 +27,8 @@ from typing import Any
 
 import numpy as np
 
-PLANE_MARGIN = 5.0  # [m] a plane is drawn this far beyond the rest of the static geometry
+PLANE_MARGIN = 5.0  # [m] a plane is drawn at most this far beyond the rest of the static geometry…
+PLANE_MARGIN_FRACTION = 0.25  # …and at least a quarter of its reach (0.5 m or more): a table's floor stays small
 PLANE_DEFAULT = 10.0  # [m] half size of an infinite plane in an otherwise empty world
 GEOM_KINDS = {0: "plane", 2: "sphere", 3: "capsule", 4: "ellipsoid", 5: "cylinder", 6: "box", 7: "mesh"}
 DEFAULT_RGBA = (0.5, 0.5, 0.5, 1.0)  # MuJoCo's geom colour when none is given (a material's then wins)
@@ -236,7 +237,8 @@ def _bound_planes(geoms: list[StaticGeom]) -> list[StaticGeom]:
             radius = float(np.max(np.abs(o.size))) if o.kind != "mesh" else float(
                 np.max(np.linalg.norm(o.vertices - o.pos, axis=1)))  # type: ignore[operator]
             reach = np.maximum(reach, np.abs(local[:2]) + radius)
-        reach = reach + PLANE_MARGIN if others else np.full(2, PLANE_DEFAULT)
+        margin = min(PLANE_MARGIN, max(0.5, PLANE_MARGIN_FRACTION * float(reach.max())))
+        reach = reach + margin if others else np.full(2, PLANE_DEFAULT)
         size = g.size.copy()
         for i in range(2):
             size[i] = reach[i] if size[i] <= 0 else min(size[i], reach[i])

@@ -51,6 +51,10 @@ def blueprint(joints: Iterable[str], robot_frame: str | None, scene: Scene | Non
         if mobile:  # behind and above the rover, following it: the outdoor world is 80 m across
             eye = rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=(-7.0, -5.0, 6.0), look_target=(2.0, 0.0, 0.0),
                                     eye_up=(0.0, 0.0, 1.0), tracking_entity=track)
+        elif scene is not None and scene.root_pose is not None:  # an arm: close to it, not the whole floor
+            x, y, z = (float(v) for v in scene.root_pose[0])
+            eye = rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=(x + 1.2, y - 1.0, z + 0.7),
+                                    look_target=(x + 0.1, y, z + 0.1), eye_up=(0.0, 0.0, 1.0))
         left.append(
             rrb.Spatial3DView(
                 name="world" if scene is not None else "robot",
