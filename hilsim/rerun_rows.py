@@ -54,8 +54,9 @@ called. Entity layout (entities of robots other than the scenario's go under ``r
 ==============================================  =============================================
 
 The odometry (``odom``, frame ``odom``) is drawn in the world with its frame where the rover
-truly was when the odometry started (the first ``truth/odom`` before the first ``odom``; the
-identity when there is no truth), as a robot's ``odom`` frame starts where the robot is.
+started, as a robot's ``odom`` frame starts where the robot is: the free base's pose in the world
+model (:attr:`Scene.base_start`); without a scene, the first ``truth/odom`` if it came before the
+first ``odom``, else the world's origin.
 Trails and tracks grow with time but stay cheap to write: see :class:`_Track`.
 
 Importing this module imports rerun, after turning its analytics off.
@@ -443,7 +444,12 @@ class RowWriter:
         if not root:
             origin = self._odom_origin
             if origin is None:  # the odom frame starts where the rover truly is when it starts
-                origin = self._odom_origin = (x, y, z, yaw) if source == "truth" else (0.0, 0.0, 0.0, 0.0)
+                sc = self.scene
+                if sc is not None and sc.base_start is not None:  # its start in the model (a restarted
+                    origin = sc.base_start  # recorder may not see the run's first truth)
+                else:
+                    origin = (x, y, z, yaw) if source == "truth" else (0.0, 0.0, 0.0, 0.0)
+                self._odom_origin = origin
             if source == "odom":  # into the world
                 c, s = math.cos(origin[3]), math.sin(origin[3])
                 x, y, z, yaw = (origin[0] + c * x - s * y, origin[1] + s * x + c * y, origin[2] + z,

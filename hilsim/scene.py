@@ -21,6 +21,7 @@ world positions on the map and GPS fixes into the world.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
@@ -102,6 +103,9 @@ class Scene:
     # A mobile base: its body name and the box around its largest geom (centre, half sizes) in its frame.
     base: str | None = None
     base_box: tuple[np.ndarray, np.ndarray] | None = None
+    # …and where it starts (x, y, z, yaw in the world: the model's reference pose), where its
+    # odometry's frame is
+    base_start: tuple[float, float, float, float] | None = None
 
     @classmethod
     def load(cls, model_path: str | Path, robot_links: Iterable[str] = (), root_link: str | None = None,
@@ -154,6 +158,8 @@ class Scene:
             b = int(m.jnt_bodyid[free[0]])
             scene.base = m.body(b).name
             scene.base_box = _body_box(m, b)
+            x, y, z, qw, qx, qy, qz = (float(v) for v in m.qpos0[m.jnt_qposadr[free[0]]:][:7])
+            scene.base_start = (x, y, z, math.atan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz)))
         elif root_link is not None:
             try:
                 b = m.body(root_link).id

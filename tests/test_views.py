@@ -188,27 +188,48 @@ def _odom(t: int, frame: str, x: float, y: float, yaw: float, vx: float = 0.0) -
         twist=msgs.TwistWithCovariance(twist=msgs.Twist(linear=msgs.Vector3(x=vx))))
 
 
+def _trails(data: dict[str, list[dict[str, Any]]]) -> tuple[Any, Any]:
+    truth = [r["LineStrips3D:strips"] for r in data["/paths/truth/0"] if r.get("LineStrips3D:strips")][-1][0]
+    odom = [r["LineStrips3D:strips"] for r in data["/paths/odom/0"] if r.get("LineStrips3D:strips")][-1][0]
+    return truth, odom
+
+
 def test_odometry_is_drawn_against_the_truth(tmp_path: Path) -> None:
-    """The odom frame starts where the rover truly is (here at (1, 2) facing +y): an odometry that
-    says 'x = 1.1 m' is drawn 1.1 m along the world's +y from there, next to the truth's 1 m."""
+    """The odom frame is where the rover starts in the model (the origin, chassis 0.255 m up): an
+    odometry 10 % long is drawn ahead of the truth, in the world, with plots and the chassis box."""
     rows, faults, rrd = _writer(tmp_path)
-    for k in range(11):  # 1 s: truth every 100 ms; the odometry drifts 10 % long
+    for k in range(11):  # 1 s: a point every 100 ms
         t = k * 100_000_000
-        rows.message("hilsim/rover/truth/odom", _odom(t, "world", 1.0, 2.0 + 0.1 * k, math.pi / 2, 0.1))
+        rows.message("hilsim/rover/truth/odom", _odom(t, "world", 0.1 * k, 0.0, 0.0, 0.1))
         rows.message("hilsim/rover/odom", _odom(t, "odom", 0.11 * k, 0.0, 0.0, 0.11))
     data = _close(rows, rrd)
     assert not faults
-    truth = [r["LineStrips3D:strips"] for r in data["/paths/truth/0"] if r.get("LineStrips3D:strips")][-1][0]
-    odom = [r["LineStrips3D:strips"] for r in data["/paths/odom/0"] if r.get("LineStrips3D:strips")][-1][0]
+    truth, odom = _trails(data)
     assert len(truth) == len(odom) == 11
-    np.testing.assert_allclose(truth[-1], [1.0, 3.0, 0.25], atol=1e-9)
-    np.testing.assert_allclose(odom[-1], [1.0, 3.1, 0.25], atol=1e-9)  # in the world, where it thinks it is
-    ys = [r["Scalars:scalars"][0] for r in data["/odometry/y/odom"] if r.get("Scalars:scalars")]
-    assert ys[-1] == pytest.approx(3.1)
-    yaw = [r["Scalars:scalars"][0] for r in data["/odometry/yaw/odom"] if r.get("Scalars:scalars")]
-    assert yaw[-1] == pytest.approx(math.pi / 2)
+    np.testing.assert_allclose(truth[-1], [1.0, 0.0, 0.25], atol=1e-9)
+    np.testing.assert_allclose(odom[-1], [1.1, 0.0, 0.255], atol=1e-9)  # where it thinks it is
+    xs = [r["Scalars:scalars"][0] for r in data["/odometry/x/odom"] if r.get("Scalars:scalars")]
+    assert xs[-1] == pytest.approx(1.1) and len(xs) == 11
     ghost = [r for r in data["/odom/estimate"] if r.get("Boxes3D:centers")]
-    np.testing.assert_allclose(ghost[-1]["Boxes3D:centers"][0], [1.0, 3.1, 0.25], atol=1e-9)
+    np.testing.assert_allclose(ghost[-1]["Boxes3D:centers"][0], [1.1, 0.0, 0.255], atol=1e-9)
+
+
+def test_odometry_without_a_scene_starts_at_the_first_truth(tmp_path: Path) -> None:
+    """No world model: the odom frame is the first truth's pose (here (1, 2) facing +y), so 'x = 1.1 m'
+    in the odometry is drawn 1.1 m along the world's +y from there."""
+    from hilsim.rerun_rows import RowWriter, rr
+
+    rrd = tmp_path / "rows.rrd"
+    rec = rr.RecordingStream("test_views")
+    rec.save(rrd)
+    rows = RowWriter(rec, "rover", None, lambda text, exc=None: None)
+    for k in range(11):
+        t = k * 100_000_000
+        rows.message("hilsim/rover/truth/odom", _odom(t, "world", 1.0, 2.0 + 0.1 * k, math.pi / 2, 0.1))
+        rows.message("hilsim/rover/odom", _odom(t, "odom", 0.11 * k, 0.0, 0.0, 0.11))
+    truth, odom = _trails(_close(rows, rrd))
+    np.testing.assert_allclose(truth[-1], [1.0, 3.0, 0.25], atol=1e-9)
+    np.testing.assert_allclose(odom[-1], [1.0, 3.1, 0.25], atol=1e-9)
 
 
 def test_occupancy_grid_and_plan(tmp_path: Path) -> None:
