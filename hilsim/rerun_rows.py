@@ -42,7 +42,8 @@ called. Entity layout (entities of robots other than the scenario's go under ``r
                                                 chassis frame)
 ``paths/<truth|odom>/<k>``                      LineStrips3D: the trail in the world (a point
                                                 every 100 ms), ``paths/gps/<k>`` Points3D of
-                                                the GPS fixes in the world (with a datum)
+                                                the GPS fixes in the world (with a datum), at
+                                                the chassis' true height
 ``odom/estimate``                               Boxes3D: the chassis where the odometry puts it
 ``geo/gps/<k>``, ``geo/<truth|odom>/<k>``       GeoPoints of ``gps/fix``; GeoLineStrings of the
                                                 truth and odometry trails (with a datum)
@@ -211,6 +212,7 @@ class RowWriter:
         self._tf_times: dict[str, list[int]] = {}
         # the odom frame in the world (x, y, z, yaw), fixed by the first truth/odom or odom
         self._odom_origin: tuple[float, float, float, float] | None = None
+        self._truth_z: float | None = None  # the chassis' latest true height (GPS fixes are drawn there)
         self._tracks: dict[str, _Track] = {}
         self._ghost: tuple[list[int], list[list[float]], list[list[float]]] = ([], [], [])
         self._last_ghost_ns: int | None = None
@@ -460,6 +462,8 @@ class RowWriter:
             entities = self._entity_cache[ck] = tuple(f"{root}odometry/{q_}/{source}" for q_ in ODOM_QUANTITIES)
         tw = msg.twist.twist
         self._vector(entities, t, [x, y, z, yaw, tw.linear.x, tw.linear.y, tw.angular.z])
+        if source == "truth" and not root:
+            self._truth_z = z
         if root:
             return
         track = self._tracks.get(source)
@@ -524,7 +528,10 @@ class RowWriter:
                 world = self._tracks["gps"] = _Track("paths/gps", 0, [
                     rr.Points3D.from_fields(colors=[COLOURS["gps"]], radii=[0.06]), rr.CoordinateFrame(WORLD_FRAME)])
             x, y = datum.to_world(msg.latitude, msg.longitude)
-            world.add(self.rec, t, (float(x), float(y), msg.altitude - datum.alt))
+            # at the rover's true height when there is a truth: the view is for the horizontal error
+            # (the vertical one, σ of metres, would float fixes in the air; gps/fix/altitude plots it)
+            z = self._truth_z if self._truth_z is not None else msg.altitude - datum.alt
+            world.add(self.rec, t, (float(x), float(y), z))
             self.buffered += 1
 
     def _grid(self, root: str, topic: str, robot: str, msg: msgs.OccupancyGrid) -> None:

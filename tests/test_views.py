@@ -170,14 +170,19 @@ def test_gps_fixes_become_geopoints_and_world_points(tmp_path: Path) -> None:
         fixes.append((lat, lon))
         rows.message("hilsim/rover/gps/fix", msgs.NavSatFix(header=msgs.header(k * 200_000_000, "gps"),
                                                             latitude=lat, longitude=lon, altitude=alt))
+    rows.message("hilsim/rover/truth/odom", _odom(700_000_000, "world", 0.0, 0.0, 0.0))
+    lat, lon, alt = gps.geodetic(12.0, -3.0, 3.0)
+    rows.message("hilsim/rover/gps/fix", msgs.NavSatFix(header=msgs.header(800_000_000, "gps"), latitude=lat,
+                                                        longitude=lon, altitude=alt))
     data = _close(rows, rrd)
     assert not faults
     geo = [r["GeoPoints:positions"] for r in data["/geo/gps/0"] if r.get("GeoPoints:positions")]
-    assert len(geo) == 3 and [len(g) for g in geo] == [1, 2, 3]  # the track so far, at each fix
-    np.testing.assert_allclose(geo[-1], fixes, rtol=0, atol=1e-12)
+    assert len(geo) == 4 and [len(g) for g in geo] == [1, 2, 3, 4]  # the track so far, at each fix
+    np.testing.assert_allclose(geo[2], fixes, rtol=0, atol=1e-12)
     assert fixes[1][0] > fixes[0][0] and abs(fixes[1][1] - fixes[0][1]) < 1e-6  # +X is north
-    world = [r["Points3D:positions"] for r in data["/paths/gps/0"] if r.get("Points3D:positions")][-1]
-    np.testing.assert_allclose(world, points, atol=1e-3)
+    world = [r["Points3D:positions"] for r in data["/paths/gps/0"] if r.get("Points3D:positions")]
+    np.testing.assert_allclose(world[2], points, atol=1e-3)  # no truth yet: at the fix's altitude
+    np.testing.assert_allclose(world[-1][-1], [12.0, -3.0, 0.25], atol=1e-3)  # then at the chassis' height
     assert data["/geo/gps/0"][0].get("GeoPoints:colors") or any(r.get("GeoPoints:colors") for r in data["/geo/gps/0"])
 
 
