@@ -92,6 +92,8 @@ def test_rover_reaches_every_goal(world: str, router: str, tmp_path: Path) -> No
         r = results[f"task-{i}"]
         assert r.success, r.message
         d, dyaw = judge(truth, r, goal)
+        print(f"{world} task-{i}: truth {d:.3f} m / {dyaw:.3f} rad from the goal, odometry says "
+              f"{r.execution_error[0]:.3f} m at t={msgs.seconds(r.header.stamp):.2f} s")
         assert d <= TOLERANCE, f"task-{i}: truth {d:.3f} m from the goal {goal} ({out})"
         assert dyaw <= 0.1, f"task-{i}: truth yaw {dyaw:.3f} rad off"
         # the navigator judged by its odometry, which differs from the truth (it never saw it)
@@ -115,7 +117,14 @@ def test_goal_rover_xy_drives_to_the_goal(router: str, tmp_path: Path) -> None:
     p = up("rover", "--router", router, "--no-logger", "--duration", "25", "--set", "task.targets=[]",
            "--out", str(tmp_path / "run"))
     try:
-        # the launcher is ready once every service announced itself; the goal tool waits for the navigator
+        # send once every service has announced itself (the launcher says "ready:")
+        head = []
+        assert p.stdout is not None
+        for line in p.stdout:
+            head.append(line)
+            if line.startswith(("ready:", "summary:")):
+                break
+        assert head and head[-1].startswith("ready:"), "".join(head)
         goal = subprocess.run(
             [sys.executable, "-m", "hilsim.cli", "goal", "rover", "--xy", "2.5", "-1.0", "--yaw", "1.57",
              "--connect", router, "--timeout", "120"],
