@@ -278,3 +278,12 @@ def test_plan_evaluate_rover_goals(tmp_path: Path) -> None:
     assert float(corridor[7]) > 0 and int(corridor[8]) > 0
     assert wall[4] == "" and "goal invalid" in wall[-1]
     assert sum(int(r[9]) for r in (corridor, room_b, wall)) == 1
+
+
+def test_bench_rover_laser_alone_counts_rays() -> None:
+    """``hilsim bench rover``'s laser figure: the scenario's own sensor, 541 rays per scan."""
+    from hilsim.bench import bench_laser
+
+    r = bench_laser("indoor", scans=20)
+    assert r["rays_per_scan"] == 541 and r["rays_per_s"] == pytest.approx(541 * r["scans_per_s"])
+    assert r["rays_per_s"] > 1e4
