@@ -287,3 +287,30 @@ def test_bench_rover_laser_alone_counts_rays() -> None:
     r = bench_laser("indoor", scans=20)
     assert r["rays_per_scan"] == 541 and r["rays_per_s"] == pytest.approx(541 * r["scans_per_s"])
     assert r["rays_per_s"] > 1e4
+
+
+def test_compose_rover_profile_runs_the_rover_scenario() -> None:
+    """docker/compose.yaml's `rover` profile: `up rover-physics` pulls in exactly the rover scenario's
+    processes (and the router), each command parses and names a service of that scenario."""
+    import yaml
+
+    from hilsim.cli import build_parser
+
+    comp = yaml.safe_load((REPO / "docker" / "compose.yaml").read_text())["services"]
+    rover = {n: s for n, s in comp.items() if "rover" in s.get("profiles", [])}
+    started, todo = set(), ["rover-physics"]
+    while todo:  # what `up rover-physics` starts: it and its dependencies, transitively
+        n = todo.pop()
+        if n not in started:
+            started.add(n)
+            todo += comp[n].get("depends_on", [])
+    assert started == set(rover) | {"router"}
+    parser = build_parser()
+    sc = load_scenario(REPO / "config" / "rover.yaml")
+    ran = set()
+    for name, svc in rover.items():
+        args = parser.parse_args(svc["command"])
+        assert args.cmd == "run" and name == f"rover-{args.service}"
+        assert load_scenario(REPO / args.config).name == sc.name
+        ran.add(args.service)
+    assert ran == set(sc.processes())
