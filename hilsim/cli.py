@@ -8,6 +8,7 @@
     hilsim gains ROBOT JOINT.GAIN=VALUE …
     hilsim plan evaluate --targets FILE [--criterion length|smoothness|weighted]
     hilsim bench loop|plan|can|rover [--json]
+    hilsim report step ROBOT [--joints J,…] [--step RAD] [--json]
     hilsim router [--listen ENDPOINT]
 """
 
@@ -150,6 +151,18 @@ def build_parser() -> argparse.ArgumentParser:
     br.add_argument("--sim-seconds", type=float, default=20.0)
     br.add_argument("--world", default="indoor", help="indoor or outdoor")
     br.set_defaults(func=_lazy("hilsim.bench", "cmd_rover"))
+
+    report = sub.add_parser("report", help="measured reports (the arm paper's Table II)")
+    rsub = report.add_subparsers(dest="report_cmd", required=True)
+    rs = rsub.add_parser("step", help="step response per joint by the real services in lockstep (Table II)")
+    rs.add_argument("robot", help="scenario name in config/ (e.g. arm) or a YAML path")
+    rs.add_argument("--joints", help="comma-separated (default: joint_1..joint_5, the paper's Table II)")
+    rs.add_argument("--step", type=float, default=0.2, help="step of the reference [rad] (default 0.2)")
+    rs.add_argument("--measure", type=float, default=1.5, help="sim seconds recorded after each step")
+    rs.add_argument("--settle", type=float, default=1.0, help="sim seconds back home between steps")
+    rs.add_argument("--out", help="output directory (default runs/<timestamp>-step-report)")
+    rs.add_argument("--json", action="store_true", help="print one JSON object")
+    rs.set_defaults(func=_lazy("hilsim.tools.step_report", "cmd_report_step"))
 
     router = sub.add_parser("router", help="run a standalone Zenoh router on loopback")
     router.add_argument("--listen", default="tcp/127.0.0.1:7447")
