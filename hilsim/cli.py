@@ -150,6 +150,7 @@ def build_parser() -> argparse.ArgumentParser:
     br.add_argument("--json", action="store_true")
     br.add_argument("--sim-seconds", type=float, default=20.0)
     br.add_argument("--world", default="indoor", help="indoor or outdoor")
+    br.add_argument("--repeat", type=int, default=3, help="runs with the laser on and off each (the best is kept)")
     br.set_defaults(func=_lazy("hilsim.bench", "cmd_rover"))
 
     report = sub.add_parser("report", help="measured reports (the arm paper's Table II)")
