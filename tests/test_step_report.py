@@ -1,0 +1,83 @@
+"""Table II figures: the metrics against analytic step responses, and ``hilsim report step`` end to end."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hilsim.tools.metrics import step_figures
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def second_order(t: np.ndarray, zeta: float, wn: float) -> np.ndarray:
+    """Unit step response of wn² / (s² + 2ζ wn s + wn²), 0 < ζ < 1."""
+    wd = wn * math.sqrt(1 - zeta**2)
+    return 1 - np.exp(-zeta * wn * t) / math.sqrt(1 - zeta**2) * np.sin(wd * t + math.acos(zeta))
+
+
+@pytest.mark.parametrize("zeta,wn", [(0.2, 8.0), (0.5, 10.0), (0.7, 25.0)])
+def test_second_order_overshoot_and_peak_time(zeta: float, wn: float) -> None:
+    t = np.arange(0.0, 8.0, 1e-4)
+    y0, step = 0.3, -0.5  # any start, either direction
+    f = step_figures(t, y0 + step * second_order(t, zeta, wn), y0, y0 + step)
+    root = math.sqrt(1 - zeta**2)
+    assert f.overshoot_pct == pytest.approx(100 * math.exp(-zeta * math.pi / root), rel=1e-4)
+    assert f.peak_time_s == pytest.approx(math.pi / (wn * root), abs=2e-4)
+    # the 2 % envelope bound: settled no later than ln(50/√(1-ζ²))/(ζ wn)
+    assert f.settling_time_s <= math.log(50 / root) / (zeta * wn) + 1e-3
+    assert f.steady_state_error < 1e-5
+
+
+def test_first_order_rise_and_settling() -> None:
+    tau = 0.13
+    t = np.arange(0.0, 2.0, 1e-3)  # coarse on purpose: crossings are interpolated
+    f = step_figures(t, 1 - np.exp(-t / tau), 0.0, 1.0)
+    assert f.rise_time_s == pytest.approx(tau * math.log(9), abs=2e-4)
+    assert f.settling_time_s == pytest.approx(tau * math.log(50), abs=2e-4)
+    assert f.overshoot_pct == 0.0
+    # no overshoot: the peak is where it first comes within 1e-3 of the target
+    assert f.peak_time_s == pytest.approx(tau * math.log(1e3), abs=2e-3)
+
+
+def test_steady_state_error_and_never_settling() -> None:
+    t = np.arange(0.0, 1.0, 1e-3)
+    f = step_figures(t, 0.9 * (1 - np.exp(-t / 0.05)), 0.0, 1.0)
+    assert f.steady_state_error == pytest.approx(0.1, abs=1e-6)
+    assert math.isinf(f.settling_time_s) and math.isinf(f.peak_time_s)
+
+
+def test_report_step_end_to_end(tmp_path: Path) -> None:
+    """One joint of the arm, a short window: the real services in lockstep, measured on the truth.
+    The arm's gains give a fast response (well inside the paper's joint_4 row for rise time), and the
+    run is reproducible: a second run gives the same figures to the last digit."""
+    cmd = [sys.executable, "-m", "hilsim.cli", "report", "step", "arm", "--joints", "joint_4", "--step", "0.2",
+           "--measure", "0.6", "--settle", "0.1", "--json"]
+    outs = []
+    for i in range(2):
+        p = subprocess.run([*cmd, "--out", str(tmp_path / f"r{i}")], capture_output=True, text=True, cwd=REPO,
+                           timeout=180)
+        assert p.returncode == 0, p.stdout + p.stderr
+        outs.append(json.loads(p.stdout))
+    rep = outs[0]
+    assert rep["robot"] == "arm" and [j["joint"] for j in rep["joints"]] == ["joint_4"]
+    j = rep["joints"][0]
+    assert set(j) == {"joint", "step_rad", "rise_time_s", "settling_time_s", "peak_time_s", "overshoot_pct",
+                      "steady_state_error_rad"}
+    assert j["step_rad"] == pytest.approx(0.2, abs=2e-4)  # from where the truth was: encoder-held home
+    assert 0.02 < j["rise_time_s"] < 0.18
+    assert j["settling_time_s"] is not None and j["rise_time_s"] < j["settling_time_s"] < 0.6
+    assert j["steady_state_error_rad"] < 5e-3
+    assert outs[1] == rep  # lockstep: same seed, same figures
+    out = tmp_path / "r0"
+    rows = list(csv.DictReader(open(out / "step_report.csv")))
+    assert rows[0]["joint"] == "joint_4" and float(rows[0]["rise_time_s"]) == pytest.approx(j["rise_time_s"], abs=1e-6)
+    assert (out / "step_report.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (out / "step_report.rrd").stat().st_size > 1000
