@@ -297,3 +297,35 @@ def test_rover_recording_holds_the_views(router: str, tmp_path: Path) -> None:
     assert truth[-1][0] - truth[0][0] > 0.5
     assert np.linalg.norm(np.subtract(truth[-1][:2], odom[-1][:2])) < 0.3
     assert all(len(pts) > 10 for pts in data["/scan"])  # walls and rocks are hit
+
+
+def _views(container: Any) -> list[Any]:
+    """The views of a blueprint container, depth first."""
+    out = []
+    for c in vars(container)["contents"]:
+        out += _views(c) if hasattr(c, "contents") and not hasattr(c, "class_identifier") else [c]
+    return out
+
+
+@pytest.mark.parametrize("world,urdf,expected", [
+    (WORLDS / "indoor.xml", ROVER_URDF, {"world", "log", "odometry"}),
+    (WORLDS / "outdoor.xml", ROVER_URDF, {"world", "log", "odometry", "map"}),
+    (ARM_WORLD, ARM_URDF, {"world", "log"}),
+], ids=["indoor", "outdoor", "arm"])
+def test_default_layout(world: Path, urdf: Path, expected: set[str]) -> None:
+    """A 3D view of the world for every robot; the odometry tab for a mobile one; the map where the
+    world has a datum (only there can a GPS track be placed on it)."""
+    from hilsim.kinematics import RobotModel
+    from hilsim.scene import Scene
+    from hilsim.viewer import default_blueprint
+
+    model = RobotModel.load(urdf)
+    bp = default_blueprint(model, Scene.load(world, model.links, model.root))
+    views = _views(bp.root_container)
+    names = {str(vars(v).get("name")) for v in views}
+    grids = {vars(c).get("name") for c in vars(vars(bp.root_container)["contents"][1])["contents"]}
+    assert {"world", "log"} <= names
+    assert ("odometry" in grids) == ("odometry" in expected)
+    assert ("map" in names) == ("map" in expected)
+    spatial = next(v for v in views if vars(v).get("name") == "world")
+    assert str(vars(spatial)["properties"]["SpatialInformation"].target_frame.as_arrow_array()[0]) == "world"
