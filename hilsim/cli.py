@@ -9,6 +9,7 @@
     hilsim plan evaluate --targets FILE [--criterion length|smoothness|weighted]
     hilsim bench loop|plan|can|rover [--json]
     hilsim report step ROBOT [--joints J,…] [--step RAD] [--json]
+    hilsim inertia FILE [--link NAME] [--urdf FILE] [--json]
     hilsim router [--listen ENDPOINT]
 """
 
@@ -152,6 +153,14 @@ def build_parser() -> argparse.ArgumentParser:
     br.add_argument("--world", default="indoor", help="indoor or outdoor")
     br.add_argument("--repeat", type=int, default=3, help="runs with the laser on and off each (the best is kept)")
     br.set_defaults(func=_lazy("hilsim.bench", "cmd_rover"))
+
+    inertia = sub.add_parser("inertia", help="a link's mass, centre of mass and inertia tensor from primitives")
+    inertia.add_argument("file", help="YAML: links and their parts (box, cylinder, hollow_cylinder, "
+                         "thin_square_column, sphere, point), see docs/tools.md")
+    inertia.add_argument("--link", help="only this link of the file")
+    inertia.add_argument("--urdf", help="write the link's <inertial> into this URDF (needs one link)")
+    inertia.add_argument("--json", action="store_true", help="print one JSON object")
+    inertia.set_defaults(func=_lazy("hilsim.tools.inertia", "cmd_inertia"))
 
     report = sub.add_parser("report", help="measured reports (the arm paper's Table II)")
     rsub = report.add_subparsers(dest="report_cmd", required=True)
