@@ -271,10 +271,9 @@ def cmd_rover(args: argparse.Namespace) -> int:
     if args.json:
         print(json.dumps(res, indent=2))
         return 0
-    print()
+    print(f"\nbest of {args.repeat} runs each ({sim:g} s sim)")
     print("| rover, lockstep | real-time factor | laser rays per wall second |")
     print("|---|---|---|")
-    print(f"best of {args.repeat} runs each ({sim:g} s sim)")
     print(f"| laser on ({la['rays_per_scan']:.0f} rays at {scan_hz:g} Hz) | {res['laser_on_rtf']:.2f}x | "
           f"{res['rays_per_s_in_run']:.0f} |")
     print(f"| laser off | {res['laser_off_rtf']:.2f}x | — |")
