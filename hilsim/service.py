@@ -109,6 +109,7 @@ class Service:
         self.keys = Keys(scenario.prefix, scenario.robot)
         self.log = logging.getLogger(f"hilsim.{self.name}")
         self.lock = threading.RLock()
+        self._health_lock = threading.Lock()
         self.stop_event = threading.Event()
         self.state = "starting"
         self.counts_in: Counter[str] = Counter()
@@ -328,10 +329,14 @@ class Service:
 
     def publish_health(self) -> None:
         if self._health_pub is not None:
-            # under the lock: the health thread and an immediate report (e.g. physics pausing) must
-            # not number their samples alike or send them out of order (receivers drop those)
-            with self.lock:
-                self._health_pub.put(self.health())
+            # one at a time: the health thread and an immediate report (e.g. physics pausing) must
+            # not number their samples alike or send them out of order (receivers drop those). Not
+            # under self.lock: a Zenoh callback of this process may wait for it while holding what
+            # the put needs (the recorder receives its own health)
+            with self._health_lock:
+                with self.lock:
+                    h = self.health()
+                self._health_pub.put(h)
 
     def _health_thread(self) -> None:
         while not self.stop_event.wait(1.0):
