@@ -104,12 +104,6 @@ class RobotModel:
         return [self.tree.root_link().name, *(j.child_link for j in self.tree.joints())]
 
     @property
-    def root_visual(self) -> str | None:
-        """The entity of the root link's first visual geometry (a chassis the 3D camera can follow)."""
-        paths = self.tree.get_visual_geometry_paths(self.root)
-        return paths[0] if paths else None
-
-    @property
     def root(self) -> str:
         """The URDF's root link: the frame tool paths are drawn in."""
         return self.kin.root

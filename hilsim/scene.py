@@ -55,6 +55,16 @@ class StaticGeom:
     faces: np.ndarray | None = None
 
     @property
+    def half_extent(self) -> np.ndarray:
+        """Half sizes of the world-axis-aligned box around the geom (for a plane: its drawn quad)."""
+        if self.kind == "mesh":
+            return np.max(np.abs(self.vertices - self.pos), axis=0)  # type: ignore[operator]
+        r, s = self.size[0], self.size
+        local = {"box": s, "ellipsoid": s, "sphere": np.array([r, r, r]), "plane": np.array([s[0], s[1], 0.0]),
+                 "cylinder": np.array([r, r, s[1]]), "capsule": np.array([r, r, s[1] + r])}[self.kind]
+        return np.abs(self.rotation) @ local
+
+    @property
     def rotation(self) -> np.ndarray:
         """The geom's rotation matrix (its axes in world coordinates, as columns)."""
         x, y, z, w = self.quat
@@ -238,11 +248,10 @@ def _bound_planes(geoms: list[StaticGeom]) -> list[StaticGeom]:
             out.append(g)
             continue
         reach = np.zeros(2)
-        for o in others:  # the other geoms' centres in the plane's frame, with their bounding radius
+        for o in others:  # the other geoms' boxes, in the plane's frame
             local = g.rotation.T @ (o.pos - g.pos)
-            radius = float(np.max(np.abs(o.size))) if o.kind != "mesh" else float(
-                np.max(np.linalg.norm(o.vertices - o.pos, axis=1)))  # type: ignore[operator]
-            reach = np.maximum(reach, np.abs(local[:2]) + radius)
+            half = np.abs(g.rotation.T) @ o.half_extent
+            reach = np.maximum(reach, np.abs(local[:2]) + half[:2])
         margin = min(PLANE_MARGIN, max(0.5, PLANE_MARGIN_FRACTION * float(reach.max())))
         reach = reach + margin if others else np.full(2, PLANE_DEFAULT)
         size = g.size.copy()

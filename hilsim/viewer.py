@@ -16,8 +16,11 @@ Importing this module imports rerun, after turning its analytics off.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterable
 from typing import Any
+
+import numpy as np
 
 from hilsim.recording import disable_analytics
 
@@ -29,6 +32,7 @@ from hilsim.rerun_rows import ODOM_QUANTITIES, WORLD_FRAME, part  # noqa: E402
 from hilsim.scene import Scene  # noqa: E402
 
 QUANTITIES = ("position", "velocity", "effort")
+OVERVIEW_RADIUS = 15.0  # [m] a mobile robot's 3D view frames the static geometry this close to its start
 # what the 3D view shows (entities of hilsim.rerun_rows)
 SPATIAL_CONTENTS = [
     "/world/**", "/robot/**", "/joint_trajectory/tool_path", "/planner/path/tool_path",
@@ -36,21 +40,18 @@ SPATIAL_CONTENTS = [
 ]
 
 
-def blueprint(joints: Iterable[str], robot_frame: str | None, scene: Scene | None = None,
-              track: str | None = None) -> rrb.Blueprint:
+def blueprint(joints: Iterable[str], robot_frame: str | None, scene: Scene | None = None) -> rrb.Blueprint:
     """The layout for a robot with these moving joints. ``robot_frame`` (the URDF root link) is
     None when there is no robot model; ``scene`` the world's geometry (the 3D view is then in the
-    world frame), None if it could not be read. Without either there is no 3D view. ``track``: an
-    entity the 3D camera follows (the chassis of a mobile robot)."""
+    world frame), None if it could not be read. Without either there is no 3D view."""
     joints = list(joints)
     mobile = scene is not None and scene.base is not None
     left: list[Any] = []
     frame = WORLD_FRAME if scene is not None else robot_frame
     if frame is not None:
         eye = None
-        if mobile:  # behind and above the rover, following it: the outdoor world is 80 m across
-            eye = rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=(-7.0, -5.0, 6.0), look_target=(2.0, 0.0, 0.0),
-                                    eye_up=(0.0, 0.0, 1.0), tracking_entity=track)
+        if mobile:
+            eye = _overview(scene)  # type: ignore[arg-type]
         elif scene is not None and scene.root_pose is not None:  # an arm: close to it, not the whole floor
             x, y, z = (float(v) for v in scene.root_pose[0])
             eye = rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=(x + 1.2, y - 1.0, z + 0.7),
@@ -95,4 +96,21 @@ def default_blueprint(model: RobotModel | None, scene: Scene | None) -> rrb.Blue
     """The layout the recorder stores for a robot model and a world scene (either may be None)."""
     if model is None:
         return blueprint([], None, scene)
-    return blueprint(model.joints, model.root, scene, track=model.root_visual if scene and scene.base else None)
+    return blueprint(model.joints, model.root, scene)
+
+
+def _overview(scene: Scene) -> rrb.EyeControls3D:
+    """A camera over where a mobile robot drives: the static geometry within OVERVIEW_RADIUS of its
+    start (the whole of the indoor flat; the rocks, crates and slope around the outdoor start, not
+    buildings 40 m away), seen from behind the start and above, at 40°."""
+    x0, y0 = scene.base_start[:2] if scene.base_start is not None else (0.0, 0.0)
+    near = [g for g in scene.geoms if g.kind != "plane" and math.hypot(g.pos[0] - x0, g.pos[1] - y0) <= OVERVIEW_RADIUS]
+    if near:
+        lo = np.min([g.pos[:2] - g.half_extent[:2] for g in near] + [[x0, y0]], axis=0)
+        hi = np.max([g.pos[:2] + g.half_extent[:2] for g in near] + [[x0, y0]], axis=0)
+    else:
+        lo, hi = np.array([x0 - 5.0, y0 - 5.0]), np.array([x0 + 5.0, y0 + 5.0])
+    cx, cy = (lo + hi) / 2
+    d = float(np.linalg.norm(hi - lo))  # the diagonal: at this distance the area fills the view
+    return rrb.EyeControls3D(kind=rrb.Eye3DKind.Orbital, position=(cx - 0.55 * d, cy - 0.45 * d, 0.65 * d),
+                             look_target=(cx, cy, 0.0), eye_up=(0.0, 0.0, 1.0))
