@@ -21,6 +21,7 @@ from util import REPO, finish, up
 from hilsim import msgs, transport
 from hilsim.config import ZenohConfig, load_scenario
 from hilsim.keys import Keys
+from hilsim.planning.client import MoveClient
 
 pytestmark = pytest.mark.e2e
 KEYS = Keys("hilsim", "rover")
@@ -112,9 +113,11 @@ def test_rover_reaches_every_goal(world: str, router: str, tmp_path: Path) -> No
 
 def test_goal_rover_xy_drives_to_the_goal(router: str, tmp_path: Path) -> None:
     """A rover scenario without a task, and ``hilsim goal rover --xy 2.5 -1.0 --yaw 1.57``: accepted,
-    succeeded, exit code 0; the truth ends within 0.2 m of it. A goal inside a wall is rejected."""
+    succeeded, exit code 0; the truth ends within 0.2 m of it. A goal inside a wall is rejected, a
+    malformed one answered with the reason; a goal canceled while driving ends CANCELED and the
+    rover stops."""
     cap = Capture(router, ["truth/odom", "navigator/result"])
-    p = up("rover", "--router", router, "--no-logger", "--duration", "25", "--set", "task.targets=[]",
+    p = up("rover", "--router", router, "--no-logger", "--duration", "30", "--set", "task.targets=[]",
            "--out", str(tmp_path / "run"))
     try:
         # send once every service has announced itself (the launcher says "ready:")
@@ -132,6 +135,18 @@ def test_goal_rover_xy_drives_to_the_goal(router: str, tmp_path: Path) -> None:
         bad = subprocess.run(
             [sys.executable, "-m", "hilsim.cli", "goal", "rover", "--xy", "4.0", "2.4", "--connect", router],
             capture_output=True, text=True, cwd=REPO, timeout=60)
+        # a goal canceled while the rover drives: CANCELED, and the rover stops
+        client = MoveClient(cap.session, KEYS, service="navigator")
+        try:
+            assert client.send(msgs.MoveGoal(goal_id="far", target_kind="pose",
+                                             pose=msgs.Pose(position=msgs.Point(x=-1.0, y=0.0)))).accepted
+            assert client.wait_for_state("far", "executing", 60)
+            time.sleep(0.5)
+            assert client.cancel("far").accepted
+            canceled = client.wait("far", 30)
+            garbage = client.send_raw(b"\x00\x01\x00\x00garbage")
+        finally:
+            client.close()
         out = finish(p, 120)
         time.sleep(0.3)
     finally:
@@ -147,6 +162,13 @@ def test_goal_rover_xy_drives_to_the_goal(router: str, tmp_path: Path) -> None:
     assert len(res) == 1
     d, dyaw = judge(truth, res[0], [2.5, -1.0, 1.57])
     assert d <= TOLERANCE and dyaw <= 0.1, (d, dyaw)
+    assert canceled is not None and not canceled.success and canceled.error_code == msgs.CANCELED
+    assert not garbage.accepted and garbage.reason  # a malformed goal is answered, and nothing breaks
+    t_cancel = msgs.ns_of(canceled.header.stamp)
+    later = [o for t, o in sorted(truth.items()) if t >= t_cancel + 1_500_000_000]
+    assert later, "the run ended too soon after the cancel"
+    speed = math.hypot(later[0].twist.twist.linear.x, later[0].twist.twist.linear.y)
+    assert speed < 0.05, speed  # stopped within 1.5 s of the cancel
 
 
 def test_lockstep_rover_navigation_is_deterministic(tmp_path: Path) -> None:
