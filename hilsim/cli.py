@@ -1,16 +1,17 @@
 """The ``hilsim`` command: one entry for running, inspecting and measuring simulations.
 
-    hilsim up SCENARIO [--clock lockstep|realtime] [--duration S] [--seed N]
+    hilsim up SCENARIO [--clock lockstep|realtime] [--duration S] [--seed N] [--only A,B --router EP]
     hilsim run SERVICE --config FILE
     hilsim topic list | echo KEY [--count N] [--json] | hz KEY
     hilsim view [RRD]
     hilsim goal ROBOT --joints J1 … | --pose X Y Z [R P Y] | --xy X Y [--yaw THETA]
     hilsim gains ROBOT JOINT.GAIN=VALUE …
     hilsim plan evaluate --targets FILE [--criterion length|smoothness|weighted]
-    hilsim bench loop|plan|can|rover [--json]
+    hilsim bench loop|plan|can|mavlink|rover [--json]
     hilsim report step ROBOT [--joints J,…] [--step RAD] [--json]
     hilsim inertia FILE [--link NAME] [--urdf FILE] [--json]
-    hilsim router [--listen ENDPOINT]
+    hilsim tune ROBOT JOINT|--all [--method ziegler-nichols|relay] [--write] [--json]
+    hilsim router [--listen ENDPOINT] [--config FILE]
 """
 
 from __future__ import annotations
@@ -28,12 +29,18 @@ def cmd_run(args: argparse.Namespace) -> int:
     from hilsim.service import setup_logging
 
     setup_logging(args.service, logging.DEBUG if args.verbose else logging.INFO)
+    names = args.service.split("+")  # a+b+c: composed in one process (hilsim.compose)
     try:
-        service_class(args.service)  # an unknown name is said before the scenario is read
+        for n in names:
+            service_class(n)  # an unknown name is said before the scenario is read
     except UnknownService as e:
         print(f"hilsim run: {e}", file=sys.stderr)
         return 2
     sc = load_scenario(args.config, parse_overrides(args.set))
+    if len(names) > 1:
+        from hilsim import compose
+
+        return compose.run(names, sc)
     return int(service_class(args.service, sc)(sc).run())
 
 
@@ -71,6 +78,13 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--hil", "--overlay", dest="hil", action="append", default=[], metavar="FILE",
                     help="merge a file over the scenario, in order (e.g. config/hil/motor-model.yaml, "
                          "config/lean.yaml)")
+    up.add_argument("--compose", action="append", default=[], metavar="A,B,...",
+                    help="run these services in one process (e.g. physics,sensors,controller); repeatable")
+    up.add_argument("--only", metavar="A,B,...",
+                    help="start only these services here and wait for the others from other hosts "
+                         "(docs/deployment.md); use with --router")
+    up.add_argument("--wait", type=float, default=120.0, metavar="S",
+                    help="seconds to wait for every service to announce itself (default 120)")
     up.set_defaults(func=_lazy("hilsim.launcher", "cmd_up"))
 
     run = sub.add_parser("run", help="run one service alone (what docker compose uses)")
@@ -143,9 +157,15 @@ def build_parser() -> argparse.ArgumentParser:
     bc.add_argument("--seconds", type=float, default=3.0, help="flat-out duration per direction")
     bc.add_argument("--port", type=int, default=None, help="udp_multicast port (default: a random one)")
     bc.set_defaults(func=_lazy("hilsim.bridges.can_bench", "cmd_can"))
+    bm = bsub.add_parser("mavlink", help="MAVLink bridge: added latency GPS message -> Zenoh sample vs pymavlink alone")
+    bm.add_argument("--json", action="store_true")
+    bm.add_argument("--samples", type=int, default=1000, help="paced latency probes per path")
+    bm.add_argument("--seconds", type=float, default=3.0, help="flat-out duration")
+    bm.set_defaults(func=_lazy("hilsim.bridges.mavlink_bench", "cmd_mavlink"))
     bp = bsub.add_parser("plan", help="planners on the shipped scenes")
     bp.add_argument("--json", action="store_true")
     bp.add_argument("--seeds", type=int, default=10)
+    bp.add_argument("--no-equal-time", action="store_true", help="skip the equal-wall-time pass")
     bp.set_defaults(func=_lazy("hilsim.planning.bench", "cmd_bench"))
     br = bsub.add_parser("rover", help="the rover scenario with navigation: lockstep real-time factor, laser rays/s")
     br.add_argument("--json", action="store_true")
@@ -162,6 +182,20 @@ def build_parser() -> argparse.ArgumentParser:
     inertia.add_argument("--json", action="store_true", help="print one JSON object")
     inertia.set_defaults(func=_lazy("hilsim.tools.inertia", "cmd_inertia"))
 
+    tune = sub.add_parser("tune", help="tune a joint's PID on the real services (Ziegler–Nichols or relay, "
+                          "then a refinement that removes overshoot)")
+    tune.add_argument("robot", help="scenario name in config/ (e.g. arm) or a YAML path")
+    tune.add_argument("joint", nargs="?", help="the joint (or --all)")
+    tune.add_argument("--all", action="store_true", help="tune every joint in turn")
+    tune.add_argument("--method", choices=["ziegler-nichols", "relay"], default="relay")
+    tune.add_argument("--step", type=float, default=0.2, help="step of the reference the refinement uses [rad]")
+    tune.add_argument("--measure", type=float, default=1.0, help="sim seconds recorded after each step")
+    tune.add_argument("--rise", type=float, help="target rise time [s] (default: the paper's Table II row)")
+    tune.add_argument("--settling", type=float, help="target settling time [s] (default: the paper's row)")
+    tune.add_argument("--write", action="store_true", help="write the gains into the scenario file")
+    tune.add_argument("--json", action="store_true", help="print one JSON object")
+    tune.set_defaults(func=_lazy("hilsim.tools.tuning", "cmd_tune"))
+
     report = sub.add_parser("report", help="measured reports (the arm paper's Table II)")
     rsub = report.add_subparsers(dest="report_cmd", required=True)
     rs = rsub.add_parser("step", help="step response per joint by the real services in lockstep (Table II)")
@@ -174,8 +208,11 @@ def build_parser() -> argparse.ArgumentParser:
     rs.add_argument("--json", action="store_true", help="print one JSON object")
     rs.set_defaults(func=_lazy("hilsim.tools.step_report", "cmd_report_step"))
 
-    router = sub.add_parser("router", help="run a standalone Zenoh router on loopback")
-    router.add_argument("--listen", default="tcp/127.0.0.1:7447")
+    router = sub.add_parser("router", help="run a standalone Zenoh router (loopback unless told otherwise)")
+    router.add_argument("--listen", help="endpoint to listen on (default tcp/127.0.0.1:7447; with --config, "
+                        "replaces the file's)")
+    router.add_argument("--config", help="a Zenoh router config file (JSON5: listen endpoints, TLS, access "
+                        "control), e.g. config/security/router.json5")
     router.set_defaults(func=_lazy("hilsim.launcher", "cmd_router"))
     return p
 
