@@ -64,6 +64,7 @@ from hilsim.service import Service
 from hilsim.tasks import TaskGoal, TaskRunner, is_reserved
 
 FEEDBACK_PERIOD_NS = 500_000_000  # 2 Hz sim
+SETTLE_MAX_NS = 1_000_000_000  # a goal is judged at rest, or at most 1 s (sim) after the follower ended
 
 
 class FootprintConfig(BaseModel):
@@ -178,6 +179,7 @@ class NavGoal:
     planning_time: float = 0.0
     invalid: tuple[int, str] | None = None  # a task target that cannot be used: reported in turn
     last_feedback_ns: int = -FEEDBACK_PERIOD_NS
+    settle_since: int = 0
 
 
 class NavigatorService(Service):
@@ -423,10 +425,13 @@ class NavigatorService(Service):
             vx, vy, wz = f.step(*self.pose)
             if f.done:
                 goal.state = "settling"
+                goal.settle_since = t
                 self.pub_cmd.put(msgs.Twist())
             else:
                 self.pub_cmd.put(msgs.Twist(linear=msgs.Vector3(x=vx, y=vy), angular=msgs.Vector3(z=wz)))
-        if goal.state == "settling" and self.speed[0] < 0.01 and self.speed[1] < 0.02:
+        # at rest by the odometry, or after SETTLE_MAX whatever a biased gyro says
+        if goal.state == "settling" and ((self.speed[0] < 0.01 and self.speed[1] < 0.02)
+                                         or t - goal.settle_since >= SETTLE_MAX_NS):
             err = self._error(goal)
             if err[0] <= self.cfg.goal_tolerance and (goal.yaw is None or err[1] <= 2 * self.fparams.yaw_tolerance):
                 self._finish(goal, True, msgs.SUCCESS, "goal reached")
