@@ -126,6 +126,23 @@ def test_planner_validity_and_a_path_around_an_obstacle(box_world: Path) -> None
     assert bad.path is None and bad.message.startswith("goal invalid")
 
 
+def test_a_start_a_little_inside_the_inflation_plans_from_the_nearest_free_pose(box_world: Path) -> None:
+    """The rover stopped a few cm inside the inflated zone (a goal near a wall, odometry): the plan
+    starts where it is and goes through the nearest valid pose instead of failing."""
+    g = gridmod.from_model(box_world, resolution=0.05, bounds=(-2.0, 2.0, -2.0, 2.0))
+    pl = SE2Planner(g, Footprint(0.2), turning_radius=0.4, clearance=0.05)
+    start = (1.25 + 0.2, 0.0, 0.0)  # 0.2 m from the box's face: inside the 0.25 m (+ margin) inflation
+    assert pl.why_invalid(*start) is not None
+    near = pl.nearest_valid(start)
+    assert near is not None and pl.is_valid(*near) and math.hypot(near[0] - start[0], near[1] - start[1]) < 0.15
+    res = pl.plan(start, (1.7, 1.0, 0.0), max_iterations=20000, time_limit=20.0)
+    assert res.path is not None, res.message
+    assert tuple(res.path[0]) == pytest.approx(start) and tuple(res.path[1]) == pytest.approx(near)
+    assert pl.nearest_valid((1.0, 0.0, 0.0)) is None  # deep inside the box: nothing near is free
+    bad = pl.plan((1.0, 0.0, 0.0), (1.7, 1.0, 0.0), max_iterations=100)
+    assert bad.path is None and bad.message.startswith("start invalid")
+
+
 def test_planner_yaw_is_wrapped_and_unknown_planner_refused(box_world: Path) -> None:
     g = gridmod.from_model(box_world, resolution=0.05, bounds=(-2.0, 2.0, -2.0, 2.0))
     with pytest.raises(ValueError, match="no geometric planner"):

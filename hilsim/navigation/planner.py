@@ -106,6 +106,20 @@ class SE2Planner:
             return f"({x:.2f}, {y:.2f}, yaw {yaw:.2f}) is too close to an obstacle"
         return None
 
+    def nearest_valid(self, pose: tuple[float, float, float], reach: float = 0.25) -> tuple[float, float, float] | None:
+        """The valid pose with the same yaw nearest to ``pose`` within ``reach`` metres (rings of
+        half a cell), or None."""
+        x, y, yaw = pose
+        step = self.grid.resolution / 2
+        for k in range(1, math.ceil(reach / step) + 1):
+            r = k * step
+            n = max(8, math.ceil(2 * math.pi * r / step))
+            for i in range(n):
+                a = 2 * math.pi * i / n
+                if self.is_valid(x + r * math.cos(a), y + r * math.sin(a), yaw):
+                    return x + r * math.cos(a), y + r * math.sin(a), yaw
+        return None
+
     def is_valid(self, x: float, y: float, yaw: float) -> bool:
         px, py = self.footprint.points(x, y, yaw)
         return bool(np.all(self.grid.free(px, py)))
@@ -163,6 +177,11 @@ class SE2Planner:
         # SE(2) yaw lives in [-π, π]: a goal's 3.1416 is the same heading
         start = (start[0], start[1], math.remainder(start[2], 2 * math.pi))
         goal = (goal[0], goal[1], math.remainder(goal[2], 2 * math.pi))
+        measured = start
+        if self.why_invalid(*start) is not None and (near := self.nearest_valid(start)) is not None:
+            # the estimate put the rover a little inside the inflated obstacles (it stopped a few cm
+            # off a goal near a wall): plan from the nearest free pose, the first waypoint stays here
+            start = near
         for what, s in (("start", start), ("goal", goal)):
             why = self.why_invalid(*s)
             if why is not None:
@@ -214,6 +233,8 @@ class SE2Planner:
         pts = np.array([[path.getState(k).getX(), path.getState(k).getY(), path.getState(k).getYaw()]
                         for k in range(path.getStateCount())])
         pts[0], pts[-1] = start, goal
+        if measured != start:
+            pts = np.vstack([measured, pts])
         return PlanResult(pts, "ok", count[0], time.perf_counter() - w0, cap[0])
 
 
