@@ -116,10 +116,7 @@ class StepRig(Service):
             g = base[j]
             limit = g.output_limit if g.output_limit is not None else float(table.effort_upper[j])
             # back to the scenario's gains for the way home (a trial's may be unstable)
-            restore = {f"{e.joint}.{f}": float(getattr(g, f) if f != "output_limit" else limit) for f in e.gains}
-            for f in own:
-                if f.endswith(".output_limit") and not math.isfinite(limit):
-                    raise ConfigError(f"{e.joint}: output_limit cannot be restored (the actuator is unlimited)")
+            restore = {f"{e.joint}.{f}": _live(getattr(g, f) if f != "output_limit" else limit) for f in e.gains}
             n_meas = self._steps(e.measure)
             n_settle = self._steps(e.settle)
             self.actions[k] = _Action(k, own, e.joint, float(target))
@@ -245,6 +242,11 @@ class StepRig(Service):
             y = tq[sel][order][:, j]
             out.append(Response(e, (t_ns - s_ns) / 1e9, y, float(y[0]), float(target)))
         return out
+
+
+def _live(v: float) -> float:
+    """A gain as a live parameter: an unlimited i_limit is sent as a bound no integral reaches."""
+    return float(v) if math.isfinite(v) else 1e12
 
 
 def _home(sc: Scenario, names: list[str]) -> np.ndarray:
