@@ -46,7 +46,9 @@ from hilsim.world import World
 
 SPIN_NS = 80_000  # realtime: busy-wait at most this long before a deadline
 REALTIME_PRIORITY = 10
-CONTROLLER = "controller"  # the service that writes joint_commands (every control law's name)
+# realtime: without these the joint commands stop coming (the control law, whatever its type, is
+# named controller; it acts on the sensors' joint_states) and the last one would be held
+COMMAND_PATH = ("controller", "sensors")
 JITTER_BINS = 20_000  # SCHED_FIFO priority of physics in realtime mode (if permitted)
 
 
@@ -141,8 +143,8 @@ class PhysicsService(Service):
             if self.sc.clock.mode != "lockstep":
                 # realtime: the wall clock does not wait; a restarted service just joins again
                 self.warn(f"{svc} left the simulation at t={self.sim_ns / 1e9:.3f}s")
-                if svc == CONTROLLER:
-                    self._safe_commands()
+                if svc in COMMAND_PATH:
+                    self._safe_commands(svc)
                 return
             # lockstep: whatever the service was doing for the current step is lost with it (a
             # command, the encoders, a plan, the recording); step on only once it is back
@@ -154,16 +156,16 @@ class PhysicsService(Service):
             self.warn(f"{svc} left the simulation at t={self.world.time_ns / 1e9:.3f}s; "
                       f"sim time is paused until it is back")
 
-    def _safe_commands(self) -> None:
-        """Realtime, the controller gone: as a drive's command watchdog does, the simulated joints
-        stop obeying its last command (a torque held for seconds would throw the arm about):
-        effort joints get no torque, position joints hold where they are, velocity joints stop.
-        The first command of a controller that comes back replaces this."""
+    def _safe_commands(self, svc: str) -> None:
+        """Realtime, the controller or the sensors it acts on gone: as a drive's command watchdog
+        does, the simulated joints stop obeying the last command (a torque held for seconds would
+        throw the arm about): effort joints get no torque, position joints hold where they are,
+        velocity joints stop. The controller's next command, once both are back, replaces this."""
         js = self.world.joint_states()
         n = len(js.name)
         self.world.command(msgs.JointState(name=list(js.name), position=list(js.position),
                                            velocity=[0.0] * n, effort=[0.0] * n))
-        self.log.info("controller gone: simulated joints without torque until it is back")
+        self.log.info("%s gone: simulated joints without torque until commands come again", svc)
 
     def _on_lockstep(self, sample: zenoh.Sample) -> None:
         # <prefix>/<robot>/lockstep/<service>/<period>/<via>/<gid>
