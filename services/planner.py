@@ -128,6 +128,7 @@ class PlannerService(Service):
         self.pub_result = self.publisher(k.topic("planner/result"))
         self.pub_task_result = self.publisher(k.topic("task/result"))
         self.subscribe(k.topic("joint_states"), msgs.JointState, self.on_joint_states, n_joints=self.n)
+        self._controller_seen = False
         self._declared.append(self.session.liveliness().declare_subscriber(
             k.alive("controller"), self._on_controller, history=True))
         self.queryable(k.topic("planner/goal"), msgs.MoveGoal, self.on_goal, n_joints=self.n, reject=self._reject)
@@ -285,6 +286,10 @@ class PlannerService(Service):
         new process exist can be lost (see physics' start of the run)."""
         if sample.kind != zenoh.SampleKind.PUT:
             return
+        with self.lock:
+            first, self._controller_seen = not self._controller_seen, True
+        if first:
+            return  # the run's own controller, before any goal: nothing to send again (nor any timer)
         self._resend_trajectory()
         t = threading.Timer(self.sc.clock.start_delay, self._resend_trajectory)
         t.daemon = True
