@@ -126,10 +126,12 @@ class Launcher:
         self.prov = Provenance()
         self.untrusted = 0  # samples on the keys it follows from writers other than the services
         self.paused_for = ""  # lockstep: the services physics waits for to come back (its health)
+        self._say_lock = threading.Lock()
 
     def say(self, text: str) -> None:
         if not self.quiet:
-            print(text, flush=True)
+            with self._say_lock:  # several threads report: one whole line at a time
+                print(text, flush=True)
 
     # ------------------------------------------------------------------ start
     def start(self) -> None:
