@@ -40,6 +40,8 @@ BUILTIN: dict[str, dict[str, str]] = {
         "motor-model": "hilsim.services.motor_model:MotorModelService",
         "bridge-can": "hilsim.bridges.can_bridge:CanBridgeService",
         "drive-emulator": "hilsim.bridges.drive_emulator:DriveEmulatorService",
+        "bridge-mavlink": "hilsim.bridges.mavlink_bridge:MavlinkBridgeService",
+        "gps-emulator": "hilsim.bridges.gps_emulator:GpsEmulatorService",
     },
     # sensor kinds register themselves in hilsim.sensing (imported when a sensor is built)
     "sensors": {
