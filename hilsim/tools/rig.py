@@ -11,10 +11,12 @@ sim times, so an experiment is as reproducible as the run itself (same seed, sam
   done with that step), then sets the joint's gains for the experiment through
   ``controller/set_parameters`` (effective from the next control step; the reply comes before the
   rig acknowledges ``k``, so physics cannot step on before), and publishes a one-point
-  ``JointTrajectory`` (``time_from_start`` 0) stamped ``k + PERIOD``: a step of the reference at
-  that sim time;
+  ``JointTrajectory`` (``time_from_start`` 0) stamped ``k + LEAD`` periods: a step of the reference
+  at that sim time. The trajectory and the sensors' ``joint_states`` reach the controller over
+  different links, with no order between them, so the stamp lies ``LEAD`` rig periods ahead;
 - it records the physics truth (``truth/joint_states``) and the controller's reference
-  (``controller/reference``), which proves the step started at the stamped step;
+  (``controller/reference``), which proves the step started at the stamped step (a step that
+  reached the controller late anyway makes :func:`run_experiments` run the batch once more);
 - after the measurement window it puts the scenario's own gains back and commands the joint
   home, and lets it settle before the next experiment.
 
@@ -23,6 +25,7 @@ The response measured is the joint's TRUE position, not the encoders'.
 
 from __future__ import annotations
 
+import logging
 import math
 import queue
 import tempfile
@@ -45,6 +48,10 @@ LOOP_SERVICES = ["physics", "sensors", "controller"]
 
 class RigError(RuntimeError):
     """A step experiment that could not be run or measured; the message says why, in one line."""
+
+
+class LateStep(RigError):
+    """A trajectory reached the controller after its stamp: that experiment's timing is not exact."""
 
 
 @dataclass
@@ -71,7 +78,7 @@ class Response:
 
 @dataclass
 class _Action:
-    k: int  # rig step at which it is done (the step of the reference is at k + period)
+    k: int  # rig step at which it is done (the step of the reference is LEAD periods later)
     gains: dict[str, float]  # live parameters "<joint>.<field>"
     joint: str
     position: float
@@ -83,6 +90,7 @@ class StepRig(Service):
     name: ClassVar[str] = RIG
     ack_via: ClassVar[str] = "sync"
     PERIOD: ClassVar[int] = 10  # control steps between acknowledgements (10 ms at 1 kHz)
+    LEAD: ClassVar[int] = 10  # rig periods between publishing a trajectory and its stamp
 
     @classmethod
     def lockstep_period(cls, sc: Scenario) -> int | None:
@@ -92,6 +100,7 @@ class StepRig(Service):
                  progress: Callable[[int, int], None] | None = None) -> None:
         super().__init__(sc)
         self.period = self.PERIOD * sc.control_decimation
+        self.lead = self.LEAD * self.period
         self.dt_ns = round(sc.clock.dt * 1e9)
         self.experiments = list(experiments)
         self.progress = progress
@@ -120,12 +129,12 @@ class StepRig(Service):
             n_meas = self._steps(e.measure)
             n_settle = self._steps(e.settle)
             self.actions[k] = _Action(k, own, e.joint, float(target))
-            s = k + self.period
+            s = k + self.lead
             self.windows.append((s, s + n_meas))
             kb = s + n_meas
             self.actions[kb] = _Action(kb, restore, e.joint, float(self.home[j]))
             self._done_at[kb] = i + 1
-            k = kb + self.period + n_settle
+            k = kb + self.lead + n_settle
         self.end = k  # the last rig step; the scenario's duration ends the run there
         self.truth_t: list[int] = []
         self.truth_q: list[list[float]] = []
@@ -192,7 +201,7 @@ class StepRig(Service):
     def _act(self, a: _Action) -> None:
         if a.gains:
             self._set_gains(a.gains)
-        stamp = (a.k + self.period) * self.dt_ns
+        stamp = (a.k + self.lead) * self.dt_ns
         traj = msgs.JointTrajectory(
             header=msgs.header(stamp),
             joint_names=[a.joint],
@@ -237,7 +246,7 @@ class StepRig(Service):
             at = np.nonzero(rt == s_ns)[0]
             if not at.size or not before.size or abs(rq[at[0], j] - target) > 1e-12 \
                     or abs(rq[before[0], j] - target) < 1e-12:
-                raise RigError(f"{e.joint}: the step did not start at t={s_ns / 1e9:.3f} s in the controller "
+                raise LateStep(f"{e.joint}: the step did not start at t={s_ns / 1e9:.3f} s in the controller "
                                f"(the trajectory reached it late)")
             y = tq[sel][order][:, j]
             out.append(Response(e, (t_ns - s_ns) / 1e9, y, float(y[0]), float(target)))
@@ -275,7 +284,17 @@ def loop_scenario(robot: str, overrides: dict[str, Any] | None = None) -> Scenar
 
 def run_experiments(sc: Scenario, experiments: Sequence[Experiment], run_dir: Path | None = None,
                     progress: Callable[[int, int], None] | None = None, wall_timeout: float = 900.0) -> list[Response]:
-    """Run the experiments in one lockstep run of the real services and return what they measured."""
+    """Run the experiments in one lockstep run of the real services and return what they measured
+    (once more if a step reached the controller late: on a starved machine a link can lag)."""
+    try:
+        return _run_once(sc.model_copy(deep=True), experiments, run_dir, progress, wall_timeout)
+    except LateStep as e:
+        logging.getLogger("hilsim.step-rig").warning("%s; running the experiments again", e)
+        return _run_once(sc.model_copy(deep=True), experiments, run_dir, progress, wall_timeout)
+
+
+def _run_once(sc: Scenario, experiments: Sequence[Experiment], run_dir: Path | None,
+              progress: Callable[[int, int], None] | None, wall_timeout: float) -> list[Response]:
     from hilsim.launcher import Launcher
 
     if not experiments:

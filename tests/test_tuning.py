@@ -1,0 +1,72 @@
+"""``hilsim tune``: the oscillation analysis, the rule, writing the scenario, and the tuner end to end."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from hilsim.config import ConfigError, load_scenario
+from hilsim.tools import tuning
+from hilsim.tools.rig import Experiment, Response
+from hilsim.tools.step_report import measure
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def test_decay_ratio_and_period() -> None:
+    """A decaying oscillation around the target: the ratio per period and the period are exact."""
+    sigma, w = 1.5, 2 * math.pi * 12.0
+    t = np.arange(0.0, 1.0, 1e-4)
+    y = 0.3 - 0.01 * np.exp(-sigma * t) * np.cos(w * t)  # from 0.29 to 0.3: a 0.01 step
+    r = Response(Experiment("j", 0.01), t, y, float(y[0]), 0.3)
+    ratio, period, _ = tuning.decay_and_period(r)
+    assert period == pytest.approx(1 / 12.0, rel=1e-3)
+    assert ratio == pytest.approx(math.exp(-sigma / 12.0), rel=1e-3)
+    # a response that does not oscillate has no ratio
+    mono = 0.3 - 0.01 * np.exp(-20 * t)
+    assert tuning.decay_and_period(Response(Experiment("j", 0.01), t, mono, 0.29, 0.3))[0] == 0.0
+
+
+def test_ziegler_nichols_rule() -> None:
+    g = tuning.ziegler_nichols_pid(tuning.Ultimate(ku=100.0, tu=0.2, how=""))
+    assert g == pytest.approx({"kp": 60.0, "ki": 600.0, "kd": 1.5})
+
+
+def test_write_gains_keeps_the_file(tmp_path: Path) -> None:
+    sc = tmp_path / "arm.yaml"
+    sc.write_text(f"extends: {REPO / 'config/arm.yaml'}\n# mine\ncontroller:\n  rate_hz: 1000\n  gains:\n"
+                  "    default: {kp: 100.0, ki: 5.0, kd: 5.0}   # kept\n    joint_2: {kp: 1}\n\nplanner:\n"
+                  "  planning_time: 1.0\n")
+    tuning.write_gains(sc, "joint_2", {"kp": 12.5, "ki": 0.5, "kd": 0.75, "i_limit": 1.2})
+    tuning.write_gains(sc, "joint_6", {"kp": 3.0, "ki": 0.0, "kd": 0.1, "i_limit": 0.3})
+    text = sc.read_text()
+    assert "# mine" in text and "# kept" in text and "planning_time" in text
+    loaded = load_scenario(sc).controller.gains
+    assert loaded["joint_2"].kp == 12.5 and loaded["joint_2"].i_limit == 1.2
+    assert loaded["joint_6"].kd == 0.1 and loaded["default"].kp == 100.0
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(f"extends: {REPO / 'config/arm.yaml'}\n")
+    with pytest.raises(ConfigError, match=r"no controller\.gains block"):
+        tuning.write_gains(bad, "joint_2", {"kp": 1.0})
+
+
+def test_tune_one_joint_end_to_end() -> None:
+    """The relay tuner on joint_5, real services in lockstep: it finds gains that meet a stated target
+    (rise <= 0.25 s, settling <= 0.35 s, no overshoot, error < 1e-3 rad on a 0.2 rad step), and the
+    same gains, put into the scenario instead of set live, measure the same figures."""
+    target = tuning.Target(rise_s=0.25, settling_s=0.35)
+    lines: list[str] = []
+    r = tuning.tune("arm", "joint_5", "relay", 0.2, target, lines.append, measure=0.5)
+    assert r.ultimate.ku > 0 and 0 < r.ultimate.tu < 1
+    assert not r.misses, (r.misses, "\n".join(lines))
+    assert r.gains["kp"] < r.rule["kp"]  # the refinement moved off the rule
+    assert any("trial" in ln for ln in lines)  # progress was shown
+    g = dict(r.gains)
+    (row,) = measure("arm", ["joint_5"], 0.2, measure_s=0.5, settle_s=0.1,
+                     overrides={"controller.gains.joint_5": g})
+    f = row.figures
+    assert not target.misses(f), target.misses(f)
+    assert f.settling_time_s == pytest.approx(r.figures.settling_time_s, abs=0.01)
