@@ -28,8 +28,10 @@ from typing import Any
 
 import numpy as np
 
-PLANE_MARGIN = 5.0  # [m] a plane is drawn at most this far beyond the rest of the static geometry…
-PLANE_MARGIN_FRACTION = 0.25  # …and at least a quarter of its reach (0.5 m or more): a table's floor stays small
+# A plane is drawn this far beyond the rest of the static geometry: a quarter of that geometry's
+# reach, between 0.5 m and PLANE_MARGIN (a table's floor stays small, the outdoor ground 5 m wide)
+PLANE_MARGIN = 5.0  # [m]
+PLANE_MARGIN_FRACTION = 0.25
 PLANE_DEFAULT = 10.0  # [m] half size of an infinite plane in an otherwise empty world
 GEOM_KINDS = {0: "plane", 2: "sphere", 3: "capsule", 4: "ellipsoid", 5: "cylinder", 6: "box", 7: "mesh"}
 DEFAULT_RGBA = (0.5, 0.5, 0.5, 1.0)  # MuJoCo's geom colour when none is given (a material's then wins)

@@ -329,3 +329,51 @@ def test_default_layout(world: Path, urdf: Path, expected: set[str]) -> None:
     assert ("map" in names) == ("map" in expected)
     spatial = next(v for v in views if vars(v).get("name") == "world")
     assert str(vars(spatial)["properties"]["SpatialInformation"].target_frame.as_arrow_array()[0]) == "world"
+
+
+def test_every_geom_kind_is_drawn(tmp_path: Path) -> None:
+    """A world of one geom of each kind: each one read at its place and size (a mesh's vertices in
+    the world, a capsule's length) and logged; a height field is listed as not drawn."""
+    xml = tmp_path / "kinds.xml"
+    xml.write_text("""<mujoco>
+  <asset>
+    <mesh name="tetra" vertex="0 0 0  1 0 0  0 1 0  0 0 1"/>
+    <hfield name="hills" nrow="2" ncol="2" size="1 1 0.1 0.1"/>
+  </asset>
+  <worldbody>
+    <geom name="ground" type="plane" size="0 0 1"/>
+    <geom name="ball" type="sphere" pos="1 0 0.5" size="0.5"/>
+    <geom name="pill" type="capsule" pos="-1 0 1" size="0.1 0.4" euler="90 0 0"/>
+    <geom name="egg" type="ellipsoid" pos="0 2 1" size="0.1 0.2 0.3"/>
+    <geom name="rock" type="mesh" mesh="tetra" pos="3 0 0"/>
+    <geom name="hills" type="hfield" hfield="hills" pos="0 -3 0"/>
+    <body name="lid" pos="0 0 2"><geom name="lid" type="box" size="0.1 0.1 0.1"/></body>
+    <body name="door" pos="0 0 3"><joint type="hinge"/><geom name="door" type="box" size="0.1 0.1 0.1"/></body>
+  </worldbody>
+</mujoco>""")
+    from hilsim.rerun_rows import rr
+    from hilsim.scene import Scene
+
+    scene = Scene.load(xml)
+    got = {g.name: g for g in scene.geoms}
+    assert set(got) == {"ground", "ball", "pill", "egg", "rock", "lid"}  # the door can move
+    assert scene.skipped == ["hills"]
+    assert got["ball"].kind == "sphere" and got["ball"].size[0] == 0.5
+    np.testing.assert_allclose(got["pill"].half_extent, [0.1, 0.5, 0.1], atol=1e-9)  # lying along y
+    np.testing.assert_allclose(got["egg"].size, [0.1, 0.2, 0.3])
+    np.testing.assert_allclose(got["lid"].pos, [0, 0, 2])  # welded to the world: static
+    rock = got["rock"]
+    assert rock.vertices is not None and rock.faces is not None and len(rock.faces) == 4
+    np.testing.assert_allclose(rock.vertices.min(axis=0), [3, 0, 0], atol=1e-6)
+    np.testing.assert_allclose(rock.vertices.max(axis=0), [4, 1, 1], atol=1e-6)
+    ground = got["ground"]  # infinite: as far as the rest reaches, plus the margin
+    assert 4.0 < ground.size[0] < 6.0 and 3.0 < ground.size[1] < 5.0
+
+    rrd = tmp_path / "kinds.rrd"
+    rec = rr.RecordingStream("test_views")
+    rec.save(rrd)
+    scene.log_static(rec)
+    rec.flush()
+    rec.disconnect()
+    rows = recording.entity_rows(rrd)
+    assert {e for e in rows if e.startswith("/world/")} == {f"/world/{n}" for n in got}
