@@ -15,7 +15,7 @@ from pathlib import Path
 
 import psutil
 import pytest
-from test_restart import LEFT, Output, sim_now
+from test_restart import LEFT, Output, ended, sim_now
 from util import Observer, up, wait_until
 
 from hilsim import transport
@@ -88,8 +88,7 @@ def test_a_recorder_killed_mid_run_leaves_a_verified_recording(tmp_path: Path) -
         time.sleep(1.5)
         psutil.Process(logger).send_signal(signal.SIGKILL)
         pids.add(int(out.wait(r"^  logger is back \(pid (\d+)\)", 60)[1]))
-        p.wait(timeout=120)
-        out.thread.join(10)
+        ended(p, out, 180)
     finally:
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
@@ -99,6 +98,10 @@ def test_a_recorder_killed_mid_run_leaves_a_verified_recording(tmp_path: Path) -
     text = out.text()
     assert p.returncode == 0, text
     assert "targets reached: 1/1" in text and "restarted logger (exit code -9" in text, text
+    # lockstep: sim time waited for the recorder (nothing was published while it was gone)
+    stop = re.search(r"^  physics: sim time paused at t=([\d.]+) s until logger is back\n"
+                     r"(?:.*\n)*?  physics: sim time runs again from t=([\d.]+) s", text, re.M)
+    assert stop and 0 <= float(stop[2]) - float(stop[1]) <= 0.1, text
     first, second = run / "recording.rrd", run / part_name(1)
     assert re.search(rf"^  recording {re.escape(str(first))}: \d+ rows on \d+ entities up to t=[\d.]+ s sim "
                      r"\(the recorder was killed: recovered, verified\)", text, re.M), text
