@@ -60,10 +60,11 @@ def test_an_impostor_on_the_clock_changes_neither_hz_nor_the_summary() -> None:
                 proc.communicate()
         router.close()
     assert sent.get("copy_foreign_writer", 0) >= 5 and sent.get("copy_no_attachment", 0) >= 5, sent
-    # only physics' clock: exactly one sample per 2 ms step in sim time, about 500 Hz of wall time
-    # (a loaded machine delays some ticks), and the impostor's samples were seen and ignored
+    # only physics' clock: one sample per 2 ms step in sim time (never more: a sample lost on a
+    # loaded machine can only lower it), about 500 Hz of wall time, and the impostor's samples were
+    # seen and ignored
     wall, sim, ignored = rightful[-1]
-    assert abs(sim - 500.0) < 0.5 and 350 < wall < 650 and ignored > 0, rightful
+    assert 450 < sim < 500.5 and 350 < wall < 650 and ignored > 0, rightful
     # counting everyone, the replayed stamps of the past and the extra samples show
     assert any(abs(s - 500.0) >= 0.5 or w > 650 for w, s, _ in anyone), anyone
     # the launcher's summary: physics' own sim time, not a replayed health sample's
