@@ -23,8 +23,10 @@ Reads (``<prefix>/<robot>/…``):
   the ``cmd_vel`` (and any plan) is out, so planning and following take no sim time and a run
   repeats bit for bit.
 Writes:
-  ``cmd_vel`` (geometry_msgs/Twist, base_link) at every tick while a goal runs, and one zero
-  twist when it ends (the rover is left to the user when no goal runs);
+  ``cmd_vel`` (geometry_msgs/Twist, base_link): exactly one per tick, zero when no goal is being
+  followed (in lockstep the controller holds a control step until the cmd_vel of every earlier tick
+  has come, so a command takes effect at the same step in every run); in realtime also a zero
+  twist at once when a goal is canceled or preempted;
   ``map`` (nav_msgs/OccupancyGrid, ``world``: 100 obstacle, 50 within the footprint's reach of
   one, 0 free) at the first tick and every ``navigator.map_period`` sim seconds, so a recorder
   started late still gets it; ``plan`` (nav_msgs/Path, ``world``) when a goal is planned, an
@@ -222,6 +224,7 @@ class NavigatorService(Service):
         self.last_planning_time = 0.0
         self.last_map_ns: int | None = None
         self._map_msg: msgs.OccupancyGrid | None = None
+        self.tick_cmd = msgs.Twist()
 
     # ------------------------------------------------------------------ setup
     def setup(self) -> None:
@@ -324,7 +327,8 @@ class NavigatorService(Service):
             self.pending.remove(goal)
         if self.active is goal:
             self.active = None
-            if was_moving:
+            self.tick_cmd = msgs.Twist()  # this tick's command, if in one: stand still
+            if was_moving and not self.lockstep:
                 self.pub_cmd.put(msgs.Twist())  # stop now, not after the controller's cmd_timeout
             self.pub_plan.put(msgs.Path(header=msgs.header(self.sim_ns, "world")))
         err = self._error(goal)
@@ -357,6 +361,7 @@ class NavigatorService(Service):
     def on_tick(self, t: int) -> None:
         """A decision step: map, goals, plan, follow; then the lockstep acknowledgement."""
         self.sim_ns = max(self.sim_ns, t)
+        self.tick_cmd = msgs.Twist()  # stand still unless a goal is being followed
         try:
             if self.last_map_ns is None or t - self.last_map_ns >= round(self.cfg.map_period * 1e9):
                 self._publish_map(t)
@@ -366,6 +371,9 @@ class NavigatorService(Service):
             if self.active is not None:
                 self._follow(self.active, t)
         finally:
+            # exactly one cmd_vel per tick, goal or not: in lockstep the controller waits for it
+            # (services/rover_controller.py), so it takes effect at the same step in every run
+            self.pub_cmd.put(self.tick_cmd)
             if self.lockstep:
                 self.ack(t)
 
@@ -426,9 +434,8 @@ class NavigatorService(Service):
             if f.done:
                 goal.state = "settling"
                 goal.settle_since = t
-                self.pub_cmd.put(msgs.Twist())
             else:
-                self.pub_cmd.put(msgs.Twist(linear=msgs.Vector3(x=vx, y=vy), angular=msgs.Vector3(z=wz)))
+                self.tick_cmd = msgs.Twist(linear=msgs.Vector3(x=vx, y=vy), angular=msgs.Vector3(z=wz))
         # at rest by the odometry, or after SETTLE_MAX whatever a biased gyro says
         if goal.state == "settling" and ((self.speed[0] < 0.01 and self.speed[1] < 0.02)
                                          or t - goal.settle_since >= SETTLE_MAX_NS):

@@ -15,7 +15,8 @@ Reads (``<prefix>/<robot>/…``):
   ``imu`` (sensor_msgs/Imu: the gyro's yaw rate for the odometry, unless ``params.imu_yaw_rate: false``;
   in lockstep a control step whose imu is due waits for it, so the odometry is reproducible),
   ``cmd_vel`` (geometry_msgs/Twist: linear.x, linear.y [m/s], angular.z [rad/s] in base_link; held
-  for ``params.cmd_timeout`` sim seconds, then the rover stops).
+  for ``params.cmd_timeout`` sim seconds, then the rover stops; in lockstep with the navigator,
+  which sends one per decision step, a control step waits for those of the steps before it).
 Writes:
   ``joint_commands`` (sensor_msgs/JointState) stamped like the joint_states it answers, every joint,
   all three fields: ``position`` = steering angle reference (traction joints: the integrated
@@ -147,6 +148,16 @@ class FourWheelSteerController(Service):
             rates = [c.rate_hz for c in scenario.sensors.values() if c.type == "imu" and c.enabled]
             if rates:
                 self.imu_every = round(1.0 / (rates[0] * scenario.clock.dt))
+        # lockstep with the navigator: it publishes one cmd_vel per decision step (every
+        # cmd_every physics steps, from step 0), after this controller's step of the same time; a
+        # later control step is held until every such cmd_vel has come, so a command never lands a
+        # step early or late depending on the network (the same reason as the imu's)
+        self.cmd_every = 0
+        if scenario.clock.mode == "lockstep" and "navigator" in scenario.services:
+            from hilsim.registry import service_class
+
+            self.cmd_every = int(service_class("navigator", scenario).lockstep_period(scenario) or 0)
+        self.cmds = 0  # cmd_vel samples received
         self.held: tuple[msgs.JointState, str] | None = None
         self.steps = 0
 
@@ -180,13 +191,29 @@ class FourWheelSteerController(Service):
         )
 
     def on_cmd_vel(self, msg: msgs.Twist, key: str) -> None:
-        # a Twist has no stamp: it counts from the sim time it arrived at
+        # a Twist has no stamp: it counts from the sim time it arrived at (the last control step)
         self.cmd = (msg.linear.x, msg.linear.y, msg.angular.z)
         self.cmd_ns = self.sim_ns
+        self.cmds += 1
+        self._release()
 
     def on_imu(self, msg: msgs.Imu, key: str) -> None:
         self.gyro = (msgs.ns_of(msg.header.stamp), msg.angular_velocity.z)
-        if self.held is not None and msgs.ns_of(self.held[0].header.stamp) == self.gyro[0]:
+        self._release()
+
+    def _waiting(self, stamp: int) -> bool:
+        """Lockstep: is an input of the control step at ``stamp`` still on its way (see __init__)?"""
+        dt = self.sc.dt_ns
+        if self.imu_every and (stamp // dt) % self.imu_every == 0 and (self.gyro is None or self.gyro[0] < stamp):
+            return True
+        if self.cmd_every:
+            since = stamp - self.sc.control_decimation * dt  # navigator steps up to the previous control step
+            if since >= 0 and self.cmds < since // (self.cmd_every * dt) + 1:
+                return True
+        return False
+
+    def _release(self) -> None:
+        if self.held is not None and not self._waiting(msgs.ns_of(self.held[0].header.stamp)):
             js, k = self.held
             self.held = None
             self.on_joint_states(js, k)
@@ -210,9 +237,8 @@ class FourWheelSteerController(Service):
     # ------------------------------------------------------------------ control step
     def on_joint_states(self, msg: msgs.JointState, key: str) -> None:
         stamp = msgs.ns_of(msg.header.stamp)
-        if (self.imu_every and (stamp // self.sc.dt_ns) % self.imu_every == 0
-                and (self.gyro is None or self.gyro[0] < stamp)):
-            self.held = (msg, key)  # this step's imu is on its way (see __init__)
+        if self._waiting(stamp):
+            self.held = (msg, key)  # this step's imu or a navigator's cmd_vel is on its way (see __init__)
             return
         if not msg.position or not msg.velocity:
             self.reject(key, "JointState without positions or velocities")

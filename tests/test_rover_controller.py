@@ -103,7 +103,7 @@ def test_lockstep_step_waits_for_its_imu() -> None:
     """Lockstep: joint_states and imu are two keys in no guaranteed order; a control step whose imu
     is due (every 5 physics steps at 100 Hz) is held until that imu comes, then uses its gyro, so the
     odometry is the same whichever arrived first."""
-    c = controller(**{"clock.mode": "lockstep"})
+    c = controller(**{"clock.mode": "lockstep", "services": ["physics", "sensors", "controller"]})
     c.on_joint_states(states(c, 10_000_000, speed=2.0), "k")
     assert c.odom_pub.got == [] and c.cmd_pub.got == []  # type: ignore[attr-defined]
     c.on_imu(msgs.Imu(header=msgs.header(10_000_000), angular_velocity=msgs.Vector3(z=0.2)), "k")
@@ -113,6 +113,27 @@ def test_lockstep_step_waits_for_its_imu() -> None:
     c.on_imu(msgs.Imu(header=msgs.header(20_000_000), angular_velocity=msgs.Vector3(z=0.2)), "k")
     c.on_joint_states(states(c, 20_000_000, speed=2.0), "k")
     assert len(c.cmd_pub.got) == 2 and c.odom_pub.got[-1].twist.twist.angular.z == pytest.approx(0.2)  # type: ignore[attr-defined]
+
+
+def test_lockstep_step_waits_for_the_navigators_cmd_vel() -> None:
+    """Lockstep with the navigator (one cmd_vel per 20 Hz decision, after the controller's step of
+    that time): a control step is held until the cmd_vel of every earlier decision has come, and the
+    command then counts from the previous control step, whichever arrived first."""
+    c = controller(**{"clock.mode": "lockstep", "controller.params.imu_yaw_rate": False})
+    assert c.cmd_every == 25  # 20 Hz over 500 Hz physics
+    c.on_joint_states(states(c, 0), "k")  # step 0: no decision before it
+    assert len(c.cmd_pub.got) == 1  # type: ignore[attr-defined]
+    c.on_joint_states(states(c, 10_000_000), "k")  # needs the decision of t = 0
+    assert len(c.cmd_pub.got) == 1  # type: ignore[attr-defined]
+    c.on_cmd_vel(msgs.Twist(linear=msgs.Vector3(x=0.5)), "k")
+    assert len(c.cmd_pub.got) == 2 and c.twist == (0.5, 0.0, 0.0)  # type: ignore[attr-defined]
+    assert c.cmd_ns == 0  # counted from the control step it followed, not from its arrival
+    for k in range(2, 6):  # up to t = 50 ms: still only the decision of t = 0 is due
+        c.on_joint_states(states(c, k * 10_000_000), "k")
+    assert len(c.cmd_pub.got) == 6  # type: ignore[attr-defined]
+    c.on_cmd_vel(msgs.Twist(linear=msgs.Vector3(x=0.2)), "k")  # decision of t = 50 ms, arrived early
+    c.on_joint_states(states(c, 60_000_000), "k")
+    assert len(c.cmd_pub.got) == 7 and c.twist == (0.2, 0.0, 0.0)  # type: ignore[attr-defined]
 
 
 @pytest.mark.parametrize(("over", "field"), [
