@@ -174,6 +174,35 @@ def cmd_evaluate_goals(sc: Scenario, args: argparse.Namespace) -> int:
     if best is None:
         print("no goal could be planned", file=sys.stderr)
         return 1
+    print(f"chosen: {evals[best].name}")
     if args.execute:
-        print("--execute: send the chosen goal with `hilsim goal rover --xy X Y [--yaw THETA]`", file=sys.stderr)
+        return execute(sc, evals[best])
     return 0 if all(e.ok for e in evals) else 1
+
+
+def execute(sc: Scenario, e: GoalEvaluation) -> int:
+    """Send the chosen goal to the running rover's navigator and wait for its result."""
+    from hilsim import msgs
+    from hilsim.keys import Keys
+    from hilsim.planning.client import MoveClient
+    from hilsim.transport import open_session
+
+    x, y, yaw = e.goal
+    pose = msgs.Pose(position=msgs.Point(x=x, y=y))
+    if yaw is not None:
+        pose.orientation = msgs.Quaternion(z=math.sin(yaw / 2), w=math.cos(yaw / 2))
+    session = open_session(sc.zenoh)
+    client = MoveClient(session, Keys(sc.prefix, sc.robot), service="navigator")
+    try:
+        gid = f"evaluate-{e.name}"
+        resp = client.send(msgs.MoveGoal(goal_id=gid, target_kind="pose", pose=pose, use_orientation=yaw is not None))
+        if not resp.accepted:
+            print(f"execute: rejected: {resp.reason}")
+            return 1
+        res = client.wait(gid, 300.0, on_feedback=lambda f: print(f"  {f.state:<10} {100 * f.progress:5.1f} %",
+                                                                    flush=True))
+        print(f"execute: {'succeeded' if res and res.success else 'failed'}: {res.message if res else 'no result'}")
+        return 0 if res is not None and res.success else 1
+    finally:
+        client.close()
+        session.close()
