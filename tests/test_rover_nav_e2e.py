@@ -117,7 +117,7 @@ def test_goal_rover_xy_drives_to_the_goal(router: str, tmp_path: Path) -> None:
     malformed one answered with the reason; a goal canceled while driving ends CANCELED and the
     rover stops."""
     cap = Capture(router, ["truth/odom", "navigator/result"])
-    p = up("rover", "--router", router, "--no-logger", "--duration", "30", "--set", "task.targets=[]",
+    p = up("rover", "--router", router, "--no-logger", "--duration", "36", "--set", "task.targets=[]",
            "--out", str(tmp_path / "run"))
     try:
         # send once every service has announced itself (the launcher says "ready:")
