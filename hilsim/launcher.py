@@ -333,6 +333,7 @@ class Launcher:
                 delay = rs.backoff * 2 ** (c.restarts - 1)
                 with self.lock:
                     c.ready = False
+                    c.alive.clear()  # its tokens died with it (their removal may still be on its way)
                     c.died_at = now
                     sim = self.outcome.health.get("physics", {}).get("sim_time", "?")
                     self.outcome.restarts.append(Restart(c.name, rc, sim))
