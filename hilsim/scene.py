@@ -194,9 +194,7 @@ class Scene:
 
     def log_static(self, rec: Any, frame: str = "world") -> None:
         """Log every geom once (static) as ``world/<name>`` in ``frame``."""
-        import rerun as rr
-
-        from hilsim.rerun_rows import part
+        from hilsim.rerun_rows import part, rr  # rerun, imported after its analytics were turned off
 
         for g in self.geoms:
             colour = [round(c * 255) for c in g.rgba]
