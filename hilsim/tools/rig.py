@@ -28,6 +28,7 @@ from __future__ import annotations
 import logging
 import math
 import queue
+import signal
 import tempfile
 import threading
 import time
@@ -293,8 +294,26 @@ def run_experiments(sc: Scenario, experiments: Sequence[Experiment], run_dir: Pa
         return _run_once(sc.model_copy(deep=True), experiments, run_dir, progress, wall_timeout)
 
 
+def _interrupt(signum: int, _frame: Any) -> None:
+    raise KeyboardInterrupt
+
+
 def _run_once(sc: Scenario, experiments: Sequence[Experiment], run_dir: Path | None,
               progress: Callable[[int, int], None] | None, wall_timeout: float) -> list[Response]:
+    # Ctrl-C and SIGTERM stop the run (and its services) wherever it is; set explicitly, as hilsim up
+    # does, since a process started in the background inherits SIGINT ignored
+    old = {}
+    if threading.current_thread() is threading.main_thread():
+        old = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        return _run_services(sc, experiments, run_dir, progress, wall_timeout)
+    finally:
+        for sig, handler in old.items():
+            signal.signal(sig, handler)
+
+
+def _run_services(sc: Scenario, experiments: Sequence[Experiment], run_dir: Path | None,
+                  progress: Callable[[int, int], None] | None, wall_timeout: float) -> list[Response]:
     from hilsim.launcher import Launcher
 
     if not experiments:
