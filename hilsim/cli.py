@@ -11,8 +11,6 @@
     hilsim report step ROBOT [--joints J,…] [--step RAD] [--json]
     hilsim inertia FILE [--link NAME] [--urdf FILE] [--json]
     hilsim tune ROBOT JOINT|--all [--method ziegler-nichols|relay] [--write] [--json]
-    hilsim tune ROBOT JOINT|--all [--method ziegler-nichols|relay] [--write] [--json]
-    hilsim tune ROBOT JOINT|--all [--method ziegler-nichols|relay] [--write] [--json]
     hilsim router [--listen ENDPOINT] [--config FILE]
 """
 
@@ -194,34 +192,8 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument("--measure", type=float, default=1.0, help="sim seconds recorded after each step")
     tune.add_argument("--rise", type=float, help="target rise time [s] (default: the paper's Table II row)")
     tune.add_argument("--settling", type=float, help="target settling time [s] (default: the paper's row)")
-    tune.add_argument("--write", action="store_true", help="write the gains into the scenario file")
-    tune.add_argument("--json", action="store_true", help="print one JSON object")
-    tune.set_defaults(func=_lazy("hilsim.tools.tuning", "cmd_tune"))
-
-    tune = sub.add_parser("tune", help="tune a joint's PID on the real services (Ziegler–Nichols or relay, "
-                          "then a refinement that removes overshoot)")
-    tune.add_argument("robot", help="scenario name in config/ (e.g. arm) or a YAML path")
-    tune.add_argument("joint", nargs="?", help="the joint (or --all)")
-    tune.add_argument("--all", action="store_true", help="tune every joint in turn")
-    tune.add_argument("--method", choices=["ziegler-nichols", "relay"], default="relay")
-    tune.add_argument("--step", type=float, default=0.2, help="step of the reference the refinement uses [rad]")
-    tune.add_argument("--measure", type=float, default=1.0, help="sim seconds recorded after each step")
-    tune.add_argument("--rise", type=float, help="target rise time [s] (default: the paper's Table II row)")
-    tune.add_argument("--settling", type=float, help="target settling time [s] (default: the paper's row)")
-    tune.add_argument("--write", action="store_true", help="write the gains into the scenario file")
-    tune.add_argument("--json", action="store_true", help="print one JSON object")
-    tune.set_defaults(func=_lazy("hilsim.tools.tuning", "cmd_tune"))
-
-    tune = sub.add_parser("tune", help="tune a joint's PID on the real services (Ziegler–Nichols or relay, "
-                          "then a refinement that removes overshoot)")
-    tune.add_argument("robot", help="scenario name in config/ (e.g. arm) or a YAML path")
-    tune.add_argument("joint", nargs="?", help="the joint (or --all)")
-    tune.add_argument("--all", action="store_true", help="tune every joint in turn")
-    tune.add_argument("--method", choices=["ziegler-nichols", "relay"], default="relay")
-    tune.add_argument("--step", type=float, default=0.2, help="step of the reference the refinement uses [rad]")
-    tune.add_argument("--measure", type=float, default=1.0, help="sim seconds recorded after each step")
-    tune.add_argument("--rise", type=float, help="target rise time [s] (default: the paper's Table II row)")
-    tune.add_argument("--settling", type=float, help="target settling time [s] (default: the paper's row)")
+    tune.add_argument("--margin", type=float, default=0.8, help="aim at rise and settling this fraction of the "
+                      "target (default 0.8): the least gain that does is chosen")
     tune.add_argument("--write", action="store_true", help="write the gains into the scenario file")
     tune.add_argument("--json", action="store_true", help="print one JSON object")
     tune.set_defaults(func=_lazy("hilsim.tools.tuning", "cmd_tune"))
