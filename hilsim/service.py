@@ -49,20 +49,27 @@ class Publisher:
         self._pub = transport.publisher(service.session, key, drop_when_congested=service.sc.clock.mode == "realtime")
         self.gid = transport.new_gid()
         self.seq = 0
+        self._lock = threading.Lock()
         # composed (hilsim.compose): also handed, unencoded, to the subscribers in this process
         self._local = getattr(self._pub, "deliver", None)
         # announce: receivers accept this key only from announced writers (hilsim.provenance)
         self._token = service.session.liveliness().declare_token(service.keys.writer(self.gid, key))
 
     def put(self, msg: Any) -> None:
-        self.seq += 1
+        # one at a time: a key written from two threads (logs, health) must still reach receivers
+        # with growing sequence numbers, or they reject one sample as a duplicate or out of order
         if self._local is None:
-            self._pub.put(msgs.encode(msg), attachment=transport.attachment_bytes(self.seq, self.gid))
+            data = msgs.encode(msg)
+            with self._lock:
+                self.seq += 1
+                self._pub.put(data, attachment=transport.attachment_bytes(self.seq, self.gid))
         else:
-            att = transport.Attachment(self.seq, time.time_ns(), self.gid)
-            self._local(msg, att)
-            if self._pub.remote:  # encoded only while a subscriber outside the process exists
-                self._pub.put(msgs.encode(msg), attachment=att.encode())
+            with self._lock:
+                self.seq += 1
+                att = transport.Attachment(self.seq, time.time_ns(), self.gid)
+                self._local(msg, att)
+                if self._pub.remote:  # encoded only while a subscriber outside the process exists
+                    self._pub.put(msgs.encode(msg), attachment=att.encode())
         self._svc.counts_out[self.key] += 1
 
     def undeclare(self) -> None:
