@@ -6,7 +6,8 @@ whose message is one line naming the file, the field and what was expected, e.g.
 
 Relative paths inside a scenario are resolved against the directory of the file.
 Environment overrides (applied after the file): ``HILSIM_PREFIX``, ``HILSIM_ZENOH_CONNECT``
-(comma-separated endpoints), ``HILSIM_ZENOH_MODE``.
+(comma-separated endpoints), ``HILSIM_ZENOH_MODE``, and ``zenoh.tls`` from ``HILSIM_TLS_ROOT_CA``,
+``HILSIM_TLS_CERTIFICATE``, ``HILSIM_TLS_PRIVATE_KEY``.
 """
 
 from __future__ import annotations
@@ -36,12 +37,35 @@ class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
 
+class TlsConfig(_Model):
+    """This process's TLS identity (docs/security.md): the CA that signed the router's
+    certificate, and this process's own certificate and key, which the router checks (mTLS) and
+    whose common name its access control knows. Paths are absolute or relative to the current
+    directory."""
+
+    root_ca: Path = Field(description="PEM of the certificate authority")
+    certificate: Path = Field(description="PEM of this process's certificate (signed by root_ca)")
+    private_key: Path = Field(description="PEM of its private key")
+
+    @model_validator(mode="after")
+    def _files_exist(self) -> TlsConfig:
+        for name in ("root_ca", "certificate", "private_key"):
+            f = getattr(self, name)
+            if not f.is_file():
+                raise ValueError(f"{name}: file {f} does not exist (scripts/make-certs.sh makes a throw-away set)")
+        return self
+
+
 class ZenohConfig(_Model):
     mode: Literal["peer", "client"] = "peer"
     # Where the services meet. `hilsim up` runs a router on loopback and fills this in.
     connect: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
     listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:0"])
     multicast_scouting: bool = False
+    # None: plain TCP (the loopback default). Set: TLS to the router with this identity; the
+    # process is then a client of the router (no listener of its own, so nothing reaches it
+    # without passing the router's certificate check and access control)
+    tls: TlsConfig | None = None
 
 
 class ClockConfig(_Model):
@@ -518,6 +542,24 @@ def _apply_env(data: dict[str, Any]) -> None:
         z["connect"] = [e.strip() for e in v.split(",") if e.strip()]
     if v := os.environ.get("HILSIM_ZENOH_MODE"):
         z["mode"] = v
+    if tls := tls_from_env():
+        z["tls"] = tls
+
+
+TLS_ENV = {"root_ca": "HILSIM_TLS_ROOT_CA", "certificate": "HILSIM_TLS_CERTIFICATE",
+           "private_key": "HILSIM_TLS_PRIVATE_KEY"}
+
+
+def tls_from_env() -> dict[str, str] | None:
+    """``zenoh.tls`` from ``HILSIM_TLS_ROOT_CA``, ``HILSIM_TLS_CERTIFICATE`` and
+    ``HILSIM_TLS_PRIVATE_KEY`` (all three, or None when none is set)."""
+    got = {k: os.environ.get(v, "") for k, v in TLS_ENV.items()}
+    if not any(got.values()):
+        return None
+    missing = [TLS_ENV[k] for k, v in got.items() if not v]
+    if missing:
+        raise ConfigError(f"TLS from the environment: {', '.join(missing)} not set (set all three, or none)")
+    return got
 
 
 def write_scenario(sc: Scenario, path: Path) -> None:

@@ -17,6 +17,11 @@ in the same file. In lockstep physics pauses sim time while it is gone and resum
 back. Without the policy, or once the attempts are used up, a dead service ends the run. Each
 restart is printed as it happens and listed in the summary.
 
+Several machines (``--only physics,logger``, docs/deployment.md): only those services start here;
+the others are expected from other hosts on the same Zenoh network, and the launcher waits for
+their liveliness tokens as for its own (saying who is still missing), follows the run as usual,
+and reports a remote service that leaves and does not come back.
+
 Reads: ``<prefix>/<robot>/task/result``, ``planner/result`` and ``navigator/result``, ``health/*``, ``log/*`` (faults,
 printed as they happen), ``alive/*``.
 """
@@ -112,8 +117,14 @@ class Outcome:
 
 
 class Launcher:
-    def __init__(self, sc: Scenario, run_dir: Path, *, router: str | None = None, quiet: bool = False) -> None:
+    def __init__(self, sc: Scenario, run_dir: Path, *, router: str | None = None, quiet: bool = False,
+                 only: list[str] | None = None) -> None:
         self.sc = sc
+        # --only: the launch units started here; the rest run on other hosts (their tokens only)
+        self.local = local_units(sc, only)
+        self.remote: dict[str, bool] = {}  # remote service -> alive now
+        self.remote_left: dict[str, float] = {}  # remote service -> monotonic time it left
+        self.departed: dict[str, float] = {}  # writer token -> monotonic time it was withdrawn
         self.run_dir = run_dir
         self.keys = Keys(sc.prefix, sc.robot)
         self.quiet = quiet
@@ -146,10 +157,12 @@ class Launcher:
         self.cfg_path = cfg
         # what restarted services take over (hilsim.restart) belongs to this run only
         shutil.rmtree(self.run_dir / STATE_DIR, ignore_errors=True)
+        # before the liveliness subscriber: its history (services of other hosts already up) comes at once
+        self.remote = {s: False for u in self.sc.launch_units() if u not in self.local for s in u.split("+")}
         self.session = transport.open_session(self.sc.zenoh)
         self._subs = [
             # first: who writes what, so that only the services' own samples are believed
-            self.session.liveliness().declare_subscriber(self.keys.all_writers, self.prov.on_token, history=True),
+            self.session.liveliness().declare_subscriber(self.keys.all_writers, self._on_writer, history=True),
             self.session.declare_subscriber(self.keys.topic("planner/result"), self._on_result),
             self.session.declare_subscriber(self.keys.topic("navigator/result"), self._on_result),
             self.session.declare_subscriber(self.keys.topic("task/result"), self._on_result),
@@ -157,7 +170,7 @@ class Launcher:
             self.session.declare_subscriber(self.keys.log("*"), self._on_log),
             self.session.liveliness().declare_subscriber(self.keys.all_alive, self._on_alive, history=True),
         ]
-        self.order = stop_order(self.sc)
+        self.order = [n for n in stop_order(self.sc) if n in self.local]
         for name in reversed(self.order):
             self.children[name] = Child(name, self._spawn(name, 0), self.run_dir / f"{name}.log")
 
@@ -192,20 +205,35 @@ class Launcher:
                 f.write(line)
                 f.flush()
 
+    def missing(self) -> list[str]:
+        """Services not announced yet: this host's (by process) and the remote ones (marked)."""
+        with self.lock:
+            return ([c.name for c in self.children.values() if not c.ready]
+                    + [f"{s} (remote)" for s, up in self.remote.items() if not up])
+
     def wait_ready(self, timeout: float = 120.0) -> bool:
         deadline = time.monotonic() + timeout
+        last_print = time.monotonic()
         while time.monotonic() < deadline:
             if self.check_children():
                 return False
-            with self.lock:
-                if all(c.ready for c in self.children.values()):
-                    pids = ", ".join(f"{c.name} (pid {c.proc.pid})" for c in self.children.values())
-                    self.say(f"ready: {pids}")
-                    return True
+            missing = self.missing()
+            if not missing:
+                pids = ", ".join(f"{c.name} (pid {c.proc.pid})" for c in self.children.values())
+                remote = f"; remote: {', '.join(self.remote)}" if self.remote else ""
+                self.say(f"ready: {pids}{remote}")
+                return True
+            if self.remote and time.monotonic() - last_print > 5.0:
+                last_print = time.monotonic()
+                self.say(f"  waiting for: {', '.join(missing)} ({deadline - last_print:.0f} s left)")
             self.changed.wait(0.1)
             self.changed.clear()
-        missing = [c.name for c in self.children.values() if not c.ready]
-        self.say(f"error: services did not announce themselves within {timeout:.0f}s: {', '.join(missing)}")
+        missing = self.missing()
+        hint = ""
+        if any(m.endswith("(remote)") for m in missing):
+            hint = (f"; start the remote ones on their hosts (hilsim up {self.sc.source or self.sc.name} --only … "
+                    f"--router {self.router_ep}) and check they reach that router")
+        self.say(f"error: services did not announce themselves within {timeout:.0f}s: {', '.join(missing)}{hint}")
         return False
 
     # ------------------------------------------------------------------ follow
@@ -213,6 +241,10 @@ class Launcher:
         svc = str(sample.key_expr).rsplit("/", 1)[-1]
         name = next((u for u in self.children if svc in u.split("+")), svc)  # its process
         with self.lock:
+            if svc in self.remote and name not in self.children:
+                self._on_remote(svc, sample.kind == zenoh.SampleKind.PUT)
+                self.changed.set()
+                return
             c = self.children.get(name)
             if c is None:
                 return
@@ -230,9 +262,34 @@ class Launcher:
                     self.say(f"  {name} is back (pid {c.proc.pid}), {back:.1f} s after it died")
         self.changed.set()
 
+    def _on_remote(self, svc: str, up: bool) -> None:
+        """A service of another host announced itself or left (under self.lock)."""
+        was = self.remote[svc]
+        self.remote[svc] = up
+        if up and svc in self.remote_left:
+            self.say(f"  remote {svc} is back, {time.monotonic() - self.remote_left.pop(svc):.1f} s after it left")
+        elif was and not up:
+            self.remote_left[svc] = time.monotonic()
+            self.say(f"  remote {svc} left (its host's launcher may restart it)")
+
+    def _on_writer(self, sample: zenoh.Sample) -> None:
+        if sample.kind == zenoh.SampleKind.DELETE:
+            # a service that ends right after its last sample (the planner after task/result): on
+            # another host its token's removal can overtake that sample through the router
+            with self.lock:
+                self.departed[str(sample.key_expr)] = time.monotonic()
+        self.prov.on_token(sample)
+
     def _trusted(self, sample: zenoh.Sample) -> bool:
-        """A sample from the key's announced writer (not a stranger's, nor a duplicate)."""
-        why, _ = self.prov.check(str(sample.key_expr), transport.read_attachment(sample))
+        """A sample from the key's announced writer (not a stranger's, nor a duplicate), or from
+        one that left less than a second ago."""
+        key, att = str(sample.key_expr), transport.read_attachment(sample)
+        why, _ = self.prov.check(key, att)
+        if why is not None and att is not None:
+            token = self.keys.writer(att.gid, key)
+            with self.lock:
+                if time.monotonic() - self.departed.get(token, -1e9) < 1.0:
+                    why = None
         if why is not None:
             self.untrusted += 1
         return why is None
@@ -368,6 +425,13 @@ class Launcher:
             if wall_timeout is not None and time.monotonic() - t0 > wall_timeout:
                 self.say(f"error: run did not finish within {wall_timeout:.0f}s wall")
                 return
+            with self.lock:
+                gone = [s for s, t in self.remote_left.items() if time.monotonic() - t > RESTART_READY_TIMEOUT]
+            if gone:
+                self.say(f"error: remote {', '.join(gone)} left and did not come back within "
+                         f"{RESTART_READY_TIMEOUT:.0f}s")
+                self.outcome.died.extend((s, -1) for s in gone)
+                return
             late = [c for c in self.children.values() if c.restarts and c.restart_at is None and not c.ready
                     and time.monotonic() - c.died_at > RESTART_READY_TIMEOUT]
             if late:
@@ -422,6 +486,31 @@ def open_default_router() -> tuple[str, zenoh.Session]:
         print(f"note: port {transport.DEFAULT_ROUTER_PORT} is taken (another simulation?); using {ep} "
               f"(pass --connect {ep} to hilsim topic)", flush=True)
         return ep, transport.open_router(ep)
+
+
+def local_units(sc: Scenario, only: list[str] | None) -> list[str]:
+    """The launch units this host starts: all of them, or those of ``--only`` (services by name;
+    a composed group ``a+b`` as a whole). ConfigError (one line) for a name the scenario lacks."""
+    from hilsim.config import ConfigError
+
+    units = sc.launch_units()
+    if not only:
+        return units
+    procs = sc.processes()
+    unknown = [n for n in only if n not in procs and n not in units]
+    if unknown:
+        raise ConfigError(f"--only {','.join(only)}: {', '.join(unknown)} not among this scenario's services "
+                          f"({', '.join(procs)})")
+    out = []
+    for u in units:
+        members = u.split("+")
+        picked = [m for m in members if m in only or u in only]
+        if picked and len(picked) != len(members):
+            raise ConfigError(f"--only {','.join(only)}: {u} runs as one process (compose); name all of "
+                              f"{', '.join(members)} or none")
+        if picked:
+            out.append(u)
+    return out
 
 
 def _num(v: str | None) -> int:
@@ -479,7 +568,7 @@ def summarise(la: Launcher) -> int:
         if bad:
             print(f"  {name}: {h.get('rejected')} rejected, {h.get('errors')} errors (last: {h.get('last_error', '')})")
     rrd = la.run_dir / "recording.rrd"
-    if "logger" in sc.services:
+    if any("logger" in u.split("+") for u in la.local):  # a recorder on another host summarises there
         # a recorder that died left no footer (and no counts): make its file whole, say what it holds
         logger_restarted = any(r.name == "logger" for r in o.restarts)
         if logger_restarted or any(n == "logger" for n, _ in o.died):
@@ -617,13 +706,24 @@ def cmd_up(args: argparse.Namespace) -> int:
         overrides["seed"] = args.seed
     if args.compose:
         overrides["compose"] = [[n.strip() for n in g.split(",") if n.strip()] for g in args.compose]
+    only = [n.strip() for n in args.only.split(",") if n.strip()] if getattr(args, "only", None) else None
+    if only and "zenoh.mode" not in overrides and not os.environ.get("HILSIM_ZENOH_MODE"):
+        # several hosts: every process a client of the router. Peers listen on loopback, and
+        # Zenoh (1.10) did not route between peers of two hosts through the router for them
+        overrides["zenoh.mode"] = "client"
     scenario = world_scenario(args.scenario, args.world) if getattr(args, "world", None) else args.scenario
     sc = load_scenario(scenario, overrides, overlays=args.hil)
     if args.no_logger:
         sc.services = [s for s in sc.services if s != "logger"]
     run_dir = Path(args.out) if args.out else default_run_dir(sc)
-    la = Launcher(sc, run_dir, router=args.router)
-    print(f"hilsim up {sc.name}: {len(sc.processes())} services, clock {sc.clock.mode}, seed {sc.seed}, "
+    if sc.zenoh.tls is not None and not args.router:
+        from hilsim.config import ConfigError
+
+        raise ConfigError("zenoh.tls is set: start the router with `hilsim router --config FILE` and pass its "
+                          "tls/ endpoint with --router (docs/security.md)")
+    la = Launcher(sc, run_dir, router=args.router, only=only)
+    here = f" ({', '.join(la.local)} here, the rest from other hosts)" if only else ""
+    print(f"hilsim up {sc.name}: {len(sc.processes())} services{here}, clock {sc.clock.mode}, seed {sc.seed}, "
           f"run dir {run_dir}")
 
     def on_signal(signum: int, _frame: Any) -> None:
@@ -636,7 +736,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         la.start()
-        if la.wait_ready():
+        if la.wait_ready(args.wait if getattr(args, "wait", None) else 120.0):
             if not sc.task.targets and sc.duration is None:
                 how = (f"send goals with `hilsim goal {sc.robot} --joints …`" if "planner" in sc.services
                        else f"send goals with `hilsim goal {sc.robot} --xy X Y`" if "navigator" in sc.services
@@ -657,8 +757,21 @@ def cmd_up(args: argparse.Namespace) -> int:
 
 
 def cmd_router(args: argparse.Namespace) -> int:
-    r = transport.open_router(args.listen)
-    print(f"zenoh router listening on {args.listen} (Ctrl-C to stop)", flush=True)
+    """``hilsim router [--listen EP] [--config FILE]``: a standalone router; with a Zenoh config
+    file (listen endpoints, TLS, access control: docs/security.md), ``--listen`` replaces its
+    endpoints."""
+    try:
+        if args.config:
+            conf = transport.router_config(Path(args.config), [args.listen] if args.listen else None)
+            where = ", ".join(json.loads(conf.get_json("listen/endpoints") or "[]")) or "no endpoint"
+            r = transport.open_router_config(conf, f"{args.config}: {where}")
+        else:
+            where = args.listen or transport.DEFAULT_CONNECT
+            r = transport.open_router(where)
+    except ConnectionError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    print(f"zenoh router listening on {where} (Ctrl-C to stop)", flush=True)
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:

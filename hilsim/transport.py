@@ -4,7 +4,9 @@ Default (embedded, nothing to install): ``hilsim up`` opens a Zenoh *router* on 
 port inside the launcher process; every service is a *peer* that connects to it, listens on
 an ephemeral loopback port and has multicast scouting off, so nothing leaves the machine.
 To join another network, set ``zenoh.connect`` in the scenario or ``HILSIM_ZENOH_CONNECT``
-(e.g. ``tcp/192.0.2.10:7447``) and the same programs connect there instead.
+(e.g. ``tcp/192.0.2.10:7447``) and the same programs connect there instead (docs/deployment.md).
+With ``zenoh.tls`` (or ``HILSIM_TLS_*``) every process is a TLS client of the router with its own
+certificate, and the router's config file says who may do what (docs/security.md).
 """
 
 from __future__ import annotations
@@ -16,11 +18,12 @@ import socket
 import struct
 import threading
 import time
+from pathlib import Path
 from typing import Any, NamedTuple
 
 import zenoh
 
-from hilsim.config import ZenohConfig
+from hilsim.config import ConfigError, TlsConfig, ZenohConfig, tls_from_env
 from hilsim.keys import DEFAULT_PREFIX, Keys
 
 LOG = logging.getLogger(__name__)
@@ -29,6 +32,15 @@ DEFAULT_ROUTER_PORT = 7447
 
 def zenoh_config(zc: ZenohConfig, *, mode: str | None = None, listen: list[str] | None = None) -> zenoh.Config:
     conf = zenoh.Config()
+    if zc.tls is not None and mode != "router":
+        # a client of the router, nothing else: no listener a stranger could reach around the
+        # router's certificate check and access control (docs/security.md)
+        mode, listen = "client", []
+        tls = {"root_ca_certificate": zc.tls.root_ca, "connect_certificate": zc.tls.certificate,
+               "connect_private_key": zc.tls.private_key}
+        for k, v in tls.items():
+            conf.insert_json5(f"transport/link/tls/{k}", json.dumps(str(Path(v).resolve())))
+        conf.insert_json5("scouting/gossip/enabled", "false")
     conf.insert_json5("mode", json.dumps(mode or zc.mode))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(zc.multicast_scouting))
     if zc.connect and (mode or zc.mode) != "router":
@@ -59,6 +71,44 @@ def open_router(endpoint: str) -> zenoh.Session:
         return zenoh.open(zenoh_config(zc, mode="router"))
     except zenoh.ZError as e:
         raise ConnectionError(f"cannot start the Zenoh router on {endpoint}: {e}") from e
+
+
+# certificate and key paths of a router config file, resolved against the file's directory
+_TLS_PATH_KEYS = ("root_ca_certificate", "listen_certificate", "listen_private_key",
+                  "connect_certificate", "connect_private_key")
+
+
+def router_config(path: Path, listen: list[str] | None = None) -> zenoh.Config:
+    """A Zenoh router config from a JSON5 file (Zenoh's own format: listen endpoints, TLS, access
+    control; ``config/security/router.json5``). Certificate paths in it are relative to the file;
+    ``listen`` replaces its endpoints. ConfigError (one line) for a file Zenoh refuses."""
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such router config file")
+    try:
+        conf = zenoh.Config.from_file(str(path))
+        mode = json.loads(conf.get_json("mode") or "null")
+        if mode not in (None, "router"):
+            raise ConfigError(f"{path}: mode: expected \"router\" (or nothing), got {mode!r}")
+        conf.insert_json5("mode", json.dumps("router"))
+        for k in _TLS_PATH_KEYS:
+            v = json.loads(conf.get_json(f"transport/link/tls/{k}") or "null")
+            if isinstance(v, str) and not Path(v).is_absolute():
+                full = (path.parent / v).resolve()
+                if not full.is_file():
+                    raise ConfigError(f"{path}: transport.link.tls.{k}: file {full} does not exist")
+                conf.insert_json5(f"transport/link/tls/{k}", json.dumps(str(full)))
+        if listen:
+            conf.insert_json5("listen/endpoints", json.dumps(listen))
+    except zenoh.ZError as e:
+        raise ConfigError(f"{path}: not a Zenoh config Zenoh accepts: {str(e).splitlines()[0]}") from None
+    return conf
+
+
+def open_router_config(conf: zenoh.Config, where: str) -> zenoh.Session:
+    try:
+        return zenoh.open(conf)
+    except zenoh.ZError as e:
+        raise ConnectionError(f"cannot start the Zenoh router ({where}): {str(e).splitlines()[0]}") from e
 
 
 def publisher(session: zenoh.Session, key: str, *, drop_when_congested: bool = False) -> zenoh.Publisher:
@@ -135,9 +185,22 @@ def tool_prefix(prefix: str | None = None) -> str:
     return prefix or os.environ.get("HILSIM_PREFIX") or DEFAULT_PREFIX
 
 
+def tool_zenoh(connect: str | None = None) -> ZenohConfig:
+    """The Zenoh settings of a tool: :func:`tool_endpoints`, and a TLS identity from
+    ``HILSIM_TLS_*`` when set (docs/security.md)."""
+    from pydantic import ValidationError
+
+    tls = tls_from_env()
+    try:
+        return ZenohConfig(connect=tool_endpoints(connect), tls=TlsConfig(**tls) if tls else None)
+    except ValidationError as e:
+        err = e.errors()[0]
+        raise ConfigError(f"TLS from the environment: {err['msg'].removeprefix('Value error, ')}") from None
+
+
 def open_tool_session(connect: str | None = None) -> zenoh.Session:
-    """A peer session for a tool (see :func:`tool_endpoints`); ConnectionError if it cannot open."""
-    return open_session(ZenohConfig(connect=tool_endpoints(connect)))
+    """A peer session for a tool (see :func:`tool_zenoh`); ConnectionError if it cannot open."""
+    return open_session(tool_zenoh(connect))
 
 
 def wait_for_service(session: zenoh.Session, keys: Keys, service: str, timeout: float) -> bool:
