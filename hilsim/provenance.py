@@ -12,25 +12,35 @@ stamps every sample with rmw_zenoh's attachment (sequence number, source time, i
 - per writer, the sequence number must grow: the same number again is a duplicate, a smaller
   one is out of order — both are rejected; a jump is a gap, counted as lost samples;
 - the first sample seen from a writer starts its count (what it sent before we listened is not
-  a loss).
+  a loss);
+- a writer whose token went away is still believed for ``WITHDRAW_GRACE_S``: a stopping
+  service's last samples may arrive after its token's withdrawal.
 
 Pure bookkeeping, no transport: unit-tested on its own, used by :class:`hilsim.service.Service`.
 """
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
 from typing import Any
 
 import zenoh
 
 from hilsim.transport import Attachment
 
+# A writer's last samples may arrive after its token was withdrawn (a service stopping: the token
+# and the data travel separately): for this long they are still its own, not an impostor's.
+WITHDRAW_GRACE_S = 1.0
+
 
 class Provenance:
-    def __init__(self) -> None:
+    def __init__(self, grace: float = WITHDRAW_GRACE_S, clock: Callable[[], float] = time.monotonic) -> None:
         self.writers: dict[str, set[bytes]] = {}
         self.restricted: set[str] = set()
         self.last: dict[tuple[str, bytes], int] = {}
+        self.withdrawn: dict[tuple[str, bytes], float] = {}  # (key, gid) -> when its token went
+        self.grace, self.clock = grace, clock
 
     # ------------------------------------------------------------------ announcements
     def announce(self, key: str, gid: bytes) -> None:
@@ -38,9 +48,17 @@ class Provenance:
         self.restricted.add(key)
 
     def withdraw(self, key: str, gid: bytes) -> None:
-        """A writer went away (its token was undeclared); the key stays restricted."""
+        """A writer went away (its token was undeclared); the key stays restricted. Its samples
+        still in flight are accepted for ``grace`` seconds."""
         self.writers.get(key, set()).discard(gid)
-        self.last.pop((key, gid), None)
+        now = self.clock()
+        for k in [k for k, t in self.withdrawn.items() if now - t > self.grace]:
+            del self.withdrawn[k]
+            self.last.pop(k, None)
+        if self.grace > 0:
+            self.withdrawn[(key, gid)] = now
+        else:
+            self.last.pop((key, gid), None)
 
     def on_token(self, sample: Any) -> None:
         """Liveliness callback for ``Keys.all_writers``: a writer appeared or went away."""
@@ -53,13 +71,17 @@ class Provenance:
         else:
             self.withdraw(key, gid)
 
+    def _lately_withdrawn(self, key: str, gid: bytes) -> bool:
+        t = self.withdrawn.get((key, gid))
+        return t is not None and self.clock() - t <= self.grace
+
     # ------------------------------------------------------------------ samples
     def check(self, key: str, att: Attachment | None) -> tuple[str | None, int]:
         """(reason to reject the sample or None, samples lost before it from its writer)."""
         if key in self.restricted:
             if att is None:
                 return "no attachment: the sender is unknown (every hilsim writer attaches its id)", 0
-            if att.gid not in self.writers.get(key, ()):
+            if att.gid not in self.writers.get(key, ()) and not self._lately_withdrawn(key, att.gid):
                 return f"from writer {att.gid.hex()[:12]}…, which has not announced itself for this key", 0
         if att is None:
             return None, 0

@@ -42,7 +42,7 @@ def test_duplicates_and_reordered_samples_are_rejected() -> None:
 
 
 def test_a_restricted_key_takes_only_announced_writers() -> None:
-    p = Provenance()
+    p = Provenance(grace=0.0)
     p.announce(KEY, A)
     assert p.check(KEY, att(1)) == (None, 0)
     why, _ = p.check(KEY, att(1, B))
@@ -54,6 +54,23 @@ def test_a_restricted_key_takes_only_announced_writers() -> None:
     p.withdraw(KEY, A)
     p.withdraw(KEY, B)
     why, _ = p.check(KEY, att(2, B))  # the key stays restricted when its writers are gone
+    assert why is not None and "not announced" in why
+
+
+def test_a_departed_writers_last_samples_are_still_its_own_for_a_moment() -> None:
+    """A stopping service's token may overtake its last samples: they are accepted for the grace
+    period (still checked for order), then its id is a stranger's."""
+    now = [100.0]
+    p = Provenance(grace=1.0, clock=lambda: now[0])
+    p.announce(KEY, A)
+    assert p.check(KEY, att(1)) == (None, 0)
+    p.withdraw(KEY, A)
+    now[0] += 0.5
+    assert p.check(KEY, att(2)) == (None, 0)  # in flight when the token went
+    why, _ = p.check(KEY, att(2))
+    assert why is not None and "duplicate" in why
+    now[0] += 1.0
+    why, _ = p.check(KEY, att(3))
     assert why is not None and "not announced" in why
 
 
