@@ -40,6 +40,7 @@ def zenoh_config(zc: ZenohConfig, *, mode: str | None = None, listen: list[str] 
                "connect_private_key": zc.tls.private_key}
         for k, v in tls.items():
             conf.insert_json5(f"transport/link/tls/{k}", json.dumps(str(Path(v).resolve())))
+        conf.insert_json5("transport/link/tls/enable_mtls", "true")  # else the certificate is not presented
         conf.insert_json5("scouting/gossip/enabled", "false")
     conf.insert_json5("mode", json.dumps(mode or zc.mode))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(zc.multicast_scouting))
