@@ -2,6 +2,11 @@
 # Set up .venv (if needed) and run the whole test suite: `bash scripts/test.sh [pytest args]`
 set -euo pipefail
 cd "$(dirname "$0")/.."
+# tests/test_netns.py needs `ip` (iproute2), tests/test_security.py `openssl`: a bare Debian
+# python image has neither; as root with apt, install them
+if { ! command -v ip >/dev/null || ! command -v openssl >/dev/null; } && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+  apt-get update -qq && apt-get install -y -qq --no-install-recommends iproute2 openssl >/dev/null
+fi
 if [ ! -x .venv/bin/python ]; then
   python3 -m venv .venv
 fi
