@@ -12,6 +12,7 @@
     hilsim inertia FILE [--link NAME] [--urdf FILE] [--json]
     hilsim tune ROBOT JOINT|--all [--method ziegler-nichols|relay] [--write] [--json]
     hilsim router [--listen ENDPOINT] [--config FILE]
+    hilsim compose SCENARIO [--hil FILE]… [--out docker/compose.yaml]
 """
 
 from __future__ import annotations
@@ -209,6 +210,13 @@ def build_parser() -> argparse.ArgumentParser:
     rs.add_argument("--out", help="output directory (default runs/<timestamp>-step-report)")
     rs.add_argument("--json", action="store_true", help="print one JSON object")
     rs.set_defaults(func=_lazy("hilsim.tools.step_report", "cmd_report_step"))
+
+    comp = sub.add_parser("compose", help="write the docker compose file of a scenario and its HIL variants")
+    comp.add_argument("scenario", help="scenario name in config/ (e.g. arm) or a YAML path")
+    comp.add_argument("--hil", action="append", default=[], metavar="FILE",
+                      help="a HIL scenario (e.g. config/hil/arm-can.yaml): its bridges become a profile; repeatable")
+    comp.add_argument("--out", help="write here (default: standard output)")
+    comp.set_defaults(func=_lazy("hilsim.deploy", "cmd_compose"))
 
     router = sub.add_parser("router", help="run a standalone Zenoh router (loopback unless told otherwise)")
     router.add_argument("--listen", help="endpoint to listen on (default tcp/127.0.0.1:7447; with --config, "
