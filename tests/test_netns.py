@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from util import REPO, Observer
+from util import LEAN, REPO, Observer
 
 from hilsim import transport
 from hilsim.config import ZenohConfig, load_scenario
@@ -136,7 +136,7 @@ def _wait_all(procs: dict[str, subprocess.Popen[str]], timeout: float) -> None:
             raise AssertionError(f"hilsim up on host {name} still running after {timeout:.0f} s") from None
 
 
-def _run_across_hosts(hosts: Hosts, tmp_path: Path, extra: list[str]) -> tuple[dict[str, str], Observer]:
+def _run_across_hosts(hosts: Hosts, tmp_path: Path, scenario: str, extra: list[str]) -> tuple[dict[str, str], Observer]:
     """Router + physics + sensors on a, controller + logger on b, planner on c; returns each
     host's launcher output and the test's observer (closed by the caller)."""
     port = 7447
@@ -161,12 +161,13 @@ def _run_across_hosts(hosts: Hosts, tmp_path: Path, extra: list[str]) -> tuple[d
                 if time.monotonic() > deadline or router.poll() is not None:
                     raise AssertionError("router did not come up: " + (tmp_path / "router.log").read_text()) from None
                 time.sleep(0.3)
+        b_only = "controller" if "--no-logger" in extra else "controller,logger"
         ups = {
-            "a": hosts.spawn("a", "up", "arm", "--only", "physics,sensors", "--router", router_eps["root"],
+            "a": hosts.spawn("a", "up", scenario, "--only", "physics,sensors", "--router", router_eps["root"],
                              "--out", str(tmp_path / "a"), *extra, log=tmp_path / "a.log"),
-            "b": hosts.spawn("b", "up", "arm", "--only", "controller,logger", "--router", router_eps["b"],
+            "b": hosts.spawn("b", "up", scenario, "--only", b_only, "--router", router_eps["b"],
                              "--out", str(tmp_path / "b"), *extra, log=tmp_path / "b.log"),
-            "c": hosts.spawn("c", "up", "arm", "--only", "planner", "--router", router_eps["c"],
+            "c": hosts.spawn("c", "up", scenario, "--only", "planner", "--router", router_eps["c"],
                              "--out", str(tmp_path / "c"), *extra, log=tmp_path / "c.log"),
         }
         procs.extend(ups.values())
@@ -221,7 +222,7 @@ def _judge(obs: Observer, out: dict[str, str], scenario: str) -> None:
 def test_arm_across_three_hosts_in_lockstep(hosts: Hosts, tmp_path: Path) -> None:
     """Lockstep through one router across three namespaces: the target is reached in the truth, and
     the recorder on host b (whose launcher alone summarises the recording) lost nothing."""
-    out, obs = _run_across_hosts(hosts, tmp_path, LEAN_ARGS)
+    out, obs = _run_across_hosts(hosts, tmp_path, "arm", LEAN_ARGS)
     try:
         _judge(obs, out, "arm")
     finally:
@@ -233,3 +234,60 @@ def test_arm_across_three_hosts_in_lockstep(hosts: Hosts, tmp_path: Path) -> Non
     assert all(v["received"] == v["recorded"] for v in counts.values()), counts
     # the planner's host saw the others only through the router (no route from c to b exists)
     assert "remote: " in out["c"], out["c"]
+
+
+def test_arm_across_three_hosts_in_realtime(hosts: Hosts, tmp_path: Path) -> None:
+    """The lean arm in realtime across the same three hosts, without a recorder: the target is
+    reached in the truth, and sim time kept the wall clock as the test measured it (truth stamps
+    against their arrival in the root namespace), every sample through the router."""
+    out, obs = _run_across_hosts(hosts, tmp_path, LEAN, ["--clock", "realtime", "--no-logger", *LEAN_ARGS])
+    try:
+        _judge(obs, out, LEAN)
+        with obs.lock:
+            marks = list(obs.truth_wall)
+    finally:
+        obs.close()
+    assert all("clock realtime" in text for text in out.values()), out
+    # from the first sim second on (start-up behind us) to the end
+    i0 = next(i for i, (s, _) in enumerate(marks) if s >= 1_000_000_000)
+    (s0, w0), (s1, w1) = marks[i0], marks[-1]
+    assert s1 - s0 > 1.5e9, (s0, s1)
+    rate = (s1 - s0) / 1e9 / (w1 - w0)
+    assert 0.9 <= rate <= 1.1, rate
+
+
+def test_only_names_services_of_the_scenario() -> None:
+    from hilsim.config import ConfigError
+    from hilsim.launcher import local_units
+
+    sc = load_scenario("arm")
+    assert local_units(sc, ["logger", "physics"]) == ["physics", "logger"]
+    assert local_units(sc, None) == sc.launch_units()
+    with pytest.raises(ConfigError, match=r"--only physics,radar: radar not among this scenario's services"):
+        local_units(sc, ["physics", "radar"])
+    composed = load_scenario("arm", {"compose": [["physics", "sensors", "controller"]]})
+    assert local_units(composed, ["physics+sensors+controller"]) == ["physics+sensors+controller"]
+    with pytest.raises(ConfigError, match="runs as one process"):
+        local_units(composed, ["physics"])
+
+
+def test_missing_remote_services_are_named_and_nothing_is_left(tmp_path: Path) -> None:
+    """On loopback: only physics here, nobody else anywhere; the launcher says who it is waiting
+    for, gives up after --wait with one line naming them and the router, and stops physics."""
+    import psutil
+
+    ep = f"tcp/127.0.0.1:{transport.free_port()}"
+    router = transport.open_router(ep)
+    try:
+        p = subprocess.run([sys.executable, "-m", "hilsim.cli", "up", "arm", "--only", "physics", "--router", ep,
+                            "--wait", "7", "--no-logger", "--out", str(tmp_path / "run")],
+                           capture_output=True, text=True, cwd=REPO, timeout=120)
+    finally:
+        router.close()
+    assert p.returncode == 1, p.stdout + p.stderr
+    assert "waiting for: sensors (remote), controller (remote), planner (remote)" in p.stdout, p.stdout
+    err = next(ln for ln in p.stdout.splitlines() if ln.startswith("error:"))
+    assert "within 7s: sensors (remote), controller (remote), planner (remote)" in err and ep in err, err
+    assert "physics" not in err  # it came up here
+    left = [q for q in psutil.process_iter(["cmdline"]) if str(tmp_path) in " ".join(q.info["cmdline"] or [])]
+    assert not left, left

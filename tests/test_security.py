@@ -184,3 +184,25 @@ def test_a_read_only_identity_reads_but_cannot_move_the_robot(pki: Path, secure_
             os.killpg(p.pid, signal.SIGINT)
         out = finish(p, 60)
     assert "ready:" in out, out
+
+
+def test_bad_router_config_and_tls_files_are_one_line_errors(tmp_path: Path) -> None:
+    missing = subprocess.run([*HILSIM, "router", "--config", str(tmp_path / "nope.json5")], capture_output=True,
+                             text=True, cwd=REPO, timeout=60)
+    assert missing.returncode == 2 and missing.stderr.strip().count("\n") == 0, missing.stderr
+    assert "nope.json5: no such router config file" in missing.stderr
+    broken = tmp_path / "router.json5"
+    broken.write_text('{ mode: "router", transport: { link: { tls: { root_ca_certificate: "certs/ca.pem" } } } }')
+    r = subprocess.run([*HILSIM, "router", "--config", str(broken)], capture_output=True, text=True, cwd=REPO,
+                       timeout=60)
+    assert r.returncode == 2 and "transport.link.tls.root_ca_certificate: file" in r.stderr, r.stderr
+    env = {**os.environ, "HILSIM_TLS_ROOT_CA": str(tmp_path / "ca.pem"),
+           "HILSIM_TLS_CERTIFICATE": str(tmp_path / "x.pem"), "HILSIM_TLS_PRIVATE_KEY": str(tmp_path / "x.key")}
+    up = subprocess.run([*HILSIM, "up", "arm", "--router", "tls/127.0.0.1:1"], capture_output=True, text=True,
+                        cwd=REPO, timeout=60, env=env)
+    assert up.returncode == 2 and "zenoh.tls" in up.stderr and "does not exist" in up.stderr, up.stderr
+    assert up.stderr.strip().count("\n") == 0, up.stderr
+    env.pop("HILSIM_TLS_PRIVATE_KEY")
+    echo = subprocess.run([*HILSIM, "topic", "list", "--duration", "0.1"], capture_output=True, text=True,
+                          cwd=REPO, timeout=60, env=env)
+    assert echo.returncode == 2 and "HILSIM_TLS_PRIVATE_KEY not set" in echo.stderr, echo.stderr
