@@ -53,6 +53,7 @@ from hilsim.restart import RESTART_ENV, STATE_DIR
 
 LOGGER_NICE = 10
 RESTART_READY_TIMEOUT = 120.0  # wall seconds a restarted service has to announce itself
+REMOTE_GRACE_S = 10.0  # --only: how long a departed remote writer's samples are still its own
 
 
 def stop_order(sc: Scenario) -> list[str]:
@@ -124,7 +125,6 @@ class Launcher:
         self.local = local_units(sc, only)
         self.remote: dict[str, bool] = {}  # remote service -> alive now
         self.remote_left: dict[str, float] = {}  # remote service -> monotonic time it left
-        self.departed: dict[str, float] = {}  # writer token -> monotonic time it was withdrawn
         self.run_dir = run_dir
         self.keys = Keys(sc.prefix, sc.robot)
         self.quiet = quiet
@@ -134,7 +134,9 @@ class Launcher:
         self.outcome = Outcome()
         self.changed = threading.Event()
         self.lock = threading.Lock()
-        self.prov = Provenance()
+        # a service of another host: its last samples (task/result) may reach us well after its token
+        # left, through the router and a loaded host; believed for longer than the default grace
+        self.prov = Provenance(grace=REMOTE_GRACE_S) if len(self.local) < len(sc.launch_units()) else Provenance()
         self.untrusted = 0  # samples on the keys it follows from writers other than the services
         self.paused_for = ""  # lockstep: the services physics waits for to come back (its health)
         self._say_lock = threading.Lock()
@@ -162,7 +164,7 @@ class Launcher:
         self.session = transport.open_session(self.sc.zenoh)
         self._subs = [
             # first: who writes what, so that only the services' own samples are believed
-            self.session.liveliness().declare_subscriber(self.keys.all_writers, self._on_writer, history=True),
+            self.session.liveliness().declare_subscriber(self.keys.all_writers, self.prov.on_token, history=True),
             self.session.declare_subscriber(self.keys.topic("planner/result"), self._on_result),
             self.session.declare_subscriber(self.keys.topic("navigator/result"), self._on_result),
             self.session.declare_subscriber(self.keys.topic("task/result"), self._on_result),
@@ -272,24 +274,9 @@ class Launcher:
             self.remote_left[svc] = time.monotonic()
             self.say(f"  remote {svc} left (its host's launcher may restart it)")
 
-    def _on_writer(self, sample: zenoh.Sample) -> None:
-        if sample.kind == zenoh.SampleKind.DELETE:
-            # a service that ends right after its last sample (the planner after task/result): on
-            # another host its token's removal can overtake that sample through the router
-            with self.lock:
-                self.departed[str(sample.key_expr)] = time.monotonic()
-        self.prov.on_token(sample)
-
     def _trusted(self, sample: zenoh.Sample) -> bool:
-        """A sample from the key's announced writer (not a stranger's, nor a duplicate), or from
-        one that left less than a second ago."""
-        key, att = str(sample.key_expr), transport.read_attachment(sample)
-        why, _ = self.prov.check(key, att)
-        if why is not None and att is not None:
-            token = self.keys.writer(att.gid, key)
-            with self.lock:
-                if time.monotonic() - self.departed.get(token, -1e9) < 1.0:
-                    why = None
+        """A sample from the key's announced writer (not a stranger's, nor a duplicate)."""
+        why, _ = self.prov.check(str(sample.key_expr), transport.read_attachment(sample))
         if why is not None:
             self.untrusted += 1
         return why is None
