@@ -40,7 +40,8 @@ Serves:
   ``navigator/goal`` (Move_Goal, ``target_kind: pose``: the base's x, y in ``world``, the yaw of
   ``pose.orientation`` when ``use_orientation``) → Move_GoalResponse; ``navigator/cancel``.
   A new goal preempts the running one; a goal outside the map or where the footprint does not
-  fit is rejected with the reason.
+  fit is rejected with the reason. A rover more than ``navigator.replan_distance`` off its path,
+  or stopped outside ``goal_tolerance``, is planned again from where it is (``max_replans``).
 
 The scenario task (``task.targets``: ``[x, y]`` or ``[x, y, yaw]`` each) runs as goals
 ``task-1`` … ``task-N`` through :class:`hilsim.tasks.TaskRunner`, like the arm planner's.
@@ -109,6 +110,8 @@ class NavigatorConfig(BaseModel):
     planning_time: float = Field(5.0, gt=0, description="wall-clock cap per plan [s]")
     goal_tolerance: float = Field(0.1, gt=0, description="m: a goal counts as reached within this (odometry)")
     goal_timeout: float = Field(30.0, gt=0, description="sim s per goal beyond the path's time at max_speed")
+    replan_distance: float = Field(0.5, gt=0, description="m off the path before it is planned again")
+    max_replans: int = Field(2, ge=0, description="replans per goal (off the path, or stopped short of the goal)")
     map_period: float = Field(5.0, gt=0, description="sim s between map publications")
     follower: FollowerConfig = Field(default_factory=FollowerConfig)
 
@@ -182,6 +185,7 @@ class NavGoal:
     invalid: tuple[int, str] | None = None  # a task target that cannot be used: reported in turn
     last_feedback_ns: int = -FEEDBACK_PERIOD_NS
     settle_since: int = 0
+    replans: int = 0
 
 
 class NavigatorService(Service):
@@ -394,6 +398,11 @@ class NavigatorService(Service):
         self.active = goal
         goal.state = "planning"
         self._feedback(goal, 0.0, t)
+        self._plan(goal, t)
+
+    def _plan(self, goal: NavGoal, t: int) -> None:
+        """Plan from the estimated pose to the goal and follow the plan (a goal's start, or a replan)."""
+        assert self.pose is not None
         x, y, th = self.pose
         # no yaw asked for: arrive heading along the straight line from here (any valid yaw will do)
         gyaw = goal.yaw
@@ -421,7 +430,8 @@ class NavigatorService(Service):
             for px, py, pth in res.path]))
         goal.follower = Follower(res.path, self.fparams, final_yaw=goal.yaw)
         length = path_length(res.path)
-        goal.deadline_ns = t + round((length / self.fparams.max_speed * 2 + self.cfg.goal_timeout) * 1e9)
+        if not goal.replans:  # a replan keeps the goal's deadline
+            goal.deadline_ns = t + round((length / self.fparams.max_speed * 2 + self.cfg.goal_timeout) * 1e9)
         goal.state = "executing"
         self.log.info("%s: planned %.2f m (%d poses) in %.3f s, %d iterations", goal.goal_id, length,
                       len(res.path), res.planning_time, res.iterations)
@@ -431,6 +441,9 @@ class NavigatorService(Service):
         f = goal.follower
         if goal.state == "executing":
             vx, vy, wz = f.step(*self.pose)
+            if f.off_path > self.cfg.replan_distance and goal.replans < self.cfg.max_replans:
+                self._replan(goal, t, f"{f.off_path:.2f} m off its path")
+                return
             if f.done:
                 goal.state = "settling"
                 goal.settle_since = t
@@ -442,6 +455,8 @@ class NavigatorService(Service):
             err = self._error(goal)
             if err[0] <= self.cfg.goal_tolerance and (goal.yaw is None or err[1] <= 2 * self.fparams.yaw_tolerance):
                 self._finish(goal, True, msgs.SUCCESS, "goal reached")
+            elif goal.replans < self.cfg.max_replans:
+                self._replan(goal, t, f"stopped {err[0]:.3f} m / {err[1]:.3f} rad from the goal")
             else:
                 self._finish(goal, False, msgs.CONTROL_FAILED,
                              f"stopped {err[0]:.3f} m / {err[1]:.3f} rad from the goal")
@@ -451,3 +466,12 @@ class NavigatorService(Service):
             return
         if t - goal.last_feedback_ns >= FEEDBACK_PERIOD_NS:
             self._feedback(goal, f.progress, t)
+
+    def _replan(self, goal: NavGoal, t: int, why: str) -> None:
+        """The rover strayed from its path, or stopped short of the goal: stand still this tick and
+        plan again from where it is (at most ``navigator.max_replans`` times per goal)."""
+        goal.replans += 1
+        self.tick_cmd = msgs.Twist()
+        self.warn(f"{goal.goal_id}: {why}; replanning ({goal.replans}/{self.cfg.max_replans})")
+        goal.state = "planning"
+        self._plan(goal, t)

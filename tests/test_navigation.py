@@ -321,3 +321,43 @@ def test_compose_rover_runs_the_navigator() -> None:
     assert args.cmd == "run" and args.service == "navigator"
     assert "navigator" in load_scenario(REPO / args.config).services
     assert "navigator" in comp["physics"]["depends_on"]
+
+
+class _Sink:
+    def __init__(self) -> None:
+        self.got: list = []  # type: ignore[type-arg]
+
+    def put(self, m: object) -> None:
+        self.got.append(m)
+
+
+def _odom(t_ns: int, x: float, y: float, yaw: float) -> msgs.Odometry:
+    return msgs.Odometry(header=msgs.header(t_ns, "odom"), pose=msgs.PoseWithCovariance(pose=msgs.Pose(
+        position=msgs.Point(x=x, y=y), orientation=msgs.Quaternion(z=math.sin(yaw / 2), w=math.cos(yaw / 2)))))
+
+
+def test_navigator_ticks_one_cmd_vel_each_and_replans_a_rover_off_its_path() -> None:
+    """The service's decisions without transport: the task's first goal is planned at the first
+    tick; every tick sends exactly one cmd_vel; odometry between ticks sends nothing; a rover 0.8 m
+    off its path is planned again from where it is (and stands still that tick)."""
+    from hilsim.services.navigator import NavigatorService
+
+    nav = NavigatorService(load_scenario("rover", {"navigator.max_replans": 1}))
+    for name in ("pub_cmd", "pub_map", "pub_plan", "pub_feedback", "pub_result", "pub_task_result"):
+        setattr(nav, name, _Sink())
+    nav.on_odom(_odom(0, 0.0, 0.0, 0.0), "k")
+    assert nav.plans == 1 and nav.active is not None and nav.active.goal_id == "task-1"
+    assert len(nav.pub_cmd.got) == 1 and len(nav.pub_map.got) == 1  # type: ignore[attr-defined]
+    plan = nav.pub_plan.got[-1]  # type: ignore[attr-defined]
+    assert plan.poses[-1].pose.position.x == pytest.approx(5.0) and plan.poses[-1].pose.position.y == pytest.approx(2.5)
+    nav.on_odom(_odom(10_000_000, 0.0, 0.0, 0.0), "k")  # not a decision step (every 50 ms)
+    assert len(nav.pub_cmd.got) == 1  # type: ignore[attr-defined]
+    nav.on_odom(_odom(50_000_000, 0.0, 0.0, 0.0), "k")
+    cmd = nav.pub_cmd.got[-1]  # type: ignore[attr-defined]
+    assert len(nav.pub_cmd.got) == 2 and math.hypot(cmd.linear.x, cmd.linear.y) > 0  # type: ignore[attr-defined]
+    nav.on_odom(_odom(100_000_000, 0.5, -0.8, 0.0), "k")  # pushed 0.8 m off the path
+    assert nav.plans == 2 and nav.active.replans == 1
+    assert nav.pub_cmd.got[-1] == msgs.Twist() and len(nav.pub_cmd.got) == 3  # type: ignore[attr-defined]
+    assert nav.pub_plan.got[-1].poses[0].pose.position.y == pytest.approx(-0.8)  # type: ignore[attr-defined]
+    nav.on_odom(_odom(150_000_000, 0.5, 0.8, 0.0), "k")  # off again: no replans left, it follows on
+    assert nav.plans == 2 and nav.active is not None and nav.active.state == "executing"

@@ -73,6 +73,7 @@ class Follower:
                     for s, _ in self.segments]
         self.total = float(sum(a[-1] for a in self.arc))
         self.done = False
+        self.off_path = 0.0  # distance to the nearest point of the current segment at the last step
         self.at_goal = False  # position reached (the final yaw may still be turning)
 
     @property
@@ -118,6 +119,7 @@ class Follower:
             wz = max(-p.max_yaw_rate, min(p.max_yaw_rate, p.k_yaw * err))
             return 0.0, 0.0, math.copysign(max(abs(wz), 0.1), wz)
         self._nearest(x, y)
+        self.off_path = math.hypot(seg[self.i, 0] - x, seg[self.i, 1] - y)
         arc = self.arc[self.k]
         s_ahead = arc[self.i] + p.lookahead
         j = min(int(np.searchsorted(arc, s_ahead)), len(seg) - 1)
