@@ -32,8 +32,9 @@ reproducible: same scenario and seed, same gains.
       rate (``config/arm-lean.yaml`` runs the same gains at 250 Hz); with no such trial, the fastest;
    b. ``kd`` around that one by factors of √2, only when the target is not met yet: the fastest;
    c. ``ki`` from the rule's integral time at the chosen ``kp`` (``kp/Ti``), in decades down, with
-      anti-windup ``i_limit`` at a tenth of the actuator's limit: the largest that does not
-      overshoot and still meets the target (it only mops up coupling between the joints).
+      anti-windup ``i_limit`` at a tenth of the actuator's limit, each watched 2.5 times longer
+      (integral action creeps past the target late): the largest that does not overshoot and still
+      meets the target (it only mops up coupling between the joints).
 
    "Without overshoot" is at most half of :data:`~hilsim.tools.metrics.ZERO_OVERSHOOT_PCT`, and a
    trial must end within half of :data:`~hilsim.tools.metrics.ZERO_TOL` of the target (margins: the
@@ -69,6 +70,7 @@ RELAY_FRACTION = 0.2  # relay amplitude h as a fraction of the actuator's limit
 KICK = 0.01  # [rad] step that starts the identification oscillations
 MARGIN = 0.5  # a refinement trial counts as without overshoot at half the paper's "0" tolerance
 MARGIN_T = 0.8  # and meets a time target at 80 % of it
+LONGER = 2.5  # trials of an integral gain are watched this many times longer
 
 Say = Callable[[str], None]
 
@@ -345,8 +347,9 @@ def refine(robot: str, joint: str, rule: dict[str, float], step: float, target: 
     # the rule's integral time Ti = Tu/2 at the chosen kp, then decades less
     kis = [ki0 * kp / kp0 * 10.0**-i for i in range(1, 6)]
     say(f"  refine c: ki {kis[-1]:.3g} … {kis[0]:.3g} (kp {kp:.4g}, kd {kd:.4g})")
+    # integral action shows late (a slow creep past the target): these trials are watched longer
     got = run_trials(robot, joint, step, [{"kp": kp, "kd": kd, "ki": ki} for ki in kis], "refine c", say,
-                     overrides, measure)
+                     overrides, LONGER * measure)
     trials += len(got)
     for t in got:
         _show(say, t)
