@@ -274,6 +274,19 @@ class Launcher:
             self.remote_left[svc] = time.monotonic()
             self.say(f"  remote {svc} left (its host's launcher may restart it)")
 
+    def _poll_remote(self) -> None:
+        """Ask who is alive: a remote service's departure must not hang on one liveliness event
+        (seen lost through the router under load), so the run still ends, bounded."""
+        try:
+            replies = self.session.liveliness().get(self.keys.all_alive, timeout=1.0)
+            alive = {str(r.ok.key_expr).rsplit("/", 1)[-1] for r in replies if r.ok is not None}
+        except zenoh.ZError:
+            return
+        with self.lock:
+            for svc, up in list(self.remote.items()):
+                if up != (svc in alive) and (up or svc in self.remote_left):  # left, or back
+                    self._on_remote(svc, not up)
+
     def _trusted(self, sample: zenoh.Sample) -> bool:
         """A sample from the key's announced writer (not a stranger's, nor a duplicate)."""
         why, _ = self.prov.check(str(sample.key_expr), transport.read_attachment(sample))
@@ -399,7 +412,7 @@ class Launcher:
     def follow(self, wall_timeout: float | None = None) -> None:
         """Wait for the end of the run: task result, duration, a dead service, or Ctrl-C."""
         t0 = time.monotonic()
-        last_print = t0
+        last_print = last_poll = t0
         while True:
             if self.check_children():
                 return
@@ -412,6 +425,9 @@ class Launcher:
             if wall_timeout is not None and time.monotonic() - t0 > wall_timeout:
                 self.say(f"error: run did not finish within {wall_timeout:.0f}s wall")
                 return
+            if self.remote and time.monotonic() - last_poll > 2.0:
+                last_poll = time.monotonic()
+                self._poll_remote()
             with self.lock:
                 gone = [s for s, t in self.remote_left.items() if time.monotonic() - t > RESTART_READY_TIMEOUT]
             if gone:
