@@ -118,8 +118,13 @@ def publisher(session: zenoh.Session, key: str, *, drop_when_congested: bool = F
     Lockstep (``drop_when_congested=False``): BLOCK, a slow subscriber (the recorder) slows the
     sender and nothing is lost. Realtime (``True``): DROP, a subscriber that cannot keep up
     loses samples (counted by the receiver from the attachment's sequence numbers) instead of
-    delaying the wall-clock loop. express: no batching, step latency matters more than throughput.
+    delaying the wall-clock loop; except a ``…/result`` key, always BLOCK (a lost result leaves
+    its waiters waiting). express: no batching, step latency matters more than throughput.
     """
+    if key.endswith("/result"):
+        # a goal's or the task's result is one sample that its waiters (launchers on every host,
+        # clients) cannot do without: seen lost on a congested link to another host when dropped
+        drop_when_congested = False
     cc = zenoh.CongestionControl.DROP if drop_when_congested else zenoh.CongestionControl.BLOCK
     return session.declare_publisher(key, congestion_control=cc, reliability=zenoh.Reliability.RELIABLE, express=True)
 
