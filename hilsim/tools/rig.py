@@ -8,7 +8,8 @@ as one more lockstep participant, :class:`StepRig`, acknowledging on ``sync/step
 sim times, so an experiment is as reproducible as the run itself (same seed, same figures):
 
 - at a rig step ``k`` it waits for the controller's ``joint_commands`` of ``k`` (the controller is
-  done with that step), then sets the joint's gains for the experiment through
+  done with that step), then sets the joint's gains for the experiment (its integral emptied
+  first, so a trial starts like a fresh controller) through
   ``controller/set_parameters`` (effective from the next control step; the reply comes before the
   rig acknowledges ``k``, so physics cannot step on before), and publishes a one-point
   ``JointTrajectory`` (``time_from_start`` 0) stamped ``k + LEAD`` periods: a step of the reference
@@ -83,6 +84,7 @@ class _Action:
     gains: dict[str, float]  # live parameters "<joint>.<field>"
     joint: str
     position: float
+    fresh: bool = False  # empty the joint's integral before setting the gains (a trial's start)
 
 
 class StepRig(Service):
@@ -129,7 +131,7 @@ class StepRig(Service):
             restore = {f"{e.joint}.{f}": _live(getattr(g, f) if f != "output_limit" else limit) for f in e.gains}
             n_meas = self._steps(e.measure)
             n_settle = self._steps(e.settle)
-            self.actions[k] = _Action(k, own, e.joint, float(target))
+            self.actions[k] = _Action(k, own, e.joint, float(target), fresh=True)
             s = k + self.lead
             self.windows.append((s, s + n_meas))
             kb = s + n_meas
@@ -201,6 +203,9 @@ class StepRig(Service):
 
     def _act(self, a: _Action) -> None:
         if a.gains:
+            if a.fresh:
+                # a trial starts like a fresh controller: ki = 0 empties the integral (hilsim.control.Pid)
+                self._set_gains({f"{a.joint}.ki": 0.0})
             self._set_gains(a.gains)
         stamp = (a.k + self.lead) * self.dt_ns
         traj = msgs.JointTrajectory(

@@ -281,7 +281,8 @@ def run_trials(robot: str, joint: str, step: float, cands: list[dict[str, float]
     sc = loop_scenario(robot, overrides)
     effort = _effort(sc, joint)
     cands = [{k: _r4(v) for k, v in {**g, "i_limit": 0.1 * effort}.items()} for g in cands]
-    exps = [Experiment(joint, step, _full(g, effort), measure=measure, settle=0.3) for g in cands]
+    # home again between trials with the scenario's gains, which may be soft: time to settle
+    exps = [Experiment(joint, step, _full(g, effort), measure=measure, settle=0.6) for g in cands]
     rs = run_experiments(sc, exps, progress=_count(say, what))
     return [Trial(g, step_figures(r.t, r.y, r.y0, r.target)) for g, r in zip(cands, rs, strict=True)]
 
