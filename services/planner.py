@@ -429,7 +429,8 @@ class PlannerService(Service):
             # first, so a busy machine plans as well as a quiet one, only later
             budget = {"max_iterations": self.sc.planner.iterations, "time_limit": goal.planning_time}
         seed = self.sc.seed + self.plans
-        pb = Problem(self.plan_arm, start, goal.target, seed=seed, resolution=self.library.resolution, **budget)
+        pb = Problem(self.plan_arm, start, goal.target, seed=seed, resolution=self.library.resolution,
+                     cancelled=lambda: goal.canceled, **budget)
         w0 = time.perf_counter()
         if np.max(np.abs(goal.target - start)) < 1e-6:
             out = PlanOutcome(np.array([start, goal.target]), "already there")

@@ -112,6 +112,8 @@ class OmplPlanner:
             # OMPL calls this once per iteration of its main loop: counting calls is a
             # deterministic termination condition.
             budget.iterations += 1
+            if budget.cancelled():
+                return True
             if budget.elapsed() >= budget.time_limit:
                 budget.wall_cap_hit = budget.max_it is not None
                 return True
@@ -123,7 +125,7 @@ class OmplPlanner:
         for _ in range(1 if budget.max_it is None else 4):
             chunk_end[0] = budget.iterations + (budget.max_it or 0)
             status = planner.solve(ob.PlannerTerminationCondition(stop))
-            if pdef.hasExactSolution() or budget.elapsed() >= budget.time_limit:
+            if pdef.hasExactSolution() or budget.elapsed() >= budget.time_limit or budget.cancelled():
                 break
         elapsed = budget.elapsed()
         if not pdef.hasExactSolution():

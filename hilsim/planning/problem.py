@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -30,6 +31,8 @@ class Problem:
     max_iterations: int | None = None  # deterministic budget; None = stop on wall time
     time_limit: float = 1.0  # wall seconds (a safety cap when max_iterations is set)
     resolution: float = 0.01  # rad between collision checks along a motion
+    # asked between iterations: True ends the search at once (a goal canceled while planning)
+    cancelled: Callable[[], bool] | None = None
 
 
 @dataclass
@@ -63,6 +66,7 @@ class Budget:
         self.max_it = pb.max_iterations
         self.hard_it = None if pb.max_iterations is None else pb.max_iterations * extend
         self.time_limit = pb.time_limit
+        self.cancelled = pb.cancelled or (lambda: False)
         self.t0 = time.perf_counter()
         self.iterations = 0
         self.wall_cap_hit = False
@@ -71,6 +75,8 @@ class Budget:
         return time.perf_counter() - self.t0
 
     def done(self, solved: bool) -> bool:
+        if self.cancelled():
+            return True
         if self.elapsed() >= self.time_limit:
             self.wall_cap_hit = self.max_it is not None
             return True
