@@ -51,7 +51,9 @@ def test_collision_limits_and_reasons(arm: ArmModel) -> None:
 @pytest.mark.parametrize("name", ["rrtstar", "improved_rrtstar", "rrtconnect", "informed_rrtstar"])
 def test_planners_by_name_avoid_the_obstacle(arm: ArmModel, name: str) -> None:
     lib = PlannerLibrary.load()
-    res = lib.create(name).solve(Problem(arm, LEFT, RIGHT, seed=1, max_iterations=300, time_limit=20))
+    # OMPL's planners draw from one process-wide generator, so their runs depend on what ran
+    # before in the process: a budget that solves this query whatever the draw
+    res = lib.create(name).solve(Problem(arm, LEFT, RIGHT, seed=1, max_iterations=1000, time_limit=20))
     assert res.success, res.message
     assert np.allclose(res.path[0], LEFT) and np.allclose(res.path[-1], RIGHT)
     assert all(arm.motion_valid(a, b, 0.01) for a, b in zip(res.path[:-1], res.path[1:], strict=True))
