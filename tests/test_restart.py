@@ -80,6 +80,19 @@ def sim_now(obs: Observer) -> int:
         return obs.truth[-1][0] if obs.truth else -1
 
 
+def still(obs: Observer, quiet: float = 0.3, timeout: float = 30.0) -> int:
+    """The truth's sim time once it has not moved for ``quiet`` wall seconds (physics paused)."""
+    end = time.monotonic() + timeout
+    last = sim_now(obs)
+    while time.monotonic() < end:
+        time.sleep(quiet)
+        now = sim_now(obs)
+        if now == last:
+            return now
+        last = now
+    raise AssertionError(f"the truth never stood still: sim time {last}")
+
+
 @pytest.mark.e2e
 def test_each_service_killed_in_turn_is_restarted_and_the_task_completes(tmp_path: Path) -> None:
     """Lockstep arm, one target: the controller, the sensors and the planner are SIGKILLed one
@@ -97,6 +110,7 @@ def test_each_service_killed_in_turn_is_restarted_and_the_task_completes(tmp_pat
     out = Output(p)
     pids: set[int] = set()
     killed: dict[str, int] = {}
+    held: dict[str, int] = {}
     try:
         ready = out.wait(r"^ready: (.*)$", 120)[1]
         now = {n: int(pid) for n, pid in re.findall(r"(\w+) \(pid (\d+)\)", ready)}
@@ -109,6 +123,8 @@ def test_each_service_killed_in_turn_is_restarted_and_the_task_completes(tmp_pat
             assert wait_until(lambda t=sim_at: sim_now(obs) >= t, 60), out.text()
             psutil.Process(now[name]).send_signal(signal.SIGKILL)
             killed_at = sim_now(obs)
+            # where the truth stops while it is gone (this test's view lags on a loaded machine)
+            held[name] = still(obs)
             back = out.wait(rf"^  {name} is back \(pid (\d+)\)", 60)
             now[name] = int(back[1])
             pids.add(now[name])
@@ -130,13 +146,13 @@ def test_each_service_killed_in_turn_is_restarted_and_the_task_completes(tmp_pat
     for name in ("controller", "sensors", "planner"):
         assert re.search(rf"^  restarted {name} \(exit code -9 at sim time [\d.]+ s; back after", text, re.M), text
         assert re.search(rf"^  physics: sim time paused at t=[\d.]+ s until {name} is back", text, re.M), text
-    # sim time stopped right when each died (a participant can only owe the next step; the planner
-    # acknowledges every 10th), as physics says, and ran again from there (its first report after
-    # resuming is a few steps later at most)
+    # sim time stopped when each died (after the moment this test saw before the kill), where
+    # physics says, judged by the truth: it did not move while the service was gone
     for name, t_kill in killed.items():
         stop = re.search(rf"^  physics: sim time paused at t=([\d.]+) s until {name} is back\n"
                          rf"(?:.*\n)*?  physics: sim time runs again from t=([\d.]+) s", text, re.M)
-        assert stop and 0 <= float(stop[1]) * 1e9 - t_kill <= 0.05e9, (name, t_kill, text)
+        assert stop and float(stop[1]) * 1e9 >= t_kill, (name, t_kill, text)
+        assert abs(held[name] - float(stop[1]) * 1e9) <= 0.0015e9, (name, held[name], text)
         assert 0 <= float(stop[2]) - float(stop[1]) <= 0.1, (name, text)
     # it resumed where it stopped: the truth's steps go on without a jump (a step published again
     # for a restarted service comes twice) and never back
