@@ -10,16 +10,14 @@ import math
 import re
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import pytest
-import zenoh
-from util import REPO, finish, up
+from util import REPO, Capture, finish, up, yaw_of
 
 from hilsim import msgs, transport
-from hilsim.config import ZenohConfig, load_scenario
+from hilsim.config import load_scenario
 from hilsim.keys import Keys
 from hilsim.planning.client import MoveClient
 
@@ -28,34 +26,6 @@ KEYS = Keys("hilsim", "rover")
 TOLERANCE = 0.2  # m: what a goal is judged by (the issue's "reached within 0.2 m")
 
 
-def yaw_of(o: msgs.Odometry) -> float:
-    q = o.pose.pose.orientation
-    return math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
-
-
-class Capture:
-    """Raw samples of some keys, by key, in arrival order."""
-
-    def __init__(self, endpoint: str, topics: list[str]) -> None:
-        self.session = transport.open_session(ZenohConfig(connect=[endpoint]))
-        self.lock = threading.Lock()
-        self.raw: dict[str, list[bytes]] = {t: [] for t in topics}
-        self.subs = [self.session.declare_subscriber(KEYS.topic(t), self._make(t)) for t in topics]
-
-    def _make(self, topic: str):  # type: ignore[no-untyped-def]
-        def on(s: zenoh.Sample) -> None:
-            with self.lock:
-                self.raw[topic].append(s.payload.to_bytes())
-        return on
-
-    def decoded(self, topic: str, cls: type) -> list:  # type: ignore[type-arg]
-        with self.lock:
-            return [msgs.decode(cls, b) for b in self.raw[topic]]
-
-    def close(self) -> None:
-        for s in self.subs:
-            s.undeclare()
-        self.session.close()
 
 
 def judge(truth: dict[int, msgs.Odometry], result: msgs.MoveResult, goal: list[float]) -> tuple[float, float]:

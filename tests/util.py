@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import subprocess
@@ -124,3 +125,36 @@ def finish(p: subprocess.Popen[str], timeout: float) -> str:
             os.killpg(p.pid, signal.SIGKILL)
             p.communicate()
     return out
+
+
+ROVER = Keys("hilsim", "rover")
+
+
+def yaw_of(o: msgs.Odometry) -> float:
+    q = o.pose.pose.orientation
+    return math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+
+
+class Capture:
+    """Raw samples of some keys, by key, in arrival order."""
+
+    def __init__(self, endpoint: str, topics: list[str], keys: Keys = ROVER) -> None:
+        self.session = transport.open_session(ZenohConfig(connect=[endpoint]))
+        self.lock = threading.Lock()
+        self.raw: dict[str, list[bytes]] = {t: [] for t in topics}
+        self.subs = [self.session.declare_subscriber(keys.topic(t), self._make(t)) for t in topics]
+
+    def _make(self, topic: str):  # type: ignore[no-untyped-def]
+        def on(s: zenoh.Sample) -> None:
+            with self.lock:
+                self.raw[topic].append(s.payload.to_bytes())
+        return on
+
+    def decoded(self, topic: str, cls: type) -> list:  # type: ignore[type-arg]
+        with self.lock:
+            return [msgs.decode(cls, b) for b in self.raw[topic]]
+
+    def close(self) -> None:
+        for s in self.subs:
+            s.undeclare()
+        self.session.close()
