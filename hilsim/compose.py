@@ -31,7 +31,7 @@ from typing import Any
 import zenoh
 
 from hilsim import transport
-from hilsim.inproc import _matches
+from hilsim.inproc import key_matches
 
 log = logging.getLogger("hilsim.compose")
 
@@ -136,7 +136,7 @@ class ComposedSession:
             cbs = self._routes.get(key)
             if cbs is None:
                 with self._lock:
-                    cbs = self._routes[key] = [h for expr, h in self._subs if _matches(expr, key)]
+                    cbs = self._routes[key] = [h for expr, h in self._subs if key_matches(expr, key)]
             for cb in cbs:
                 cb(key, msg, att)
                 self.delivered += 1

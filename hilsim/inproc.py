@@ -41,12 +41,12 @@ class _Decl:
         self._undeclare()
 
 
-def _matches(expr: str, key: str) -> bool:
+def key_matches(expr: str, key: str) -> bool:
     """Zenoh key-expression match for the forms hilsim uses: exact, `*` (one chunk), `**` (any)."""
     e, k = expr.split("/"), key.split("/")
     if "**" in e:
         i = e.index("**")
-        return _matches("/".join(e[:i]), "/".join(k[:i])) if i else True
+        return key_matches("/".join(e[:i]), "/".join(k[:i])) if i else True
     return len(e) == len(k) and all(a in ("*", b) for a, b in zip(e, k, strict=True))
 
 
@@ -66,7 +66,7 @@ class _Liveliness:
     def declare_token(self, key: str) -> _Decl:
         self.bus.tokens.add(key)
         for expr, cb in list(self.bus.live_subs):
-            if _matches(expr, key):
+            if key_matches(expr, key):
                 cb(_Sample(key, _Payload(b"")))
         return _Decl(lambda: self.bus.tokens.discard(key))
 
@@ -75,7 +75,7 @@ class _Liveliness:
         self.bus.live_subs.append(entry)
         if history:
             for k in sorted(self.bus.tokens):
-                if _matches(expr, k):
+                if key_matches(expr, k):
                     cb(_Sample(k, _Payload(b"")))
         return _Decl(lambda: self.bus.live_subs.remove(entry))
 
@@ -124,7 +124,7 @@ class Bus:
             key, data, att = q.popleft()
             cbs = routes.get(key)
             if cbs is None:
-                cbs = routes[key] = [cb for expr, cb in self.subs if _matches(expr, key)]
+                cbs = routes[key] = [cb for expr, cb in self.subs if key_matches(expr, key)]
             for cb in cbs:
                 cb(_Sample(key, _Payload(data), att))
                 self.delivered += 1
