@@ -15,7 +15,8 @@ Writes:
   ``controller/reference`` (sensor_msgs/JointState: reference position and velocity), same stamp.
 Serves:
   ``controller/set_parameters`` (SetParameters ``<joint>.<kp|ki|kd|i_limit|output_limit|feedforward>``
-  → SetParametersResult): all-or-nothing, effective at the next control step.
+  → SetParametersResult): all-or-nothing, effective at the next control step; the gains in
+  force are in its health (``gains:<joint>`` = ``kp=… ki=… kd=… i_limit=… …``).
 
 Setpoint: the first measured position until a trajectory arrives; a trajectory replaces the
 current one at its start time (``header.stamp``; zero = on receipt) and its last point is held
@@ -244,4 +245,8 @@ class ControllerService(Service):
             "control_steps": self.steps,
             "joint_states_gaps": self.gaps,
             "interfaces": ",".join(sorted(set(self.interfaces))),
+            # the gains in force (scenario + live changes), so a client (the panel) reads what it set
+            **{f"gains:{n}": " ".join(f"{f}={getattr(pid, f):g}" for f in control.GAIN_FIELDS
+                                      if getattr(pid, f) is not None)
+               for n, pid in zip(self.names, self.pids, strict=True)},
         }
