@@ -7,7 +7,6 @@ The test publishes ``joint_states`` (and the clock) for each step, waits for the
 from __future__ import annotations
 
 import threading
-import time
 from typing import Any
 
 import numpy as np
@@ -119,7 +118,11 @@ def rig(scenario: Any, session: zenoh.Session, run_service: Any, request: Any) -
     client = MoveClient(session, keys)
     sim = FakeSim(session, keys, [0.0] * 6)
     with run_service(PlannerService(sc)) as svc:
-        time.sleep(0.3)  # let the declarations meet through the router
+        # wait for the routes, not a fixed time: the planner subscribes to the fake sim's joint
+        # states (it ticks on their stamps) and its liveliness token (declared after its
+        # queryables) has reached this session
+        assert wait_until(lambda: sim.pub_js.matching_status.matching, 10), "the planner never subscribed"
+        assert client.wait_for_planner(10), "the planner's liveliness token never arrived"
         yield svc, sim, client
     sim.close()
     client.close()
