@@ -219,7 +219,7 @@ def test_killed_service_is_reported_and_nothing_hangs(tmp_path: Path) -> None:
         pub = ses.declare_publisher("hilsim/arm/joint_commands")
         # a fresh session first learns who subscribes; a put before that reaches nobody
         assert connected.wait(10)
-        time.sleep(0.5)
+        assert wait_until(lambda: pub.matching_status.matching, 10), "physics never subscribed to joint_commands"
         # a stranger's garbage, NaN and truncated commands: refused (before decoding: only the
         # controller may command), counted, and physics keeps stepping
         nan = [0.0, 0.0, float("nan"), 0.0, 0.0, 0.0]
