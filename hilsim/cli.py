@@ -33,16 +33,20 @@ def cmd_run(args: argparse.Namespace) -> int:
     names = args.service.split("+")  # a+b+c: composed in one process (hilsim.compose)
     try:
         for n in names:
-            service_class(n)  # an unknown name is said before the scenario is read
+            service_class(n.split("@")[0])  # an unknown name is said before the scenario is read
     except UnknownService as e:
         print(f"hilsim run: {e}", file=sys.stderr)
         return 2
     sc = load_scenario(args.config, parse_overrides(args.set))
+    from hilsim import fleet
+
+    # robots > 1: controller@arm3 is one robot's controller, controller@* every robot's (hilsim.fleet)
+    names = fleet.members(sc, args.service)
     if len(names) > 1:
         from hilsim import compose
 
         return compose.run(names, sc)
-    return int(service_class(args.service, sc)(sc).run())
+    return int(fleet.instantiate(names[0], sc).run())
 
 
 def _lazy(module: str, func: str) -> Callable[[argparse.Namespace], int]:

@@ -149,10 +149,10 @@ class ComposedSession:
 
 def run(names: list[str], sc: Any) -> int:
     """``hilsim run a+b+c``: the services ``names`` in this process; returns the exit code."""
-    from hilsim.registry import service_class
+    from hilsim.fleet import instantiate
 
-    classes = [service_class(n, sc) for n in names]
-    services = [cls(sc) for cls in classes]
+    # names: services, or with robots > 1 robots' services (controller@arm3: hilsim.fleet)
+    services = [instantiate(n, sc) for n in names]
     # start as the launcher does (the reverse of stop_rank: physics last, once the others listen)
     order = sorted(services, key=lambda s: -s.stop_rank)
     stop = threading.Event()

@@ -215,6 +215,7 @@ class RestartConfig(_Model):
         composed process ``a+b`` (:mod:`hilsim.compose`) is restarted only if each of its members is."""
         if "+" in service:
             return "on-failure" if all(self.policy(s) == "on-failure" for s in service.split("+")) else "no"
+        service = service.split("@")[0]  # robots > 1: controller@arm3, controller@* (hilsim.fleet)
         if service == "physics":
             return "no"
         return self.services.get(service, self.services.get("default", "no"))
@@ -227,6 +228,12 @@ class Scenario(_Model):
     model_config = ConfigDict(extra="allow", validate_assignment=True)
     name: str
     robot: str = "arm"
+    robots: int = Field(1, ge=1, le=64, description="copies of the robot, side by side in one world: "
+                        "robots <robot>0 … <robot>N-1, each under its own key namespace (hilsim.fleet)")
+    robot_spacing: list[float] = Field(
+        default_factory=lambda: [0.0, 1.5, 0.0], min_length=3, max_length=3,
+        description="robots > 1: offset [m] of each copy of the world model from the previous one",
+    )
     prefix: str = "hilsim"
     seed: int = 0
     duration: float | None = Field(None, gt=0, description="sim seconds; None = until the task ends")
@@ -271,13 +278,21 @@ class Scenario(_Model):
         return v
 
     @model_validator(mode="after")
+    def _fleet(self) -> Scenario:
+        if self.robots > 1 and self.external_servers():
+            raise ValueError(f"robots: {self.robots} robots need every joint served by sim "
+                             f"(external servers: {', '.join(self.external_servers())})")
+        return self
+
+    @model_validator(mode="after")
     def _compose_groups(self) -> Scenario:
         seen: set[str] = set()
+        base = self._base_processes()
         for i, g in enumerate(self.compose):
             for s in g:
-                if s not in self.processes():
+                if s not in base:
                     raise ValueError(f"compose[{i}]: {s!r} is not one of this scenario's services "
-                                     f"({', '.join(self.processes())})")
+                                     f"({', '.join(base)})")
                 if s in seen:
                     raise ValueError(f"compose[{i}]: {s!r} is in two groups")
                 seen.add(s)
@@ -324,15 +339,29 @@ class Scenario(_Model):
                 out.append(j.server)
         return out
 
-    def processes(self) -> list[str]:
-        """Every service this scenario runs: ``services`` plus the external joint servers."""
+    def _base_processes(self) -> list[str]:
         return [*self.services, *(s for s in self.external_servers() if s not in self.services)]
+
+    def processes(self) -> list[str]:
+        """Every service this scenario runs: ``services`` plus the external joint servers. With
+        ``robots`` > 1, a per-robot service once per robot, as ``<service>@<robot>`` (hilsim.fleet)."""
+        from hilsim import fleet
+
+        return fleet.expand_processes(self, self._base_processes())
 
     def launch_units(self) -> list[str]:
         """The OS processes ``hilsim up`` starts: one per service, except the services of a
-        ``compose`` group, which share one named ``a+b+c`` (:mod:`hilsim.compose`)."""
-        procs = self.processes()
+        ``compose`` group, which share one named ``a+b+c`` (:mod:`hilsim.compose`). With
+        ``robots`` > 1, a per-robot service's unit is ``<service>@*``: one process serving every robot."""
+        from hilsim import fleet
+
+        procs = self._base_processes()
         grouped = {s: "+".join(m for m in g if m in procs) for g in self.compose for s in g}
+        if self.robots > 1:
+            return [fleet.fleet_unit(u) for u in self._units(procs, grouped)]
+        return self._units(procs, grouped)
+
+    def _units(self, procs: list[str], grouped: dict[str, str]) -> list[str]:
         out: list[str] = []
         for s in procs:
             unit = grouped.get(s, s)

@@ -22,6 +22,10 @@ the others are expected from other hosts on the same Zenoh network, and the laun
 their liveliness tokens as for its own (saying who is still missing), follows the run as usual,
 and reports a remote service that leaves and does not come back.
 
+Many robots (``robots: N``, :mod:`hilsim.fleet`): a per-robot service is one process for every
+robot (``controller@*``); the launcher follows every robot's keys (``<prefix>/*/…``), names a
+robot's service ``<service>@<robot>`` and waits for every robot's ``task/result``.
+
 Reads: ``<prefix>/<robot>/task/result``, ``planner/result`` and ``navigator/result``, ``health/*``, ``log/*`` (faults,
 printed as they happen), ``alive/*``.
 """
@@ -45,7 +49,7 @@ from typing import Any
 
 import zenoh
 
-from hilsim import msgs, transport
+from hilsim import fleet, msgs, transport
 from hilsim.config import Scenario, load_scenario, write_scenario
 from hilsim.keys import Keys
 from hilsim.provenance import Provenance
@@ -62,7 +66,8 @@ def stop_order(sc: Scenario) -> list[str]:
     from hilsim.registry import service_class
 
     names = sc.launch_units()  # a composed process a+b+c stops at the rank of its first-stopping member
-    return sorted(names, key=lambda n: (min(service_class(m, sc).stop_rank for m in n.split("+")), names.index(n)))
+    return sorted(names, key=lambda n: (min(service_class(fleet.split_id(m)[0], sc).stop_rank
+                                            for m in n.split("+")), names.index(n)))
 
 
 def _pdeathsig() -> None:
@@ -107,7 +112,9 @@ class Restart:
 @dataclass
 class Outcome:
     task: msgs.MoveResult | None = None
+    tasks: dict[str, msgs.MoveResult] = field(default_factory=dict)  # per robot (robots > 1)
     results: list[msgs.MoveResult] = field(default_factory=list)
+    result_robots: list[str] = field(default_factory=list)  # the robot of each of results
     health: dict[str, dict[str, str]] = field(default_factory=dict)
     physics_done: bool = False
     died: list[tuple[str, int]] = field(default_factory=list)
@@ -127,6 +134,9 @@ class Launcher:
         self.remote_left: dict[str, float] = {}  # remote service -> monotonic time it left
         self.run_dir = run_dir
         self.keys = Keys(sc.prefix, sc.robot)
+        # the keys followed: the robot's, or with robots > 1 every robot's (<prefix>/*/…)
+        self.follow_keys = Keys(sc.prefix, "*") if sc.robots > 1 else self.keys
+        self.robots = fleet.robot_names(sc)
         self.quiet = quiet
         self.router_ep = router
         self._router: zenoh.Session | None = None
@@ -165,12 +175,12 @@ class Launcher:
         self._subs = [
             # first: who writes what, so that only the services' own samples are believed
             self.session.liveliness().declare_subscriber(self.keys.all_writers, self.prov.on_token, history=True),
-            self.session.declare_subscriber(self.keys.topic("planner/result"), self._on_result),
-            self.session.declare_subscriber(self.keys.topic("navigator/result"), self._on_result),
-            self.session.declare_subscriber(self.keys.topic("task/result"), self._on_result),
-            self.session.declare_subscriber(self.keys.health("*"), self._on_health),
-            self.session.declare_subscriber(self.keys.log("*"), self._on_log),
-            self.session.liveliness().declare_subscriber(self.keys.all_alive, self._on_alive, history=True),
+            self.session.declare_subscriber(self.follow_keys.topic("planner/result"), self._on_result),
+            self.session.declare_subscriber(self.follow_keys.topic("navigator/result"), self._on_result),
+            self.session.declare_subscriber(self.follow_keys.topic("task/result"), self._on_result),
+            self.session.declare_subscriber(self.follow_keys.health("*"), self._on_health),
+            self.session.declare_subscriber(self.follow_keys.log("*"), self._on_log),
+            self.session.liveliness().declare_subscriber(self.follow_keys.all_alive, self._on_alive, history=True),
         ]
         self.order = [n for n in stop_order(self.sc) if n in self.local]
         for name in reversed(self.order):
@@ -240,8 +250,8 @@ class Launcher:
 
     # ------------------------------------------------------------------ follow
     def _on_alive(self, sample: zenoh.Sample) -> None:
-        svc = str(sample.key_expr).rsplit("/", 1)[-1]
-        name = next((u for u in self.children if svc in u.split("+")), svc)  # its process
+        svc = fleet.service_id(self.sc, str(sample.key_expr), "alive")
+        name = next((u for u in self.children if svc in fleet.members(self.sc, u)), svc)  # its process
         with self.lock:
             if svc in self.remote and name not in self.children:
                 self._on_remote(svc, sample.kind == zenoh.SampleKind.PUT)
@@ -254,7 +264,7 @@ class Launcher:
                 c.alive.add(svc)
             else:
                 c.alive.discard(svc)
-            if sample.kind == zenoh.SampleKind.PUT and not c.ready and c.alive >= set(name.split("+")):
+            if sample.kind == zenoh.SampleKind.PUT and not c.ready and c.alive >= set(fleet.members(self.sc, name)):
                 c.ready = True
                 if c.restarts:
                     back = time.monotonic() - c.died_at
@@ -303,19 +313,25 @@ class Launcher:
         except msgs.BadMessage as e:
             self.say(f"warning: unreadable result on {sample.key_expr}: {e}")
             return
+        key = str(sample.key_expr)
+        robot = key.split("/")[1]
         with self.lock:
-            if str(sample.key_expr) == self.keys.topic("task/result"):
-                self.outcome.task = res
+            if key.endswith("/task/result"):
+                self.outcome.tasks[robot] = res
+                if len(self.robots) == 1:
+                    self.outcome.task = res
             elif res.goal_id != "task":  # the planner repeats the task's result on planner/result
                 self.outcome.results.append(res)
+                self.outcome.result_robots.append(robot)
                 err = max((abs(e) for e in res.execution_error), default=float("nan"))
                 status = "reached" if res.success else f"FAILED ({res.message})"
-                if str(sample.key_expr) == self.keys.topic("navigator/result"):  # a rover goal: [m, rad]
+                if key.endswith("/navigator/result"):  # a rover goal: [m, rad]
                     pos, yaw = (*res.execution_error, float("nan"), float("nan"))[:2]
                     what = f"position error {pos:.3f} m, yaw error {yaw:.3f} rad (odometry)"
                 else:
                     what = f"max joint error {err:.4f} rad"
-                self.say(f"  {res.goal_id}: {status} at t={msgs.seconds(res.header.stamp):.2f}s sim, "
+                who = f"{robot}: " if len(self.robots) > 1 else ""
+                self.say(f"  {who}{res.goal_id}: {status} at t={msgs.seconds(res.header.stamp):.2f}s sim, "
                          f"planning {res.planning_time:.2f}s, {what}")
         self.changed.set()
 
@@ -339,10 +355,12 @@ class Launcher:
             h = msgs.decode(msgs.DiagnosticArray, sample.payload.to_bytes())
         except msgs.BadMessage:
             return
+        # a robot's service (robots > 1) by <service>@<robot>: the robots' health apart
+        sid = fleet.service_id(self.sc, str(sample.key_expr), "health")
         for st in h.status:
             vals = {kv.key: kv.value for kv in st.values}
             with self.lock:
-                self.outcome.health[st.name] = vals
+                self.outcome.health[sid if st.name == sid.split("@")[0] else st.name] = vals
                 if st.name == "physics" and vals.get("state") == "done":
                     self.outcome.physics_done = True
                 if st.name == "physics" and vals.get("state") == "stalled" and not self.outcome.stalled:
@@ -419,6 +437,8 @@ class Launcher:
             with self.lock:
                 if self.outcome.task is not None or self.outcome.physics_done:
                     return
+                if len(self.robots) > 1 and len(self.outcome.tasks) == len(self.robots):
+                    return  # every robot's task ended
                 if self.outcome.stalled:
                     self.say(f"error: the simulation stalled: {self.outcome.stalled}; stopping")
                     return
@@ -545,7 +565,19 @@ def summarise(la: Launcher) -> int:
     ok = not o.died and not o.stalled and (not o.interrupted or open_ended)
     n_targets = len(sc.task.targets)
     print("summary:")
-    if n_targets:
+    if n_targets and len(la.robots) > 1:  # robots > 1: each robot's own task
+        for robot in la.robots:
+            reached = sum(1 for r, who in zip(o.results, o.result_robots, strict=True)
+                          if who == robot and r.success and r.goal_id.startswith("task-"))
+            task = o.tasks.get(robot)
+            if task is None:
+                print(f"  {robot}: targets reached {reached}/{n_targets}, task not finished")
+                ok = ok and sc.duration is not None and o.physics_done
+                continue
+            err = max((abs(e) for e in task.execution_error), default=float("nan"))
+            print(f"  {robot}: targets reached {reached}/{n_targets}, final max joint error {err:.4f} rad")
+            ok = ok and task.success and reached == n_targets
+    elif n_targets:
         reached = sum(1 for r in o.results if r.success and r.goal_id.startswith("task-"))
         print(f"  targets reached: {reached}/{n_targets}")
         if o.task is not None:

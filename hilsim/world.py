@@ -48,23 +48,25 @@ def urdf_limits(urdf: Path) -> dict[str, tuple[float, float]]:
 class World:
     """A compiled MuJoCo model with actuated joints addressed by name."""
 
-    def __init__(self, sc: Scenario) -> None:
-        self.sc = sc
+    @staticmethod
+    def load_spec(sc: Scenario) -> mujoco.MjSpec:
+        """The scenario's world model as MuJoCo will compile it: the truth IMU's sensors added,
+        gravity compensation set (a configuration error as one line)."""
         where = f"{sc.source}: " if sc.source else ""
         try:
             spec = mujoco.MjSpec.from_file(str(sc.world.model))
         except Exception as e:
             one_line = " ".join(str(e).split())
             raise ModelError(f"{where}world.model: cannot load {sc.world.model}: {one_line}") from e
-        self.imu_site = sc.physics.truth_imu_site
-        if self.imu_site:
-            if not any(s.name == self.imu_site for s in spec.sites):
-                raise ModelError(f"{where}physics.truth_imu_site: no site named {self.imu_site!r} in {sc.world.model}")
+        imu_site = sc.physics.truth_imu_site
+        if imu_site:
+            if not any(s.name == imu_site for s in spec.sites):
+                raise ModelError(f"{where}physics.truth_imu_site: no site named {imu_site!r} in {sc.world.model}")
             # The IMU is emulated from MuJoCo's own sensors at the site (ground truth, no noise).
             for kind, name in ((mujoco.mjtSensor.mjSENS_ACCELEROMETER, "imu_acc"),
                                (mujoco.mjtSensor.mjSENS_GYRO, "imu_gyro"),
                                (mujoco.mjtSensor.mjSENS_FRAMEQUAT, "imu_quat")):
-                s = spec.add_sensor(name=name, type=kind, objname=self.imu_site)
+                s = spec.add_sensor(name=name, type=kind, objname=imu_site)
                 s.objtype = mujoco.mjtObj.mjOBJ_SITE
         # As in the arm paper: link gravity off, inertia kept, for the bodies the scenario lists
         # (a wheeled base must keep its weight). Set before compiling: MuJoCo counts
@@ -78,21 +80,38 @@ class World:
             for b in spec.bodies:
                 if b.name in hits:
                     b.gravcomp = 1.0
-        self.model = spec.compile()
-        self.model.opt.timestep = sc.clock.dt
-        self.data = mujoco.MjData(self.model)
+        return spec
+
+    def __init__(self, sc: Scenario, *, model: mujoco.MjModel | None = None, data: mujoco.MjData | None = None,
+                 prefix: str = "") -> None:
+        """The scenario's world; or, with ``model``, ``data`` and ``prefix``, one robot of a
+        fleet's shared world (:class:`hilsim.fleet.FleetWorld`): the actuators, joints and truth
+        IMU whose names start with ``prefix``, addressed by their names without it."""
+        self.sc = sc
+        where = f"{sc.source}: " if sc.source else ""
+        self.imu_site = sc.physics.truth_imu_site
+        if model is None or data is None:
+            model = self.load_spec(sc).compile()
+            model.opt.timestep = sc.clock.dt
+            data = mujoco.MjData(model)
+        self.model, self.data, self.prefix = model, data, prefix
         m = self.model
-        self.actuators = [m.actuator(i).name for i in range(m.nu)]
-        if not self.actuators:
+        acts = [i for i in range(m.nu) if m.actuator(i).name.startswith(prefix)]
+        if not acts:
             raise ModelError(f"{where}world.model: {sc.world.model} has no actuators")
-        self.joint_ids = [int(m.actuator_trnid[i, 0]) for i in range(m.nu)]
-        self.joint_names = [m.joint(j).name for j in self.joint_ids]
+        # a robot's actuators are contiguous (one attached copy): its slice of ctrl and forces
+        self._act = slice(acts[0], acts[-1] + 1)
+        assert acts == list(range(acts[0], acts[-1] + 1)), "a robot's actuators must be contiguous"
+        nu = len(acts)
+        self.actuators = [m.actuator(i).name[len(prefix):] for i in acts]
+        self.joint_ids = [int(m.actuator_trnid[i, 0]) for i in acts]
+        self.joint_names = [m.joint(j).name[len(prefix):] for j in self.joint_ids]
         self.qpos_adr = np.array([m.jnt_qposadr[j] for j in self.joint_ids])
         self.dof_adr = np.array([m.jnt_dofadr[j] for j in self.joint_ids])
         self.effort_limit = np.array(
-            [m.actuator_ctrlrange[i, 1] if m.actuator_ctrllimited[i] else math.inf for i in range(m.nu)]
+            [m.actuator_ctrlrange[i, 1] if m.actuator_ctrllimited[i] else math.inf for i in acts]
         )
-        self.velocity_limit = np.full(m.nu, math.inf)
+        self.velocity_limit = np.full(nu, math.inf)
         if sc.world.urdf is not None:
             lim = urdf_limits(sc.world.urdf)
             for i, n in enumerate(self.joint_names):
@@ -107,8 +126,8 @@ class World:
         self.servers = [c.server for c in cfg]
         self.external = np.array([s != SIM for s in self.servers])
         self.ext_index = [i for i, e in enumerate(self.external) if e]
-        self._servo_kp = np.zeros(m.nu)
-        self._servo_kv = np.zeros(m.nu)
+        self._servo_kp = np.zeros(nu)
+        self._servo_kv = np.zeros(nu)
         for i, c in enumerate(cfg):
             if c.server == SIM and c.interface != "effort":
                 self._make_servo(i, c.interface, c.servo_kp or SERVO_KP[c.interface],
@@ -116,8 +135,8 @@ class World:
         if self.ext_index:
             # an external joint's motor is real: the simulated one applies nothing
             for i in self.ext_index:
-                m.actuator_gainprm[i, 0] = 0.0
-                m.actuator_biasprm[i, :3] = 0.0
+                m.actuator_gainprm[acts[i], 0] = 0.0
+                m.actuator_biasprm[acts[i], :3] = 0.0
         self._effort = np.array([c.interface == "effort" and c.server == SIM for c in cfg])
         self._all_effort = bool(self._effort.all())
         self.index = {n: i for i, n in enumerate(self.joint_names)}
@@ -126,7 +145,7 @@ class World:
         # per joint name: (actuator index, interface or None when served externally, feed-forward gain)
         self._how = {n: (i, None if self.external[i] else self.interfaces[i], ff_gain[i])
                      for n, i in self.index.items()}
-        self._cmd = np.zeros(m.nu)
+        self._cmd = np.zeros(nu)
         self.clipped = 0  # effort commands beyond the joint's limit (applied at the limit)
         # external joints: the latest measured (position, velocity) from their server
         self._follow_pos = np.zeros(len(self.ext_index))
@@ -135,17 +154,25 @@ class World:
         self._follow_t = np.zeros(len(self.ext_index), dtype=np.int64)  # sim time of the report
         self._extrapolate_ns = round(sc.physics.follow_extrapolation * 1e9)
         if self.imu_site:
-            self._acc = m.sensor("imu_acc").adr[0]
-            self._gyro = m.sensor("imu_gyro").adr[0]
-            self._quat = m.sensor("imu_quat").adr[0]
+            self._acc = m.sensor(f"{prefix}imu_acc").adr[0]
+            self._gyro = m.sensor(f"{prefix}imu_gyro").adr[0]
+            self._quat = m.sensor(f"{prefix}imu_quat").adr[0]
         self.step_index = 0
         self.base = MobileBase.of(m, self.data)  # None for a fixed-base robot
+        self._mine: np.ndarray | None = None  # a fleet's robot: which geoms are its own (its cell's)
+        if prefix:
+            if self.base is not None:
+                raise ModelError(f"{where}robots: {sc.robots} copies of a mobile robot are not supported "
+                                 f"(only fixed-base robots, such as the arm)")
+            self._mine = np.array([
+                (m.body(int(m.geom_bodyid[g])).name if m.geom_bodyid[g] else m.geom(g).name).startswith(prefix)
+                for g in range(m.ngeom)])
         mujoco.mj_forward(m, self.data)
 
     def _make_servo(self, i: int, interface: str, kp: float, kv: float) -> None:
         """Turn motor ``i`` into a position or velocity servo (MuJoCo's affine actuator form:
         force = kp·ctrl − kp·q − kv·q̇, solved implicitly, so stiff gains stay stable at 1 kHz)."""
-        m = self.model
+        m, k, i = self.model, i, self._act.start + i  # k: this robot's motor, i: the model's
         m.actuator_gaintype[i] = mujoco.mjtGain.mjGAIN_FIXED
         m.actuator_biastype[i] = mujoco.mjtBias.mjBIAS_AFFINE
         m.actuator_gainprm[i, 0] = kp
@@ -153,9 +180,9 @@ class World:
         m.actuator_biasprm[i, :3] = (0.0, -kp, -kv) if interface == "position" else (0.0, 0.0, -kp)
         # the command is now a setpoint; the effort limit moves to the force range
         m.actuator_forcelimited[i] = 1
-        m.actuator_forcerange[i] = (-self.effort_limit[i], self.effort_limit[i])
+        m.actuator_forcerange[i] = (-self.effort_limit[k], self.effort_limit[k])
         m.actuator_ctrllimited[i] = 0
-        self._servo_kp[i], self._servo_kv[i] = kp, kv
+        self._servo_kp[k], self._servo_kv[k] = kp, kv
 
     @property
     def time_ns(self) -> int:
@@ -209,6 +236,13 @@ class World:
             self._follow_vel[self.ext_index.index(self.index[jn])] = 0.0
 
     def step(self) -> None:
+        self.apply_commands()
+        mujoco.mj_step(self.model, self.data)
+        self.after_step()
+
+    def apply_commands(self) -> None:
+        """The motors' inputs for the next step (limits applied). A fleet's world calls this for
+        each robot, steps once, then :meth:`after_step` for each."""
         if self._all_effort:  # the common case, kept lean: every joint a simulated effort joint
             u = np.clip(self._cmd, -self.effort_limit, self.effort_limit)
         else:
@@ -220,8 +254,9 @@ class World:
             over &= self._effort
         if over.any():
             u = np.where(over, 0.0, u)
-        self.data.ctrl[:] = u
-        mujoco.mj_step(self.model, self.data)
+        self.data.ctrl[self._act] = u
+
+    def after_step(self) -> None:
         if self.ext_index:
             self._apply_follow()
         self.step_index += 1
@@ -256,17 +291,27 @@ class World:
         d = self.data
         if not d.ncon:
             return frozenset()
-        return frozenset(zip(d.contact.geom1[: d.ncon].tolist(), d.contact.geom2[: d.ncon].tolist(), strict=True))
+        pairs = zip(d.contact.geom1[: d.ncon].tolist(), d.contact.geom2[: d.ncon].tolist(), strict=True)
+        if self._mine is not None:  # a fleet's robot: the contacts in its own cell
+            return frozenset(p for p in pairs if self._mine[p[0]] or self._mine[p[1]])
+        return frozenset(pairs)
 
     def contacts(self) -> msgs.Contacts:
         """Every contact now, with its bodies' and geoms' names (unnamed geoms: ``geom<id>``)."""
         m, d = self.model, self.data
         out = []
+        n = len(self.prefix)  # a fleet's robot: its names as in the single robot's world
+
+        def own(name: str) -> str:
+            return name[n:] if n and name.startswith(self.prefix) else name
+
         for c in d.contact[: d.ncon]:
             g1, g2 = int(c.geom1), int(c.geom2)
+            if self._mine is not None and not (self._mine[g1] or self._mine[g2]):
+                continue
             out.append(msgs.Contact(
-                body1=m.body(int(m.geom_bodyid[g1])).name, body2=m.body(int(m.geom_bodyid[g2])).name,
-                geom1=m.geom(g1).name or f"geom{g1}", geom2=m.geom(g2).name or f"geom{g2}",
+                body1=own(m.body(int(m.geom_bodyid[g1])).name), body2=own(m.body(int(m.geom_bodyid[g2])).name),
+                geom1=own(m.geom(g1).name) or f"geom{g1}", geom2=own(m.geom(g2).name) or f"geom{g2}",
                 position=msgs.Point(x=float(c.pos[0]), y=float(c.pos[1]), z=float(c.pos[2])),
                 depth=-float(c.dist),
             ))
@@ -279,7 +324,7 @@ class World:
             name=self.joint_names,
             position=d.qpos[self.qpos_adr].tolist(),
             velocity=d.qvel[self.dof_adr].tolist(),
-            effort=d.actuator_force.tolist(),
+            effort=d.actuator_force[self._act].tolist(),
         )
 
     def imu(self) -> msgs.Imu | None:

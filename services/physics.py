@@ -19,6 +19,11 @@ Writes (every step, stamped with the step's sim time):
   ``<prefix>/<robot>/truth/contacts``     hilsim_msgs/Contacts: every contact, published at step 0
                                           and whenever the set of touching geom pairs changes
 
+Many robots (``robots: N``, :mod:`hilsim.fleet`): one MuJoCo world holding N copies of the
+world model; every key above that is under ``<prefix>/<robot>/`` is then read and written once per
+robot ``<robot><k>`` (its joints by their single-robot names), the clock stays one, and a
+participant is ``<service>@<robot>`` (its tokens and acknowledgements under that robot's keys).
+
 Lockstep (default): step k+1 happens only once every participant acknowledged step k (see
 docs/keys.md). Participants announce themselves (``lockstep/<service>/<period>/<via>/<gid>``),
 so physics needs no list of them; a ``joint_commands`` sample acknowledges a step only when
@@ -39,8 +44,9 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from hilsim import msgs
-from hilsim.service import LEVEL_ERROR, Service
+from hilsim import fleet, msgs
+from hilsim.keys import Keys
+from hilsim.service import LEVEL_ERROR, Publisher, Service
 from hilsim.transport import Attachment
 from hilsim.world import World
 
@@ -61,10 +67,26 @@ class Participant:
         self.period, self.via, self.gid = period, via, gid
 
 
+class Robot:
+    """One robot's part of the world and its truth publishers (a fleet has one per robot)."""
+
+    def __init__(self, svc: Service, keys: Keys, world: World) -> None:
+        self.keys, self.world = keys, world
+        self.pub_imu = svc.publisher(keys.truth("imu")) if world.imu_site else None
+        # a mobile base (free joint) also has truth/odom and tf; a fixed-base robot has neither
+        self.pub_odom = svc.publisher(keys.truth("odom")) if world.base else None
+        self.pub_tf = svc.publisher(keys.topic("tf")) if world.base else None
+        self.pub_js = svc.publisher(keys.truth("joint_states"))
+        # contacts: published when the set of touching geom pairs changes (and once at start), so
+        # every contact is in the record without a message per step
+        self.pub_contacts: Publisher = svc.publisher(keys.truth("contacts"))
+        self.contact_pairs: frozenset[tuple[int, int]] | None = None
+
+
 class PhysicsService(Service):
     name = "physics"
     stop_rank = 0  # stopped first: sim time ends before its consumers go
-    world: World  # loaded in setup(), inside run()'s error handling
+    world: World | fleet.FleetWorld  # loaded in setup(), inside run()'s error handling
 
     def __init__(self, scenario: Any) -> None:
         super().__init__(scenario)
@@ -75,8 +97,12 @@ class PhysicsService(Service):
 
     def setup(self) -> None:
         sc = self.sc
-        self.world = World(sc)
-        self.n = len(self.world.joint_names)
+        if sc.robots > 1:
+            self.world = fleet.FleetWorld(sc)
+            views = self.world.views
+        else:
+            self.world = World(sc)
+            views = [self.world]
         self.participants: dict[str, Participant] = {}  # from lockstep tokens, fixed at step 0
         self.announced: dict[str, Participant] = {}
         self.acked: dict[str, int] = {}
@@ -92,38 +118,38 @@ class PhysicsService(Service):
         self.end_ns = round(sc.duration * 1e9) if sc.duration else None
         self.last_progress = time.monotonic()
         self.waiting_reported = False
-        self.pub_imu = self.publisher(self.keys.truth("imu")) if self.world.imu_site else None
-        # a mobile base (free joint) also has truth/odom and tf; a fixed-base robot has neither
-        self.pub_odom = self.publisher(self.keys.truth("odom")) if self.world.base else None
-        self.pub_tf = self.publisher(self.keys.topic("tf")) if self.world.base else None
-        self.pub_js = self.publisher(self.keys.truth("joint_states"))
+        robot_keys = [Keys(sc.prefix, r) for r in fleet.robot_names(sc)]
+        self.robots = [Robot(self, k, v) for k, v in zip(robot_keys, views, strict=True)]
         self.pub_clock = self.publisher(self.keys.clock)
-        # contacts: published when the set of touching geom pairs changes (and once at start), so
-        # every contact is in the record without a message per step
-        self.pub_contacts = self.publisher(self.keys.truth("contacts"))
-        self._contact_pairs: frozenset[tuple[int, int]] | None = None
         self.contact_steps = 0
-        self.subscribe(self.keys.topic("joint_commands"), msgs.JointState, self._on_command, with_attachment=True)
-        self.subscribe(self.keys.sync("*"), msgs.Clock, self._on_sync, with_attachment=True)
-        # external joint servers: which joints each serves, when it last reported (wall clock)
+        for r in self.robots:
+            def on_command(cmd: msgs.JointState, key: str, att: Attachment | None, r: Robot = r) -> None:
+                self._on_command(r.world, cmd, key, att)
+
+            self.subscribe(r.keys.topic("joint_commands"), msgs.JointState, on_command, with_attachment=True)
+            self.subscribe(r.keys.sync("*"), msgs.Clock, self._on_sync, with_attachment=True)
+        # the scenario's own namespace, or (robots > 1) every robot's: whose tokens physics follows
+        ns = Keys(sc.prefix, "*") if sc.robots > 1 else self.keys
+        # external joint servers (a single robot only): which joints each serves, when it last reported
         self.servers: dict[str, set[str]] = {}
-        for jn, srv in zip(self.world.joint_names, self.world.servers, strict=True):
-            if self.world.external[self.world.index[jn]]:
+        w0 = views[0]
+        for jn, srv in zip(w0.joint_names, w0.servers, strict=True):
+            if w0.external[w0.index[jn]]:
                 self.servers.setdefault(srv, set()).add(jn)
         self.server_seen: dict[str, float] = {}
         self.server_silent: set[str] = set()
         if self.servers:
             self.subscribe(self.keys.all_server_states, msgs.JointState, self._on_server_state)
         live = self.session.liveliness()
-        self._declared.append(live.declare_subscriber(self.keys.all_alive, self._on_alive, history=True))
+        self._declared.append(live.declare_subscriber(ns.all_alive, self._on_alive, history=True))
         if sc.clock.mode == "lockstep":
-            self._declared.append(live.declare_subscriber(self.keys.all_lockstep, self._on_lockstep, history=True))
+            self._declared.append(live.declare_subscriber(ns.all_lockstep, self._on_lockstep, history=True))
         self.wall_start = 0.0
         self.steps_done = 0
 
     # ------------------------------------------------------------------ inputs
     def _on_alive(self, sample: zenoh.Sample) -> None:
-        svc = str(sample.key_expr).rsplit("/", 1)[-1]
+        svc = fleet.service_id(self.sc, str(sample.key_expr), "alive")
         with self.lock:
             if self.stop_event.is_set() or svc == self.name:
                 return  # stopping: the others leave after us anyway
@@ -161,15 +187,18 @@ class PhysicsService(Service):
         does, the simulated joints stop obeying the last command (a torque held for seconds would
         throw the arm about): effort joints get no torque, position joints hold where they are,
         velocity joints stop. The controller's next command, once both are back, replaces this."""
-        js = self.world.joint_states()
-        n = len(js.name)
-        self.world.command(msgs.JointState(name=list(js.name), position=list(js.position),
-                                           velocity=[0.0] * n, effort=[0.0] * n))
+        for r in self.robots:
+            js = r.world.joint_states()
+            n = len(js.name)
+            r.world.command(msgs.JointState(name=list(js.name), position=list(js.position),
+                                            velocity=[0.0] * n, effort=[0.0] * n))
         self.log.info("%s gone: simulated joints without torque until commands come again", svc)
 
     def _on_lockstep(self, sample: zenoh.Sample) -> None:
         # <prefix>/<robot>/lockstep/<service>/<period>/<via>/<gid>
-        svc, period, via, gid = str(sample.key_expr).split("/")[-4:]
+        key = str(sample.key_expr)
+        period, via, gid = key.split("/")[-3:]
+        svc = fleet.service_id(self.sc, key, "lockstep")
         with self.lock:
             if sample.kind != zenoh.SampleKind.PUT:
                 self.announced.pop(svc, None)
@@ -182,7 +211,7 @@ class PhysicsService(Service):
             if svc in self.participants:  # a participant that came back (e.g. restarted): new writer id
                 self.participants[svc] = p
 
-    def _on_command(self, cmd: msgs.JointState, key: str, att: Attachment | None) -> None:
+    def _on_command(self, world: World, cmd: msgs.JointState, key: str, att: Attachment | None) -> None:
         if self.participants and self.started and not self.done:
             # lockstep: a command belongs to the step it answers; one for another step is stale
             # (or not what it claims to be) and must not act on this one
@@ -190,7 +219,7 @@ class PhysicsService(Service):
             if stamp != self.world.time_ns:
                 raise msgs.BadMessage(f"command stamped t={stamp / 1e9:.3f}s, but the current step is "
                                       f"t={self.world.time_ns / 1e9:.3f}s")
-        self.world.command(cmd)
+        world.command(cmd)
         if att is None:
             return
         writer = att.gid.hex()
@@ -199,7 +228,7 @@ class PhysicsService(Service):
                 self._ack(name, msgs.ns_of(cmd.header.stamp))
 
     def _on_sync(self, clk: msgs.Clock, key: str, att: Attachment | None) -> None:
-        name = key.rsplit("/", 1)[-1]
+        name = fleet.service_id(self.sc, key, "sync")
         p = self.participants.get(name)
         if p is None or p.via != "sync":
             return
@@ -218,7 +247,7 @@ class PhysicsService(Service):
             raise msgs.BadMessage(f"{server} reports joints it does not serve: {stray}")
         if len(js.position) != len(js.name):
             raise msgs.BadMessage("joint server state without positions")
-        self.world.follow(list(js.name), list(js.position), list(js.velocity))
+        self.robots[0].world.follow(list(js.name), list(js.position), list(js.velocity))
         self.server_seen[server] = time.monotonic()
         if server in self.server_silent:
             self.server_silent.discard(server)
@@ -231,7 +260,7 @@ class PhysicsService(Service):
             last = self.server_seen.get(server, self.wall_start)
             if now - last > self.sc.physics.server_timeout and server not in self.server_silent:
                 self.server_silent.add(server)
-                self.world.hold(sorted(joints))
+                self.robots[0].world.hold(sorted(joints))
                 self.fault(f"joint server {server} silent for {now - last:.2f} s at t={self.sim_ns / 1e9:.3f}s: "
                            f"{', '.join(sorted(joints))} held at the last measured position")
 
@@ -254,27 +283,28 @@ class PhysicsService(Service):
 
     # ------------------------------------------------------------------ stepping
     def _publish_step(self) -> None:
-        w = self.world
-        self.sim_ns = w.time_ns
-        if self.pub_imu is not None:
-            imu = w.imu()
-            assert imu is not None
-            self.pub_imu.put(imu)
-        if w.base is not None and self.pub_odom is not None and self.pub_tf is not None:
-            # before truth/joint_states: the sensors' step is complete once they handled that one
-            self.pub_odom.put(w.base.odometry(w.time_ns))
-            self.pub_tf.put(w.base.transforms(w.time_ns))
-        if w.data.ncon or self._contact_pairs:  # the arm: nothing to look at on almost every step
-            self.contact_steps += w.data.ncon > 0
-            pairs = w.contact_pairs()
-            if pairs != self._contact_pairs:
-                self._contact_pairs = pairs
-                self.pub_contacts.put(w.contacts())
-        elif self._contact_pairs is None:
-            self._contact_pairs = frozenset()
-            self.pub_contacts.put(w.contacts())
-        self.pub_js.put(w.joint_states())
-        self.pub_clock.put(msgs.Clock(clock=msgs.stamp(w.time_ns)))
+        self.sim_ns = self.world.time_ns
+        for r in self.robots:  # each robot's truth, its truth/joint_states last (see docs/keys.md)
+            w = r.world
+            if r.pub_imu is not None:
+                imu = w.imu()
+                assert imu is not None
+                r.pub_imu.put(imu)
+            if w.base is not None and r.pub_odom is not None and r.pub_tf is not None:
+                # before truth/joint_states: the sensors' step is complete once they handled that one
+                r.pub_odom.put(w.base.odometry(w.time_ns))
+                r.pub_tf.put(w.base.transforms(w.time_ns))
+            if w.data.ncon or r.contact_pairs:  # the arm: nothing to look at on almost every step
+                pairs = w.contact_pairs()
+                self.contact_steps += bool(pairs)
+                if pairs != r.contact_pairs:
+                    r.contact_pairs = pairs
+                    r.pub_contacts.put(w.contacts())
+            elif r.contact_pairs is None:
+                r.contact_pairs = frozenset()
+                r.pub_contacts.put(w.contacts())
+            r.pub_js.put(w.joint_states())
+        self.pub_clock.put(msgs.Clock(clock=msgs.stamp(self.world.time_ns)))
 
     def _advance(self) -> None:
         """Step once and publish; in lockstep also keep going while nothing needs waiting for."""
