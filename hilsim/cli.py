@@ -8,11 +8,12 @@
     hilsim gains ROBOT JOINT.GAIN=VALUE …
     hilsim plan evaluate --targets FILE [--criterion length|smoothness|weighted]
     hilsim bench loop|plan|can|mavlink|rover [--json]
-    hilsim report step ROBOT [--joints J,…] [--step RAD] [--json]
+    hilsim report step ROBOT [--joints J,…] [--step RAD] [--speed RAD/S] [--json]
     hilsim inertia FILE [--link NAME] [--urdf FILE] [--json]
     hilsim tune ROBOT JOINT|--all [--method ziegler-nichols|relay] [--write] [--json]
     hilsim router [--listen ENDPOINT] [--config FILE]
     hilsim compose SCENARIO [--hil FILE]… [--out docker/compose.yaml]
+    hilsim ui [--host H] [--port P] [--connect EP]
 """
 
 from __future__ import annotations
@@ -65,6 +66,11 @@ def _endpoint_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--prefix", default=None, help="key prefix (default: HILSIM_PREFIX, else hilsim)")
 
 
+def _up(args: argparse.Namespace) -> int:
+    """``hilsim up``; with ``--ui`` the panel starts the run and stays (hilsim.ui.server)."""
+    return _lazy("hilsim.ui.server", "cmd_up_ui")(args) if args.ui else _lazy("hilsim.launcher", "cmd_up")(args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="hilsim", description="Distributed robot simulator over Zenoh.")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -90,7 +96,10 @@ def build_parser() -> argparse.ArgumentParser:
                          "(docs/deployment.md); use with --router")
     up.add_argument("--wait", type=float, default=120.0, metavar="S",
                     help="seconds to wait for every service to announce itself (default 120)")
-    up.set_defaults(func=_lazy("hilsim.launcher", "cmd_up"))
+    up.add_argument("--ui", action="store_true", help="start the browser control panel with this run (docs/panel.md)")
+    up.add_argument("--ui-host", default="127.0.0.1", help="with --ui: the panel's address (default loopback)")
+    up.add_argument("--ui-port", type=int, default=8080, help="with --ui: the panel's port (default 8080)")
+    up.set_defaults(func=_up)
 
     run = sub.add_parser("run", help="run one service alone (what docker compose uses)")
     run.add_argument("service", help="physics, sensors, controller, planner, logger, or a bridge name")
@@ -203,12 +212,17 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument("--json", action="store_true", help="print one JSON object")
     tune.set_defaults(func=_lazy("hilsim.tools.tuning", "cmd_tune"))
 
-    report = sub.add_parser("report", help="measured reports (the arm paper's Table II)")
+    report = sub.add_parser("report", help="measured reports (the arm paper's Table II; the rover's loops)")
     rsub = report.add_subparsers(dest="report_cmd", required=True)
-    rs = rsub.add_parser("step", help="step response per joint by the real services in lockstep (Table II)")
-    rs.add_argument("robot", help="scenario name in config/ (e.g. arm) or a YAML path")
-    rs.add_argument("--joints", help="comma-separated (default: joint_1..joint_5, the paper's Table II)")
-    rs.add_argument("--step", type=float, default=0.2, help="step of the reference [rad] (default 0.2)")
+    rs = rsub.add_parser("step", help="step response per joint (the rover: per steering and traction loop) by "
+                         "the real services in lockstep (Table II)")
+    rs.add_argument("robot", help="scenario name in config/ (e.g. arm, rover) or a YAML path")
+    rs.add_argument("--joints", help="comma-separated (default: joint_1..joint_5, the paper's Table II; the rover: "
+                    "steering,traction, every wheel's loops; or one loop, e.g. fl_steering)")
+    rs.add_argument("--step", type=float, default=0.2, help="step of the reference [rad] (default 0.2; the rover: "
+                    "of its steering angles)")
+    rs.add_argument("--speed", type=float, default=2.0, help="the rover's traction step [rad/s of wheel speed] "
+                    "(default 2.0)")
     rs.add_argument("--measure", type=float, default=1.5, help="sim seconds recorded after each step")
     rs.add_argument("--settle", type=float, default=1.0, help="sim seconds back home between steps")
     rs.add_argument("--out", help="output directory (default runs/<timestamp>-step-report)")
@@ -228,6 +242,15 @@ def build_parser() -> argparse.ArgumentParser:
     router.add_argument("--config", help="a Zenoh router config file (JSON5: listen endpoints, TLS, access "
                         "control), e.g. config/security/router.json5")
     router.set_defaults(func=_lazy("hilsim.launcher", "cmd_router"))
+
+    ui = sub.add_parser("ui", help="the browser control panel: choose, start, command and watch a run")
+    ui.add_argument("--host", default="127.0.0.1", help="address to listen on (default loopback; the panel has "
+                    "no authentication)")
+    ui.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080)")
+    ui.add_argument("--connect", help="join this Zenoh router instead of opening one (runs started from the "
+                    "panel use it too)")
+    ui.add_argument("--prefix", default=None, help="key prefix (default: HILSIM_PREFIX, else hilsim)")
+    ui.set_defaults(func=_lazy("hilsim.ui.server", "cmd_ui"))
     return p
 
 

@@ -22,6 +22,27 @@ sim times, so an experiment is as reproducible as the run itself (same seed, sam
   home, and lets it settle before the next experiment.
 
 The response measured is the joint's TRUE position, not the encoders'.
+
+**The rover** (``controller.type: four_wheel_steer``) has no per-joint reference input: its
+controller turns a body twist into each wheel's steering angle and traction speed (its
+kinematic layer, :mod:`hilsim.steering`) and closes one PID per loop on them. Its loops are
+stepped through that layer, at exact sim times, by the controller's own ``script``
+(``controller.params.script``: the twist from a sim time on), which the rig writes into the
+scenario before the run; the rig itself only sets the gains at its steps, as for the arm:
+
+- home is a crawl straight ahead (``CRAWL`` = 1 mm/s): every wheel's angle held at 0 (a wheel
+  asked not to move at all keeps whatever angle it has, so standing still would hold nothing);
+- a **steering** step of ``a`` rad is a crab twist of direction ``a`` at the same crawl: every
+  steering loop's reference steps to ``a`` while the wheels stay (nearly) still;
+- a **traction** step of ``w`` rad/s is a straight twist ``CRAWL + w·r``: every traction loop's
+  speed reference steps by ``w`` (``r`` the wheel radius); the rover drives off and comes back to
+  the crawl after the window. An experiment on ``steering`` or ``traction`` measures all four
+  wheels' loops of that kind at once; one on a single joint measures that one.
+
+The steering response is the joint's TRUE angle, the traction response its TRUE speed
+(``truth/joint_states`` position, velocity); the controller's ``joint_commands`` (its references:
+``position`` of a steering joint, ``velocity`` of a traction joint) prove the step started at
+the stamped step, as ``controller/reference`` does for the arm.
 """
 
 from __future__ import annotations
@@ -41,11 +62,15 @@ from typing import Any, ClassVar
 import numpy as np
 
 from hilsim import control, msgs, transport
-from hilsim.config import ConfigError, Scenario, load_scenario
+from hilsim.config import ConfigError, PidGains, Scenario, load_scenario
 from hilsim.service import Service
 
 RIG = "step-rig"
 LOOP_SERVICES = ["physics", "sensors", "controller"]
+LOOP_SENSORS = ("encoder", "imu")  # what the loops read (the rover's odometry waits for its imu)
+CONTROLLERS = ("joint_trajectory", "four_wheel_steer")
+CRAWL = 0.001  # [m/s] the rover's home: a crawl straight ahead holds every wheel's angle at 0
+GROUPS = ("steering", "traction")  # the rover's loops, by kind
 
 
 class RigError(RuntimeError):
@@ -58,10 +83,10 @@ class LateStep(RigError):
 
 @dataclass
 class Experiment:
-    """One step of one joint's reference, with the gains it is measured with."""
+    """One step of a loop's reference, with the gains it is measured with."""
 
-    joint: str
-    step: float  # [rad] (or m), from the joint's home position
+    joint: str  # a joint; on the rover also a kind of loop ("steering", "traction": every wheel's)
+    step: float  # [rad] (or m) from the joint's home position; a rover traction loop: [rad/s] of wheel speed
     gains: dict[str, float] = field(default_factory=dict)  # e.g. {"kp": 50.0, "kd": 2.0}; {}: the scenario's
     measure: float = 1.5  # sim seconds recorded after the step
     settle: float = 1.0  # sim seconds back home (scenario gains) before the next experiment
@@ -69,22 +94,38 @@ class Experiment:
 
 @dataclass
 class Response:
-    """What an experiment measured: the truth of its joint from the step on."""
+    """What an experiment measured on one joint: its truth from the step on."""
 
     experiment: Experiment
     t: np.ndarray  # [s] from the step
-    y: np.ndarray  # true position of the joint
-    y0: float  # true position when the step was commanded
-    target: float  # the commanded position
+    y: np.ndarray  # true position of the joint (a velocity loop: its true velocity)
+    y0: float  # true value when the step was commanded
+    target: float  # the commanded value
+    joint: str = ""  # the joint measured ("": the experiment's)
+    quantity: str = "position"  # or "velocity" (a rover traction loop)
+
+    @property
+    def name(self) -> str:
+        return self.joint or self.experiment.joint
 
 
 @dataclass
 class _Action:
     k: int  # rig step at which it is done (the step of the reference is LEAD periods later)
     gains: dict[str, float]  # live parameters "<joint>.<field>"
-    joint: str
-    position: float
-    fresh: bool = False  # empty the joint's integral before setting the gains (a trial's start)
+    joints: list[str]  # the joints it concerns
+    position: float | None  # the arm: the joint's new reference (a trajectory); None: the rover's script
+    fresh: bool = False  # empty the joints' integrals before setting the gains (a trial's start)
+
+
+@dataclass
+class _Loops:
+    """What one experiment steps and measures: joints, the quantity, each joint's target."""
+
+    joints: list[str]
+    quantity: str  # "position" or "velocity"
+    targets: list[float]
+    twist: tuple[float, float, float] | None = None  # the rover: the step's body twist
 
 
 class StepRig(Service):
@@ -108,44 +149,100 @@ class StepRig(Service):
         self.experiments = list(experiments)
         self.progress = progress
         table = control.joint_table(sc.world.model)
+        self.table = table
         self.names = list(table.names)
         self.home = _home(sc, self.names)
-        base = control.gains_for(sc.controller.gains, self.names, str(sc.source or ""))
+        self.rover = sc.controller.type == "four_wheel_steer"
+        if self.rover:
+            from hilsim.registry import service_class
+
+            # the rover controller's own geometry, loops and gains (the class that runs it; nothing is opened)
+            ctl = service_class("controller", sc)(sc)
+            self.geom = ctl.geom
+            self.groups = {"steering": list(ctl.steer), "traction": list(ctl.drive)}
+            self.max_speed = float(ctl.p.max_speed)
+            self.max_wheel_speed = float(ctl.max_wheel_speed)
+            base = [PidGains(kp=p.kp, ki=p.ki, kd=p.kd, i_limit=p.i_limit, feedforward=p.feedforward,
+                             output_limit=p.output_limit) for p in ctl.pids]
+        else:
+            base = control.gains_for(sc.controller.gains, self.names, str(sc.source or ""))
+        self.loops = [self._loops(e) for e in self.experiments]
         self.actions: dict[int, _Action] = {}
         self.windows: list[tuple[int, int]] = []  # (step index of the step, of the window's end)
         self._done_at: dict[int, int] = {}  # rig step -> experiments finished by then
+        # the rover's script: home from the start, each step at its stamp, home again after its window
+        self.script: list[tuple[float, float, float, float]] = [(0.0, CRAWL, 0.0, 0.0)]
         k = self.period
-        for i, e in enumerate(self.experiments):
-            if e.joint not in self.names:
-                raise ConfigError(f"{e.joint}: not a joint of {sc.world.model.name} (joints: {', '.join(self.names)})")
-            j = self.names.index(e.joint)
-            lo, hi = table.lower[j], table.upper[j]
-            target = self.home[j] + e.step
-            if not lo <= target <= hi:
-                raise ConfigError(f"step of {e.step:+g} on {e.joint}: {target:.3f} is outside its limits "
-                                  f"[{lo:.3f}, {hi:.3f}]")
-            own = {f"{e.joint}.{f}": float(v) for f, v in e.gains.items()}
-            g = base[j]
-            limit = g.output_limit if g.output_limit is not None else float(table.effort_upper[j])
-            # back to the scenario's gains for the way home (a trial's may be unstable)
-            restore = {f"{e.joint}.{f}": _live(getattr(g, f) if f != "output_limit" else limit) for f in e.gains}
+        for i, (e, lp) in enumerate(zip(self.experiments, self.loops, strict=True)):
+            js = [self.names.index(n) for n in lp.joints]
+            own = {f"{n}.{f}": float(v) for n in lp.joints for f, v in e.gains.items()}
+            restore = {}
+            for n, j in zip(lp.joints, js, strict=True):
+                g = base[j]
+                limit = g.output_limit if g.output_limit is not None else float(table.effort_upper[j])
+                # back to the scenario's gains for the way home (a trial's may be unstable)
+                restore.update({f"{n}.{f}": _live(getattr(g, f) if f != "output_limit" else limit) for f in e.gains})
             n_meas = self._steps(e.measure)
             n_settle = self._steps(e.settle)
-            self.actions[k] = _Action(k, own, e.joint, float(target), fresh=True)
             s = k + self.lead
-            self.windows.append((s, s + n_meas))
             kb = s + n_meas
-            self.actions[kb] = _Action(kb, restore, e.joint, float(self.home[j]))
+            if self.rover:
+                assert lp.twist is not None
+                self.actions[k] = _Action(k, own, lp.joints, None, fresh=True)
+                self.actions[kb] = _Action(kb, restore, lp.joints, None)
+                self.script += [(s * self.dt_ns / 1e9, *lp.twist), (kb * self.dt_ns / 1e9, CRAWL, 0.0, 0.0)]
+            else:
+                self.actions[k] = _Action(k, own, lp.joints, lp.targets[0], fresh=True)
+                self.actions[kb] = _Action(kb, restore, lp.joints, float(self.home[js[0]]))
+            self.windows.append((s, s + n_meas))
             self._done_at[kb] = i + 1
             k = kb + self.lead + n_settle
         self.end = k  # the last rig step; the scenario's duration ends the run there
         self.truth_t: list[int] = []
         self.truth_q: list[list[float]] = []
+        self.truth_v: list[list[float]] = []
         self.ref_t: list[int] = []
         self.ref_q: list[list[float]] = []
+        self.ref_v: list[list[float]] = []
         self.queue: queue.Queue[int] = queue.Queue()
         self.done = threading.Event()
         self.error = ""
+
+    def _loops(self, e: Experiment) -> _Loops:
+        """The joints an experiment measures and their targets (one-line ConfigError for a bad one)."""
+        if not self.rover:
+            if e.joint not in self.names:
+                raise ConfigError(f"{e.joint}: not a joint of {self.sc.world.model.name} "
+                                  f"(joints: {', '.join(self.names)})")
+            j = self.names.index(e.joint)
+            lo, hi = self.table.lower[j], self.table.upper[j]
+            target = self.home[j] + e.step
+            if not lo <= target <= hi:
+                raise ConfigError(f"step of {e.step:+g} on {e.joint}: {target:.3f} is outside its limits "
+                                  f"[{lo:.3f}, {hi:.3f}]")
+            return _Loops([e.joint], "position", [float(target)])
+        kind = e.joint if e.joint in GROUPS else next((g for g in GROUPS if e.joint in self.groups[g]), None)
+        if kind is None:
+            loops = [n for g in GROUPS for n in self.groups[g]]
+            raise ConfigError(f"{e.joint}: not a loop of the rover (steering, traction or one of {', '.join(loops)})")
+        joints = self.groups[kind] if e.joint in GROUPS else [e.joint]
+        if kind == "steering":
+            # a crab twist of direction a: every wheel's angle reference is a (a in the steering range,
+            # strictly inside ±π/2, where a - π and a + π are out of it: no other choice of angle)
+            lo, hi = max(self.geom.lower, -math.pi / 2), min(self.geom.upper, math.pi / 2)
+            if not lo < e.step < hi or e.step == 0.0:
+                raise ConfigError(f"steering step {e.step:+g} rad: expected a non-zero angle strictly inside "
+                                  f"({lo:.3f}, {hi:.3f})")
+            twist = (CRAWL * math.cos(e.step), CRAWL * math.sin(e.step), 0.0)
+            return _Loops(joints, "position", [float(e.step)] * len(joints), twist)
+        v = CRAWL + e.step * self.geom.radius
+        w = v / self.geom.radius
+        if e.step == 0.0 or abs(v) > self.max_speed or abs(w) > self.max_wheel_speed:
+            raise ConfigError(f"traction step {e.step:+g} rad/s: expected a non-zero wheel speed the rover may drive "
+                              f"(|speed| <= {min(self.max_speed / self.geom.radius, self.max_wheel_speed):.3g} rad/s: "
+                              f"controller.params.max_speed {self.max_speed:g} m/s, wheel radius "
+                              f"{self.geom.radius:g} m)")
+        return _Loops(joints, "velocity", [float(w)] * len(joints), (v, 0.0, 0.0))
 
     def _steps(self, seconds: float) -> int:
         """Whole rig periods covering ``seconds`` of sim time, in physics steps."""
@@ -154,27 +251,33 @@ class StepRig(Service):
 
     # ------------------------------------------------------------------ wiring
     def setup(self) -> None:
-        self.traj_pub = self.publisher(self.keys.topic("joint_trajectory"))
+        self.traj_pub = None if self.rover else self.publisher(self.keys.topic("joint_trajectory"))
         self.subscribe(self.keys.truth("joint_states"), msgs.JointState, self._on_truth)
-        self.subscribe(self.keys.topic("controller/reference"), msgs.JointState, self._on_reference)
+        if not self.rover:  # the rover's references are in its joint_commands
+            self.subscribe(self.keys.topic("controller/reference"), msgs.JointState, self._on_reference)
         self.subscribe(self.keys.topic("joint_commands"), msgs.JointState, self._on_command)
 
-    def _ordered(self, m: msgs.JointState) -> list[float]:
+    def _ordered(self, m: msgs.JointState, values: Sequence[float]) -> list[float]:
         if list(m.name) == self.names:
-            return list(m.position)
-        pos = dict(zip(m.name, m.position, strict=True))
-        return [pos[n] for n in self.names]
+            return list(values)
+        v = dict(zip(m.name, values, strict=True))
+        return [v[n] for n in self.names]
 
     def _on_truth(self, m: msgs.JointState, key: str) -> None:
         self.truth_t.append(msgs.ns_of(m.header.stamp))
-        self.truth_q.append(self._ordered(m))
+        self.truth_q.append(self._ordered(m, m.position))
+        self.truth_v.append(self._ordered(m, m.velocity) if m.velocity else [math.nan] * len(self.names))
 
     def _on_reference(self, m: msgs.JointState, key: str) -> None:
         self.ref_t.append(msgs.ns_of(m.header.stamp))
-        self.ref_q.append(self._ordered(m))
+        self.ref_q.append(self._ordered(m, m.position))
+        self.ref_v.append([math.nan] * len(self.names))
 
     def _on_command(self, m: msgs.JointState, key: str) -> None:
         ns = msgs.ns_of(m.header.stamp)
+        if self.rover:
+            self._on_reference(m, key)
+            self.ref_v[-1] = self._ordered(m, m.velocity)
         k, rest = divmod(ns, self.dt_ns)
         if rest == 0 and k % self.period == 0:
             self.sim_ns = ns
@@ -205,12 +308,14 @@ class StepRig(Service):
         if a.gains:
             if a.fresh:
                 # a trial starts like a fresh controller: ki = 0 empties the integral (hilsim.control.Pid)
-                self._set_gains({f"{a.joint}.ki": 0.0})
+                self._set_gains({f"{n}.ki": 0.0 for n in a.joints})
             self._set_gains(a.gains)
+        if a.position is None or self.traj_pub is None:
+            return  # the rover: its script steps the twist at the stamp
         stamp = (a.k + self.lead) * self.dt_ns
         traj = msgs.JointTrajectory(
             header=msgs.header(stamp),
-            joint_names=[a.joint],
+            joint_names=a.joints,
             points=[msgs.JointTrajectoryPoint(positions=[a.position], velocities=[0.0],
                                               time_from_start=msgs.duration(0))],
         )
@@ -231,13 +336,15 @@ class StepRig(Service):
 
     # ------------------------------------------------------------------ results
     def responses(self) -> list[Response]:
+        """One response per joint measured, in the experiments' order."""
         tt = np.asarray(self.truth_t, dtype=np.int64)
         tq = np.asarray(self.truth_q, float)
+        tv = np.asarray(self.truth_v, float)
         rt = np.asarray(self.ref_t, dtype=np.int64)
         rq = np.asarray(self.ref_q, float)
+        rv = np.asarray(self.ref_v, float)
         out = []
-        for e, (s, end) in zip(self.experiments, self.windows, strict=True):
-            j = self.names.index(e.joint)
+        for e, lp, (s, end) in zip(self.experiments, self.loops, self.windows, strict=True):
             s_ns, end_ns = s * self.dt_ns, end * self.dt_ns
             sel = (tt >= s_ns) & (tt <= end_ns)
             order = np.argsort(tt[sel])
@@ -246,16 +353,25 @@ class StepRig(Service):
             if t_ns.size != expected or t_ns[0] != s_ns:
                 raise RigError(f"{e.joint}: {t_ns.size} truth samples in the window of the step, expected "
                                f"{expected} (samples were lost)")
-            target = self.home[j] + e.step
+            velocity = lp.quantity == "velocity"
+            refs = rv if velocity else rq
             # the controller's reference proves the step was taken at the stamped step, not later
             before = np.nonzero(rt == s_ns - self.dt_ns * self.sc.control_decimation)[0]
             at = np.nonzero(rt == s_ns)[0]
-            if not at.size or not before.size or abs(rq[at[0], j] - target) > 1e-12 \
-                    or abs(rq[before[0], j] - target) < 1e-12:
-                raise LateStep(f"{e.joint}: the step did not start at t={s_ns / 1e9:.3f} s in the controller "
-                               f"(the trajectory reached it late)")
-            y = tq[sel][order][:, j]
-            out.append(Response(e, (t_ns - s_ns) / 1e9, y, float(y[0]), float(target)))
+            for n, target in zip(lp.joints, lp.targets, strict=True):
+                j = self.names.index(n)
+                # the rover's speed reference is the twist's scaled by cos(steering error)
+                # (hilsim.steering.traction_scale): a wheel's angle that has not quite come home (a few
+                # 0.01 rad) makes it a few 1e-4 smaller; a step is a step within 0.1 % of its size
+                tol = 1e-3 * abs(e.step) if self.rover else 1e-12
+                if not at.size or not before.size or abs(refs[at[0], j] - target) > tol \
+                        or abs(refs[before[0], j] - target) <= tol:
+                    raise LateStep(f"{n}: the step did not start at t={s_ns / 1e9:.3f} s in the controller "
+                                   f"(the reference reached it late)")
+                y = (tv if velocity else tq)[sel][order][:, j]
+                if not np.all(np.isfinite(y)):
+                    raise RigError(f"{n}: truth/joint_states carries no {lp.quantity} to measure")
+                out.append(Response(e, (t_ns - s_ns) / 1e9, y, float(y[0]), float(target), n, lp.quantity))
         return out
 
 
@@ -273,14 +389,17 @@ def _home(sc: Scenario, names: list[str]) -> np.ndarray:
 
 
 def loop_scenario(robot: str, overrides: dict[str, Any] | None = None) -> Scenario:
-    """The scenario's physics, sensors and controller in lockstep, nothing else (no planner, no
-    recorder, no task): the loop whose step responses are measured."""
+    """The scenario's physics, sensors and controller in lockstep, nothing else (no planner or
+    navigator, no recorder, no task; no sensor the loops do not read, e.g. the rover's laser): the
+    loop whose step responses are measured."""
     o: dict[str, Any] = {"task.targets": [], "clock.mode": "lockstep"}
     o.update(overrides or {})
     sc = load_scenario(robot, o)
-    if sc.controller.type != "joint_trajectory":
-        raise ConfigError(f"{sc.source}: controller.type {sc.controller.type!r}: step experiments need the "
-                          f"joint_trajectory controller (per-joint PID)")
+    if sc.controller.type not in CONTROLLERS:
+        raise ConfigError(f"{sc.source}: controller.type {sc.controller.type!r}: step experiments need a "
+                          f"controller with per-joint PIDs ({' or '.join(CONTROLLERS)})")
+    for c in sc.sensors.values():
+        c.enabled = c.enabled and c.type in LOOP_SENSORS
     sc.services = [s for s in LOOP_SERVICES if s in sc.services]
     missing = [s for s in LOOP_SERVICES if s not in sc.services]
     if missing:
@@ -323,6 +442,10 @@ def _run_services(sc: Scenario, experiments: Sequence[Experiment], run_dir: Path
 
     if not experiments:
         return []
+    rig = StepRig(sc, experiments, progress)  # first: a bad experiment is a ConfigError before anything opens
+    sc.duration = rig.end * sc.clock.dt
+    if rig.rover:  # the rover's steps: its controller's own script (see the module)
+        sc.controller.params["script"] = [list(x) for x in rig.script]
     tmp = None
     if run_dir is None:
         tmp = tempfile.TemporaryDirectory(prefix="hilsim-rig-")
@@ -331,8 +454,6 @@ def _run_services(sc: Scenario, experiments: Sequence[Experiment], run_dir: Path
     ep = f"tcp/127.0.0.1:{transport.free_port()}"
     router = transport.open_router(ep)
     sc.zenoh.connect = [ep]
-    rig = StepRig(sc, experiments, progress)
-    sc.duration = rig.end * sc.clock.dt
     session = transport.open_session(sc.zenoh)
     # the rig's lockstep token exists before any service starts, so physics counts it in at step 0
     worker = threading.Thread(target=rig.serve, args=(session,), daemon=True, name="step-rig")

@@ -1,4 +1,4 @@
-"""``hilsim report step ROBOT``: the arm paper's Table II, measured on the real services.
+"""``hilsim report step ROBOT``: the arm paper's Table II, measured on the real services; the same for the rover.
 
 One lockstep run of the scenario's physics, sensors and controller (:mod:`hilsim.tools.rig`):
 each joint in turn gets a step of its reference from the home pose, with the scenario's gains,
@@ -6,6 +6,12 @@ and its TRUE position (``truth/joint_states``) gives rise time (10–90 %), sett
 peak time, overshoot and steady-state error (:mod:`hilsim.tools.metrics`). Printed beside the
 paper's figures, written as CSV, as a PNG (one panel per joint) and as a Rerun recording; or,
 with ``--json``, one JSON object.
+
+The rover (``four_wheel_steer``): its steering loops (angle, position loops) get a step of
+``--step`` rad and its traction loops (wheel speed, velocity loops) one of ``--speed`` rad/s,
+through its controller's kinematic layer (:mod:`hilsim.tools.rig`), all four wheels of a kind at
+once; a traction loop's response is the wheel's TRUE speed. The thesis gives no figures for its
+loops (it only says they were tuned by Ziegler–Nichols), so there is nothing to print beside them.
 
 The paper does not say how large its steps were; the default is 0.2 rad on joints 1–5, the
 joints of its Table II (the drives stop accelerating at 2 rad/s, the URDF's velocity limit, so
@@ -23,12 +29,17 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from hilsim.config import ConfigError
+from hilsim.config import ConfigError, Scenario
 from hilsim.tools.metrics import ZERO_OVERSHOOT, ZERO_TOL, Figures, step_figures
 from hilsim.tools.rig import Experiment, Response, RigError, loop_scenario, run_experiments
 
 DEFAULT_STEP = 0.2  # [rad] (see above: the drives stop at 2 rad/s)
 DEFAULT_JOINTS = ("joint_1", "joint_2", "joint_3", "joint_4", "joint_5")
+DEFAULT_SPEED = 2.0  # [rad/s] the rover's traction step: 0.3 m/s on its 0.15 m wheels
+ROVER_LOOPS = ("steering", "traction")  # the rover's default: every wheel's loops of both kinds
+# A rover loop's "no overshoot" and "at the target" for the peak time, relative to its step: the
+# truth of a wheel's speed ripples by ~0.2 % as it rolls, which an absolute 1e-3 would call motion
+ROVER_ZERO = 0.005
 
 # The paper's Table II ("Response performance of joint controller"): rise time, adjustment
 # (settling) time, peak time [s], overshoot, steady-state error; joint_6 has no row.
@@ -46,6 +57,15 @@ class Row:
     joint: str
     figures: Figures
     response: Response
+
+    @property
+    def velocity(self) -> bool:
+        """A velocity loop (a rover's traction): step, error and response in rad/s."""
+        return self.response.quantity == "velocity"
+
+    @property
+    def unit(self) -> str:
+        return "rad/s" if self.velocity else "rad"
 
 
 def shortfalls(joint: str, f: Figures) -> list[str]:
@@ -67,17 +87,42 @@ def shortfalls(joint: str, f: Figures) -> list[str]:
     return out
 
 
-def measure(robot: str, joints: Sequence[str], step: float, *, measure_s: float = 1.5, settle_s: float = 1.0,
-            overrides: dict | None = None, progress: bool = False, run_dir: Path | None = None) -> list[Row]:
-    """Step each joint in turn (one lockstep run) and compute its figures."""
+def is_rover(sc: Scenario) -> bool:
+    return sc.controller.type == "four_wheel_steer"
+
+
+def default_joints(robot: str, overrides: dict | None = None) -> list[str]:
+    """The paper's Table II joints for the arm; every steering and traction loop for the rover."""
+    return list(ROVER_LOOPS if is_rover(loop_scenario(robot, overrides)) else DEFAULT_JOINTS)
+
+
+def _traction(name: str) -> bool:
+    return name == "traction" or name.endswith("_traction")
+
+
+def measure(robot: str, joints: Sequence[str], step: float, *, speed: float = DEFAULT_SPEED,
+            measure_s: float = 1.5, settle_s: float = 1.0, overrides: dict | None = None, progress: bool = False,
+            run_dir: Path | None = None) -> list[Row]:
+    """Step each joint (the rover: each kind of loop, or one loop) in turn, in one lockstep run, and
+    compute its figures; ``speed`` is the rover's traction step [rad/s]."""
     sc = loop_scenario(robot, overrides)
-    exps = [Experiment(j, step, measure=measure_s, settle=settle_s) for j in joints]
+    rover = is_rover(sc)
+    exps = [Experiment(j, speed if rover and _traction(j) else step, measure=measure_s, settle=settle_s)
+            for j in joints]
 
     def say(done: int, total: int) -> None:
         print(f"  {exps[done - 1].joint}: measured ({done}/{total})", flush=True)
 
     rs = run_experiments(sc, exps, run_dir=run_dir, progress=say if progress else None)
-    return [Row(r.experiment.joint, step_figures(r.t, r.y, r.y0, r.target), r) for r in rs]
+    rows = []
+    for r in rs:
+        if rover:
+            z = ROVER_ZERO * abs(r.target - r.y0)
+            f = step_figures(r.t, r.y, r.y0, r.target, zero_tol=z, zero_overshoot=z)
+        else:
+            f = step_figures(r.t, r.y, r.y0, r.target)
+        rows.append(Row(r.name, f, r))
+    return rows
 
 
 def _s(v: float, nd: int = 3) -> str:
@@ -85,7 +130,9 @@ def _s(v: float, nd: int = 3) -> str:
 
 
 def format_table(rows: Sequence[Row]) -> str:
-    """Ours beside the paper's, one line per joint (markdown)."""
+    """Ours beside the paper's, one line per joint (markdown); the rover's loops have no seed figures."""
+    if not any(r.joint in PAPER_TABLE_II for r in rows):
+        return _plain_table(rows)
     lines = [
         "| joint | rise (s) ours / paper | settling 2 % (s) ours / paper | peak (s) ours / paper "
         "| overshoot ours / paper | steady-state error (rad) ours / paper | at or better |",
@@ -104,29 +151,43 @@ def format_table(rows: Sequence[Row]) -> str:
     return "\n".join(lines)
 
 
+def _plain_table(rows: Sequence[Row]) -> str:
+    lines = [
+        "| loop | kind | step | rise (s) | settling 2 % (s) | peak (s) | overshoot | steady-state error |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        f = r.figures
+        kind = "speed (velocity loop)" if r.velocity else "angle (position loop)"
+        lines.append(f"| {r.joint} | {kind} | {f.step:.3f} {r.unit} | {_s(f.rise_time_s)} | {_s(f.settling_time_s)} | "
+                     f"{_s(f.peak_time_s)} | {f.overshoot_pct:.2f} % | {f.steady_state_error:.1e} {r.unit} |")
+    return "\n".join(lines)
+
+
 def _num(v: float) -> float | None:
     return v if math.isfinite(v) else None  # JSON has no infinity: "never" is null
 
 
 def as_json(robot: str, rows: Sequence[Row]) -> dict:
-    return {
-        "robot": robot,
-        "joints": [
-            {
-                "joint": r.joint,
-                "step_rad": r.figures.step,
-                "rise_time_s": _num(r.figures.rise_time_s),
-                "settling_time_s": _num(r.figures.settling_time_s),
-                "peak_time_s": _num(r.figures.peak_time_s),
-                "overshoot_pct": r.figures.overshoot_pct,
-                "steady_state_error_rad": r.figures.steady_state_error,
-            }
-            for r in rows
-        ],
-    }
+    """One object; a velocity loop's step and error are ``step_rad_s``, ``steady_state_error_rad_s``."""
+    out = []
+    for r in rows:
+        u = "rad_s" if r.velocity else "rad"
+        out.append({
+            "joint": r.joint,
+            f"step_{u}": r.figures.step,
+            "rise_time_s": _num(r.figures.rise_time_s),
+            "settling_time_s": _num(r.figures.settling_time_s),
+            "peak_time_s": _num(r.figures.peak_time_s),
+            "overshoot_pct": r.figures.overshoot_pct,
+            f"steady_state_error_{u}": r.figures.steady_state_error,
+        })
+    return {"robot": robot, "joints": out}
 
 
 def write_csv(path: Path, rows: Sequence[Row]) -> None:
+    if not any(r.joint in PAPER_TABLE_II for r in rows):
+        return _plain_csv(path, rows)
     with open(path, "w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["joint", "step_rad", "rise_time_s", "settling_time_s", "peak_time_s", "overshoot_pct",
@@ -139,6 +200,19 @@ def write_csv(path: Path, rows: Sequence[Row]) -> None:
                         *([f"{x:.2f}" for x in p[:3]] if p else ["", "", ""]), int(not shortfalls(r.joint, f_))])
 
 
+def _plain_csv(path: Path, rows: Sequence[Row]) -> None:
+    """Loops without seed figures (the rover's): each with its unit (rad, or rad/s for a velocity loop)."""
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["joint", "quantity", "unit", "step", "rise_time_s", "settling_time_s", "peak_time_s",
+                    "overshoot_pct", "steady_state_error"])
+        for r in rows:
+            f_ = r.figures
+            w.writerow([r.joint, r.response.quantity, r.unit, f"{f_.step:.6f}", f"{f_.rise_time_s:.6f}",
+                        f"{f_.settling_time_s:.6f}", f"{f_.peak_time_s:.6f}", f"{f_.overshoot_pct:.6f}",
+                        f"{f_.steady_state_error:.3e}"])
+
+
 def write_png(path: Path, robot: str, rows: Sequence[Row]) -> None:
     """One panel per joint: the true position against the commanded step, the 2 % band, the figures."""
     import matplotlib
@@ -147,7 +221,7 @@ def write_png(path: Path, robot: str, rows: Sequence[Row]) -> None:
     import matplotlib.pyplot as plt
 
     n = len(rows)
-    cols = min(n, 3)
+    cols = 4 if n % 4 == 0 and n > 4 else min(n, 3)  # the rover's eight loops: a row per kind
     nrows = math.ceil(n / cols)
     fig, axes = plt.subplots(nrows, cols, figsize=(4.6 * cols, 3.4 * nrows), squeeze=False)
     for ax, r in zip(axes.flat, rows, strict=False):
@@ -161,7 +235,7 @@ def write_png(path: Path, robot: str, rows: Sequence[Row]) -> None:
         ax.set_title(f"{r.joint}: rise {_s(f.rise_time_s, 2)} s, settle {_s(f.settling_time_s, 2)} s, "
                      f"OS {f.overshoot_pct:.2f} %", fontsize=9)
         ax.set_xlabel("time from the step [s]")
-        ax.set_ylabel("position [rad]")
+        ax.set_ylabel("speed [rad/s]" if r.velocity else "position [rad]")
         ax.grid(alpha=0.3)
     for ax in list(axes.flat)[n:]:
         ax.set_visible(False)
@@ -187,9 +261,11 @@ def log_rerun(path: Path, robot: str, rows: Sequence[Row]) -> None:
         rec.send_columns(f"step/{r.joint}/truth", indexes=[times], columns=rr.Scalars.columns(scalars=resp.y))
         ref = [resp.target] * len(resp.t)
         rec.send_columns(f"step/{r.joint}/reference", indexes=[times], columns=rr.Scalars.columns(scalars=ref))
-        text = "\n".join(f"{k}: {v:.6g}" for k, v in f.as_dict().items())
-        miss = shortfalls(r.joint, f)
-        text += "\nat or better than the paper: " + ("yes" if not miss else "no (" + "; ".join(miss) + ")")
+        text = f"{r.response.quantity} loop, {r.unit}\n"
+        text += "\n".join(f"{k}: {v:.6g}" for k, v in f.as_dict().items())
+        if r.joint in PAPER_TABLE_II:
+            miss = shortfalls(r.joint, f)
+            text += "\nat or better than the paper: " + ("yes" if not miss else "no (" + "; ".join(miss) + ")")
         rec.log(f"step/{r.joint}/figures", rr.TextDocument(text), static=True)
     rec.log("step/table", rr.TextDocument(format_table(rows), media_type=rr.MediaType.MARKDOWN), static=True)
     rec.flush()
@@ -206,17 +282,20 @@ def cmd_report_step(args: argparse.Namespace) -> int:
 def _cmd_report_step(args: argparse.Namespace) -> int:
     from hilsim.runs import new_run_dir
 
-    joints = [j.strip() for j in args.joints.split(",") if j.strip()] if args.joints else list(DEFAULT_JOINTS)
+    joints = [j.strip() for j in args.joints.split(",") if j.strip()] if args.joints else default_joints(args.robot)
     if not joints:
-        raise ConfigError("--joints: expected joint names, e.g. joint_1,joint_2")
+        raise ConfigError("--joints: expected joint names, e.g. joint_1,joint_2 (the rover: steering,traction)")
     if not math.isfinite(args.step) or args.step == 0.0:
         raise ConfigError(f"--step {args.step}: expected a non-zero step in rad")
+    if not math.isfinite(args.speed) or args.speed == 0.0:
+        raise ConfigError(f"--speed {args.speed}: expected a non-zero wheel-speed step in rad/s")
     out = Path(args.out) if args.out else new_run_dir("runs", "step-report")
     out.mkdir(parents=True, exist_ok=True)
     if not args.json:
-        print(f"hilsim report step {args.robot}: {args.step:g} rad steps on {', '.join(joints)} "
+        speed = f", {args.speed:g} rad/s on traction loops" if any(_traction(j) for j in joints) else ""
+        print(f"hilsim report step {args.robot}: {args.step:g} rad steps{speed} on {', '.join(joints)} "
               f"(real services, lockstep, physics truth)", flush=True)
-    rows = measure(args.robot, joints, args.step, measure_s=args.measure, settle_s=args.settle,
+    rows = measure(args.robot, joints, args.step, speed=args.speed, measure_s=args.measure, settle_s=args.settle,
                    progress=not args.json, run_dir=out / "services")
     write_csv(out / "step_report.csv", rows)
     write_png(out / "step_report.png", args.robot, rows)
@@ -225,7 +304,10 @@ def _cmd_report_step(args: argparse.Namespace) -> int:
         print(json.dumps(as_json(args.robot, rows)))
         return 0
     print(format_table(rows))
-    ok = all(not shortfalls(r.joint, r.figures) for r in rows)
-    print(f"at or better than the paper on every joint: {'yes' if ok else 'no'}")
+    if any(r.joint in PAPER_TABLE_II for r in rows):
+        ok = all(not shortfalls(r.joint, r.figures) for r in rows)
+        print(f"at or better than the paper on every joint: {'yes' if ok else 'no'}")
+    elif is_rover(loop_scenario(args.robot)):
+        print("the thesis gives no figures for its wheel loops (tuned by Ziegler–Nichols): nothing to compare")
     print(f"written: {out / 'step_report.csv'}, {out / 'step_report.png'}, {out / 'step_report.rrd'}")
     return 0
