@@ -8,6 +8,7 @@
     hilsim gains ROBOT JOINT.GAIN=VALUE …
     hilsim plan evaluate --targets FILE [--criterion length|smoothness|weighted]
     hilsim bench loop|plan|can|mavlink|rover [--json]
+    hilsim bench scale [--robots 1,2,4,8] [--subscribers 0,4] [--sim-seconds S] [--compose] [--json]
     hilsim report step ROBOT [--joints J,…] [--step RAD] [--speed RAD/S] [--json]
     hilsim inertia FILE [--link NAME] [--urdf FILE] [--json]
     hilsim tune ROBOT JOINT|--all [--method ziegler-nichols|relay] [--write] [--json]
@@ -57,6 +58,12 @@ def _lazy(module: str, func: str) -> Callable[[argparse.Namespace], int]:
         return int(getattr(importlib.import_module(module), func)(args))
 
     return call
+
+
+def _lazy_ints(text: str) -> list[int]:
+    from hilsim.bench_scale import _ints
+
+    return _ints(text)
 
 
 def _endpoint_args(p: argparse.ArgumentParser) -> None:
@@ -165,6 +172,15 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--sim-seconds", type=float, default=5.0)
     bl.add_argument("--realtime-seconds", type=float, default=60.0)
     bl.set_defaults(func=_lazy("hilsim.bench", "cmd_loop"))
+    bsc = bsub.add_parser("scale", help="many robots: real-time factor, step latency, recorder load vs one robot")
+    bsc.add_argument("--json", action="store_true")
+    bsc.add_argument("--robots", type=_lazy_ints, default=[1, 2, 4, 8], metavar="N,…",
+                     help="numbers of robots to run (must include 1, the baseline; default 1,2,4,8)")
+    bsc.add_argument("--subscribers", type=_lazy_ints, default=[0, 4], metavar="S,…",
+                     help="numbers of extra plain Zenoh subscribers on the joint_states keys (default 0,4)")
+    bsc.add_argument("--sim-seconds", type=float, default=2.0, help="sim seconds per run")
+    bsc.add_argument("--compose", action="store_true", help="physics, sensors and controller in one process")
+    bsc.set_defaults(func=_lazy("hilsim.bench_scale", "cmd_scale"))
     bc = bsub.add_parser("can", help="CAN bridge: frames per second and added latency vs python-can alone")
     bc.add_argument("--json", action="store_true")
     bc.add_argument("--samples", type=int, default=1000, help="paced latency probes per path")

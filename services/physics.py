@@ -55,7 +55,13 @@ REALTIME_PRIORITY = 10
 # realtime: without these the joint commands stop coming (the control law, whatever its type, is
 # named controller; it acts on the sensors' joint_states) and the last one would be held
 COMMAND_PATH = ("controller", "sensors")
+STEP_BINS = 200_000  # lockstep: wall time per step, 1 µs bins (last bin: 200 ms or more)
 JITTER_BINS = 20_000  # SCHED_FIFO priority of physics in realtime mode (if permitted)
+
+
+def _percentile(hist: np.ndarray, n: int, q: float) -> float:
+    """The q-quantile of ``n`` samples in a histogram of 1 µs bins, in µs."""
+    return float(np.searchsorted(np.cumsum(hist), q * n))
 
 
 class Participant:
@@ -94,6 +100,11 @@ class PhysicsService(Service):
         # and percentiles for health cost microseconds instead of sorting every tick so far
         self.jitter_hist = np.zeros(JITTER_BINS + 1, dtype=np.int64)
         self.ticks = 0
+        # lockstep: wall time from one step to the next (the whole round: truth out, every
+        # acknowledgement back), the per-step latency `hilsim bench scale` reports
+        self.step_hist = np.zeros(STEP_BINS + 1, dtype=np.int64)
+        self.step_count = 0
+        self._last_step_ns = 0
 
     def setup(self) -> None:
         sc = self.sc
@@ -312,6 +323,12 @@ class PhysicsService(Service):
             self._finish()
             return
         self.world.step()
+        if self.participants:
+            now = time.perf_counter_ns()
+            if self._last_step_ns:
+                self.step_hist[min((now - self._last_step_ns) // 1000, STEP_BINS)] += 1
+                self.step_count += 1
+            self._last_step_ns = now
         self.steps_done += 1
         self.last_progress = time.monotonic()
         if self.waiting_reported:
@@ -351,14 +368,14 @@ class PhysicsService(Service):
         }
 
     def _jitter_figures(self) -> dict[str, str]:
-        if not self.ticks:
-            return {}
-        cum = np.cumsum(self.jitter_hist)
-
-        def pct(q: float) -> float:
-            return float(np.searchsorted(cum, q * self.ticks))
-
-        return {"jitter_p50_us": f"{pct(0.5):.0f}", "jitter_p99_us": f"{pct(0.99):.0f}"}
+        out = {}
+        if self.ticks:
+            out["jitter_p50_us"] = f"{_percentile(self.jitter_hist, self.ticks, 0.5):.0f}"
+            out["jitter_p99_us"] = f"{_percentile(self.jitter_hist, self.ticks, 0.99):.0f}"
+        if self.step_count:
+            out["step_p50_us"] = f"{_percentile(self.step_hist, self.step_count, 0.5):.0f}"
+            out["step_p99_us"] = f"{_percentile(self.step_hist, self.step_count, 0.99):.0f}"
+        return out
 
     def _missing(self) -> list[str]:
         """Participants that still owe an acknowledgement for the current step."""
