@@ -234,6 +234,11 @@ class Scenario(_Model):
         default_factory=lambda: [0.0, 1.5, 0.0], min_length=3, max_length=3,
         description="robots > 1: offset [m] of each copy of the world model from the previous one",
     )
+    robot_overrides: dict[str, dict[str, Any]] = Field(
+        default_factory=dict,
+        description="robots > 1: per robot (arm0, …), its own settings as dotted fields under "
+                    "task, controller, planner or sensors, e.g. {arm1: {task.targets: [[…]]}}",
+    )
     prefix: str = "hilsim"
     seed: int = 0
     duration: float | None = Field(None, gt=0, description="sim seconds; None = until the task ends")
@@ -282,6 +287,21 @@ class Scenario(_Model):
         if self.robots > 1 and self.external_servers():
             raise ValueError(f"robots: {self.robots} robots need every joint served by sim "
                              f"(external servers: {', '.join(self.external_servers())})")
+        from hilsim import fleet
+
+        names = fleet.robot_names(self)
+        for robot, over in self.robot_overrides.items():
+            if self.robots == 1 or robot not in names:
+                raise ValueError(f"robot_overrides.{robot}: no such robot (robots: {', '.join(names)}; "
+                                 f"overrides need robots > 1)")
+            for field in over:
+                if field.split(".")[0] not in fleet.OVERRIDABLE:
+                    raise ValueError(f"robot_overrides.{robot}.{field}: a robot may change only fields under "
+                                     f"{', '.join(fleet.OVERRIDABLE)} (the world and clock are shared)")
+            try:  # a bad value is said when the file is read, not when that robot's services start
+                fleet.robot_scenario(self, robot)
+            except ConfigError as e:
+                raise ValueError(str(e).split(": ", 1)[-1]) from None
         return self
 
     @model_validator(mode="after")

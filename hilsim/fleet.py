@@ -9,7 +9,9 @@ A scenario with ``robots: 8`` (and ``robot: arm``) runs robots ``arm0`` … ``ar
   ``joint_commands``, ``joint_states``, ``task/result``, …), with the joint names of the single
   robot (``joint_1`` …), so its sensors, controller and planner are the single robot's code, run
   with a copy of the scenario whose ``robot`` is ``arm<k>`` (:func:`robot_scenario`); every robot
-  gets the scenario's task (the same joint targets: each stands in its own copy of the cell);
+  gets the scenario's task (the same joint targets: each stands in its own copy of the cell),
+  unless ``robot_overrides: {arm1: {task.targets: […]}}`` gives it its own; robot k's sensors
+  are seeded ``seed + k``;
 - physics and the recorder serve the whole fleet under the scenario's own namespace
   (``<prefix>/arm/health/physics``); sim time stays ``<prefix>/clock``.
 
@@ -29,12 +31,15 @@ from typing import TYPE_CHECKING
 
 import mujoco
 import numpy as np
+from pydantic import ValidationError
 
 if TYPE_CHECKING:
     from hilsim.config import Scenario
     from hilsim.service import Service
     from hilsim.world import World
 
+# the sections a robot may have its own values of (robot_overrides); the world and clock are shared
+OVERRIDABLE = ("task", "controller", "planner", "sensors")
 FLEET_WIDE = ("physics", "logger")  # one for the whole fleet; every other service runs per robot
 ALL = "*"  # <service>@*: the service of every robot, in one process
 
@@ -88,13 +93,30 @@ def service_id(sc: Scenario, key: str, kind: str) -> str:
 
 
 def robot_scenario(sc: Scenario, robot: str) -> Scenario:
-    """The scenario as one robot of the fleet sees it: ``robot`` is its name, a single robot."""
-    if robot not in robot_names(sc):
-        from hilsim.config import ConfigError
+    """The scenario as one robot of the fleet sees it: ``robot`` is its name, a single robot,
+    seed ``seed + k`` for robot k (its sensors' noise is its own), its ``robot_overrides`` applied."""
+    from hilsim.config import ConfigError, Scenario, _merge, format_error, set_dotted
 
-        raise ConfigError(f"{sc.source or 'scenario'}: robots: no robot {robot!r} "
-                          f"(robots: {', '.join(robot_names(sc))})")
-    return sc.model_copy(update={"robot": robot, "robots": 1})
+    names = robot_names(sc)
+    if robot not in names:
+        raise ConfigError(f"{sc.source or 'scenario'}: robots: no robot {robot!r} (robots: {', '.join(names)})")
+    if sc.robots == 1:
+        return sc
+    own = {"robot": robot, "robots": 1, "seed": sc.seed + names.index(robot), "robot_overrides": {}}
+    over = sc.robot_overrides.get(robot)
+    if not over:
+        return sc.model_copy(update=own)
+    layer: dict[str, object] = {}
+    for field, value in over.items():  # dotted (task.targets) or nested (task: {targets: …}) alike
+        set_dotted(layer, field, value)
+    data = _merge(sc.dump(), layer)
+    data.update(own)
+    try:
+        out = Scenario.model_validate(data)
+    except ValidationError as e:
+        raise ConfigError(format_error(sc.source or "scenario", e, prefix=f"robot_overrides.{robot}")) from None
+    out.source = sc.source
+    return out
 
 
 def instantiate(name: str, sc: Scenario) -> Service:

@@ -1,0 +1,148 @@
+"""Many robots (``robots: N``, hilsim.fleet): the multiplied world, two arms end to end, ``hilsim bench scale``."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import zenoh
+from util import REPO, finish, up
+
+from hilsim import fleet, msgs, transport
+from hilsim.config import ZenohConfig, load_scenario
+from hilsim.keys import Keys
+from hilsim.world import World
+
+LEFT = [0.866, -0.789, -0.399, 0.0, -0.382, 0.0]  # config/arm.yaml's first target
+OVER = [0.0, -0.167, 0.031, 0.0, -1.435, 0.0]  # …and its third
+
+
+def test_the_world_model_is_multiplied_side_by_side_with_names_of_their_own() -> None:
+    sc = load_scenario("arm", {"robots": 3, "robot_spacing": [0.0, 2.0, 0.0]})
+    fw = fleet.FleetWorld(sc)
+    one = World(load_scenario("arm"))
+    m = fw.model
+    assert fw.robots == ["arm0", "arm1", "arm2"]
+    assert m.nu == 3 * one.model.nu and m.nbody == 3 * (one.model.nbody - 1) + 1
+    names = [m.body(i).name for i in range(1, m.nbody)]
+    assert len(set(names)) == len(names) and all(n.split("/")[0] in fw.robots for n in names)
+    # each robot: the single arm's joints by the single arm's names, its cell moved by the spacing
+    for k, v in enumerate(fw.views):
+        assert v.joint_names == one.joint_names
+        base = fw.data.xpos[m.body(f"arm{k}/base_link").id]
+        assert np.allclose(base, [0.0, 2.0 * k, 0.0]), base
+        assert m.geom(f"arm{k}/obstacle").id >= 0
+    # a torque on arm1's joint_1 moves arm1's joint_1 only
+    push = msgs.JointState(name=["joint_1"], effort=[1.0])
+    fw.views[1].command(push)
+    for _ in range(200):
+        fw.step()
+    q = [v.positions() for v in fw.views]
+    assert q[1][0] > 0.01, q[1]
+    assert np.abs(q[0]).max() < 1e-9 and np.abs(q[2]).max() < 1e-9, (q[0], q[2])
+    assert fw.time_ns == 200 * sc.dt_ns
+    # a robot's contacts are those of its own cell, by the single robot's names
+    mujoco.mj_forward(m, fw.data)
+    per = [v.contacts().contacts for v in fw.views]
+    assert sum(len(c) for c in per) == fw.data.ncon and len(per[0]) == len(per[2])
+    assert all("/" not in n for c in per for x in c for n in (x.body1, x.body2, x.geom1, x.geom2))
+
+
+def _truth_of(ep: str, robots: list[str]) -> tuple[zenoh.Session, list[zenoh.Subscriber], dict[str, list]]:
+    """Every robot's physics truth (truth/joint_states), as the test's own observer."""
+    ses = transport.open_session(ZenohConfig(connect=[ep]))
+    got: dict[str, list] = {r: [] for r in robots}
+    lock = threading.Lock()
+    subs = []
+    for r in robots:
+        def on(s: zenoh.Sample, r: str = r) -> None:
+            m = msgs.decode(msgs.JointState, s.payload.to_bytes())
+            with lock:
+                got[r].append((msgs.ns_of(m.header.stamp), list(m.name), list(m.position)))
+
+        subs.append(ses.declare_subscriber(Keys("hilsim", r).truth("joint_states"), on))
+    return ses, subs, got
+
+
+def test_two_arms_reach_their_own_targets_in_the_truth_and_do_not_interfere(tmp_path: Path) -> None:
+    """Two arms as real processes in lockstep, each with a target of its own: judged by the
+    physics truth under each robot's namespace; the recorder has both namespaces."""
+    scen = tmp_path / "two-arms.yaml"
+    scen.write_text(
+        f"extends: [{REPO / 'config' / 'arm.yaml'}]\n"
+        "robots: 2\n"
+        "planner: {planning_time: 0.3}\n"
+        f"task: {{targets: [{LEFT}]}}\n"
+        f"robot_overrides: {{arm1: {{task.targets: [{OVER}]}}}}\n")
+    ep = f"tcp/127.0.0.1:{transport.free_port()}"
+    router = transport.open_router(ep)
+    ses, subs, truth = _truth_of(ep, ["arm0", "arm1"])
+    try:
+        out = finish(up(str(scen), "--router", ep, "--out", str(tmp_path / "run")), 240)
+    finally:
+        for s in subs:
+            s.undeclare()
+        ses.close()
+        router.close()
+    assert "result: OK" in out, out
+    assert "sensors@* (pid" in out and "controller@* (pid" in out, out  # one process per kind
+    tol = 0.01
+    final = {}
+    for r, target in (("arm0", LEFT), ("arm1", OVER)):
+        assert len(truth[r]) > 1000, (r, len(truth[r]))
+        _stamp, names, q = max(truth[r])
+        assert names == [f"joint_{i}" for i in range(1, 7)]
+        assert np.abs(np.array(q) - target).max() < tol, (r, q, target)
+        final[r] = np.array(q)
+    # the arms went to different places: neither one is where the other was sent
+    assert np.abs(final["arm0"] - np.array(OVER)).max() > 0.5
+    assert np.abs(final["arm1"] - np.array(LEFT)).max() > 0.5
+    counts = json.loads((tmp_path / "run" / "record_summary.json").read_text())
+    for r in ("arm0", "arm1"):
+        for topic in ("truth/joint_states", "joint_states", "joint_commands", "task/result"):
+            assert counts.get(f"hilsim/{r}/{topic}", {}).get("recorded", 0) > 0, (r, topic, sorted(counts))
+    assert "hilsim/clock" in counts
+
+
+def test_bench_scale_reports_each_robot_count_against_one_robot_measured_in_the_same_run() -> None:
+    p = subprocess.run([sys.executable, "-m", "hilsim.cli", "bench", "scale", "--robots", "1,2", "--subscribers",
+                        "1", "--sim-seconds", "0.3", "--json"], capture_output=True, text=True, cwd=REPO, timeout=240)
+    assert p.returncode == 0, p.stdout + p.stderr
+    res = json.loads(p.stdout)  # stdout is the JSON alone
+    assert res["robots"] == [1, 2] and res["subscribers"] == [1] and res["sim_seconds"] == 0.3
+    runs = {r["robots"]: r for r in res["runs"]}
+    one, two = runs[1], runs[2]
+    for r in (one, two):
+        assert r["rtf"] > 0 and math.isfinite(r["rtf"])
+        assert 0 < r["step_p50_us"] <= r["step_p99_us"]
+        assert r["cpu_per_sim_s"] > 0 and r["recorder"]["cpu_s"] > 0
+        # the extra subscriber got every robot's joint_states (1 kHz) for the whole run
+        assert r["subscriber_samples"] >= 0.9 * 300 * r["robots"], r["subscriber_samples"]
+    assert two["recorder"]["recorded"] > 1.6 * one["recorder"]["recorded"]  # it recorded both arms
+    # the ratios are the measured figures' (not copied, not fixed)
+    assert one["rtf_vs_1"] == 1.0
+    assert math.isclose(two["rtf_vs_1"], two["rtf"] / one["rtf"])
+    assert math.isclose(two["cost_per_robot_vs_1"], one["rtf"] / two["rtf"] / 2)
+    assert math.isclose(two["step_p50_vs_1"], two["step_p50_us"] / one["step_p50_us"])
+    g = res["goal_rtf_vs_1_at_least_0.25"]["1"]
+    assert g["robots"] == 2 and g["rtf_vs_1"] == two["rtf_vs_1"] and g["met"] == (two["rtf_vs_1"] >= 0.25)
+
+
+def test_a_bad_fleet_field_is_one_line() -> None:
+    from hilsim.config import ConfigError
+
+    for over, want in (({"robots": 0}, "robots"),
+                       ({"robots": 2, "robot_overrides": {"arm7": {"task.targets": []}}}, "robot_overrides.arm7"),
+                       ({"robots": 2, "robot_overrides": {"arm1": {"world.model": "x.xml"}}}, "world and clock")):
+        try:
+            load_scenario("arm", over)
+        except ConfigError as e:
+            assert want in str(e) and "\n" not in str(e), e
+        else:
+            raise AssertionError(f"{over} accepted")
