@@ -70,3 +70,24 @@ def test_tune_one_joint_end_to_end() -> None:
     f = row.figures
     assert not target.misses(f), target.misses(f)
     assert f.settling_time_s == pytest.approx(r.figures.settling_time_s, abs=0.01)
+
+
+def test_ziegler_nichols_one_joint_end_to_end() -> None:
+    """The Ziegler–Nichols tuner (proportional only, kp doubled to the sustained oscillation) on joint_5,
+    real services in lockstep: the ultimate point is found and the gains meet a stated target (rise <=
+    0.25 s, settling <= 0.35 s, no overshoot, error < 1e-3 rad on a 0.2 rad step)."""
+    target = tuning.Target(rise_s=0.25, settling_s=0.35)
+    lines: list[str] = []
+    r = tuning.tune("arm", "joint_5", "ziegler-nichols", 0.2, target, lines.append, measure=0.5)
+    assert r.method == "ziegler-nichols" and "proportional only" in r.ultimate.how
+    # the loop oscillated at the ultimate gain: decaying below it, sustained at or above it
+    ratios = [float(ln.split("decay ratio ")[1].split()[0]) for ln in lines if "decay ratio" in ln]
+    assert len(ratios) == 10 and min(ratios) < tuning.SUSTAINED <= max(ratios), "\n".join(lines)
+    assert r.ultimate.ku > 0 and 0 < r.ultimate.tu < 1
+    assert r.rule == pytest.approx(tuning.ziegler_nichols_pid(r.ultimate))
+    assert not r.misses, (r.misses, "\n".join(lines))
+    f = r.figures
+    assert f.step == pytest.approx(0.2, abs=1e-3)
+    assert 0 < f.rise_time_s <= 0.25 and f.rise_time_s < f.settling_time_s <= 0.35
+    assert f.overshoot_pct <= tuning.MARGIN * tuning.ZERO_OVERSHOOT_PCT and f.steady_state_error < 1e-3
+    assert all(math.isfinite(v) and v >= 0 for v in r.gains.values()) and r.gains["kp"] < r.rule["kp"]
