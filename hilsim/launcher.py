@@ -170,7 +170,8 @@ class Launcher:
         # what restarted services take over (hilsim.restart) belongs to this run only
         shutil.rmtree(self.run_dir / STATE_DIR, ignore_errors=True)
         # before the liveliness subscriber: its history (services of other hosts already up) comes at once
-        self.remote = {s: False for u in self.sc.launch_units() if u not in self.local for s in u.split("+")}
+        self.remote = {s: False for u in self.sc.launch_units() if u not in self.local
+                       for s in fleet.members(self.sc, u)}
         self.session = transport.open_session(self.sc.zenoh)
         self._subs = [
             # first: who writes what, so that only the services' own samples are believed
@@ -288,8 +289,8 @@ class Launcher:
         """Ask who is alive: a remote service's departure must not hang on one liveliness event
         (seen lost through the router under load), so the run still ends, bounded."""
         try:
-            replies = self.session.liveliness().get(self.keys.all_alive, timeout=1.0)
-            alive = {str(r.ok.key_expr).rsplit("/", 1)[-1] for r in replies if r.ok is not None}
+            replies = self.session.liveliness().get(self.follow_keys.all_alive, timeout=1.0)
+            alive = {fleet.service_id(self.sc, str(r.ok.key_expr), "alive") for r in replies if r.ok is not None}
         except zenoh.ZError:
             return
         with self.lock:
