@@ -215,10 +215,11 @@ def build_parser() -> argparse.ArgumentParser:
     tune = sub.add_parser("tune", help="tune a joint's PID on the real services (Ziegler–Nichols or relay, "
                           "then a refinement that removes overshoot)")
     tune.add_argument("robot", help="scenario name in config/ (e.g. arm) or a YAML path")
-    tune.add_argument("joint", nargs="?", help="the joint (or --all)")
+    tune.add_argument("joint", nargs="?", help="the joint (or --all); the rover: steering or traction")
     tune.add_argument("--all", action="store_true", help="tune every joint in turn")
     tune.add_argument("--method", choices=["ziegler-nichols", "relay"], default="relay")
-    tune.add_argument("--step", type=float, default=0.2, help="step of the reference the refinement uses [rad]")
+    tune.add_argument("--step", type=float, help="step of the reference the refinement uses (default 0.2 rad; "
+                      "the rover's traction: 2.0 rad/s)")
     tune.add_argument("--measure", type=float, default=1.0, help="sim seconds recorded after each step")
     tune.add_argument("--rise", type=float, help="target rise time [s] (default: the paper's Table II row)")
     tune.add_argument("--settling", type=float, help="target settling time [s] (default: the paper's row)")
