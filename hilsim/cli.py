@@ -8,7 +8,7 @@
     hilsim gains ROBOT JOINT.GAIN=VALUE …
     hilsim plan evaluate --targets FILE [--criterion length|smoothness|weighted]
     hilsim bench loop|plan|can|mavlink|rover [--json]
-    hilsim bench scale [--robots 1,2,4,8] [--subscribers 0,4] [--sim-seconds S] [--compose] [--json]
+    hilsim bench scale [--robots 1,2,4,8] [--subscribers 0,4] [--sim-seconds S] [--repeat K] [--compose] [--json]
     hilsim report step ROBOT [--joints J,…] [--step RAD] [--speed RAD/S] [--json]
     hilsim inertia FILE [--link NAME] [--urdf FILE] [--json]
     hilsim tune ROBOT JOINT|--all [--method ziegler-nichols|relay] [--write] [--json]
@@ -180,6 +180,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="numbers of extra plain Zenoh subscribers on the joint_states keys (default 0,4)")
     bsc.add_argument("--sim-seconds", type=float, default=2.0, help="sim seconds per run")
     bsc.add_argument("--compose", action="store_true", help="physics, sensors and controller in one process")
+    bsc.add_argument("--repeat", type=int, default=1, help="runs of each configuration, interleaved; the best is kept")
     bsc.set_defaults(func=_lazy("hilsim.bench_scale", "cmd_scale"))
     bc = bsub.add_parser("can", help="CAN bridge: frames per second and added latency vs python-can alone")
     bc.add_argument("--json", action="store_true")
