@@ -344,7 +344,8 @@ class Monitor:
                 return
             with self.lock:
                 g = self._goal(self.robot(_robot_of(str(sample.key_expr), self.prefix)), r.goal_id, service)
-                g.update(state="reached" if r.success else "failed", done=True, success=r.success, message=r.message,
+                state = "reached" if r.success else "canceled" if "cancel" in r.message.lower() else "failed"
+                g.update(state=state, done=True, success=r.success, message=r.message,
                          error=list(r.execution_error), progress=1.0 if r.success else g["progress"],
                          sim=msgs.seconds(r.header.stamp))
         return on
@@ -390,6 +391,8 @@ class Monitor:
                 "clock_age": round(time.monotonic() - self.clock_wall, 1) if self.clock_wall else None,
                 "rtf": ph.get("real_time_factor"),
                 "paused_for": ph.get("paused_for", ""),
+                # realtime: steps physics finished after their deadline (a loaded machine)
+                "overruns": ph.get("overruns"),
                 "services": services,
                 "joints": {"names": rv.joints, "position": rv.position,
                            "setpoint": [dict(zip(rv.ref_names, rv.setpoint, strict=False)).get(n) for n in rv.joints]},

@@ -151,6 +151,9 @@ $("xy-form").addEventListener("submit", async (ev) => {
 function buildGains(sc) {
   const tb = $("gains").querySelector("tbody");
   tb.replaceChildren();
+  if (sc && sc.mobile) {
+    tb.innerHTML = `<tr><td colspan="6" class="hint">This robot's controller has no joint PID gains to tune here.</td></tr>`;
+  }
   if (!sc || sc.mobile) return;
   for (const name of sc.joints) {
     const tr = document.createElement("tr");
@@ -208,7 +211,7 @@ function renderRun(st) {
   b.className = "banner " + cls; b.textContent = text;
   const busy = r.state === "running" || r.state === "stopping";
   $("start").disabled = busy; $("stop").disabled = !busy || r.state === "stopping";
-  $("run-cmd").textContent = r.command || "";
+  $("run-cmd").textContent = r.command || "hilsim up";
   const out = $("output"), atEnd = out.scrollTop + out.clientHeight >= out.scrollHeight - 4;
   out.textContent = (r.output || []).join("\n");
   if (atEnd) out.scrollTop = out.scrollHeight;
@@ -317,10 +320,16 @@ function render(st) {
   renderRun(st);
   $("sim-time").textContent = st.sim_time === null ? "–" : st.sim_time.toFixed(2) + " s" + (st.paused_for ? " (paused: " + st.paused_for + ")" : "");
   $("rtf").textContent = st.rtf || "–";
+  $("overruns").textContent = st.overruns === null || st.overruns === undefined ? "–" : st.overruns;
   $("robot").textContent = st.robot;
   const key = st.scenario && (st.run.state === "running") ? String(st.run.pid) : "";
   if (key !== builtFor && (key === "" || (st.joints.names.length || (st.scenario && st.scenario.mobile)))) {
     builtFor = key;
+    // the run form shows what runs (a run started elsewhere, or before this page was opened)
+    if (key && scenarioOption(st.run.scenario) && $("scenario").value !== st.run.scenario) {
+      $("scenario").value = st.run.scenario; fillWorlds();
+      if ([...$("world").options].some((o) => o.value === st.run.world)) $("world").value = st.run.world;
+    }
     buildGoalForms(key ? st.scenario : null, st);
     buildGains(key ? st.scenario : null);
   }
