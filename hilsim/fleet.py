@@ -105,7 +105,7 @@ def robot_scenario(sc: Scenario, robot: str) -> Scenario:
     own = {"robot": robot, "robots": 1, "seed": sc.seed + names.index(robot), "robot_overrides": {}}
     over = sc.robot_overrides.get(robot)
     if not over:
-        return sc.model_copy(update=own)
+        return sc.model_copy(update=own, deep=True)  # nothing shared: a robot may change its own (live gains)
     layer: dict[str, object] = {}
     for field, value in over.items():  # dotted (task.targets) or nested (task: {targets: …}) alike
         set_dotted(layer, field, value)
