@@ -438,6 +438,7 @@ class RunRequest:
     clock: str = "realtime"
     mode: str = "interactive"  # interactive: no task, runs until stopped; task: the scenario's targets
     extra: list[str] = field(default_factory=list)  # further `hilsim up` arguments (hilsim up --ui)
+    out: str = ""  # the run directory (default runs/<stamp>-ui)
 
 
 class RunManager:
@@ -454,6 +455,7 @@ class RunManager:
         self.ready = False
         self.rc: int | None = None
         self.on_end: Any = None  # called (no argument) when the run process has ended
+        self.on_line: Any = None  # called with each line the run prints
 
     def busy(self) -> bool:
         return self.proc is not None and self.proc.poll() is None
@@ -466,7 +468,7 @@ class RunManager:
                 raise BadInput("run", f"a run is already {self.state} ({self.info.get('scenario')}, pid "
                                f"{self.proc.pid if self.proc else '?'}): stop it first", 409)
             stamp = time.strftime("%Y%m%d-%H%M%S") + f"-{int(time.time() * 1000) % 1000:03d}-ui"
-            run_dir = (self.runs_dir / stamp).resolve()
+            run_dir = (Path(req.out) if req.out else self.runs_dir / stamp).resolve()
             argv = [sys.executable, "-m", "hilsim.cli", "up", scenario_arg, "--clock", req.clock,
                     "--router", self.router, "--out", str(run_dir)]
             if req.mode == "interactive":
@@ -497,6 +499,8 @@ class RunManager:
                 self.output.append(line)
                 if line.startswith("ready:"):
                     self.ready = True
+            if self.on_line is not None:
+                self.on_line(line)
         rc = proc.wait()
         with self.lock:
             if proc is self.proc:
@@ -572,6 +576,7 @@ class Panel:
         self.planners = planner_names()
         self.run = RunManager(self.endpoint, runs_dir)
         self.run.on_end = self._run_ended
+        self.run.on_line = self._run_said
         self.default_robot = robot
         self.clients: dict[tuple[str, str], Any] = {}
         self.current: ScenarioOption | None = None  # the scenario of the panel's run
@@ -594,6 +599,14 @@ class Panel:
         snap["scenario"] = self.current.as_json() if self.current is not None else None
         snap["viewer"] = self.viewer_url if self.viewer is not None and self.viewer.poll() is None else ""
         return snap
+
+    def _run_said(self, line: str) -> None:
+        """The launcher's own verdicts: a dead service, a stall (``error: …``) is a fault; once the
+        run is ending, services leave because they are stopped, not because they died."""
+        if line.startswith("error:"):
+            self.monitor.fault("hilsim up", line.removeprefix("error:").strip())
+        if line.startswith(("error:", "interrupted", "summary:")):
+            self.monitor.watch_departures = False
 
     def _run_ended(self) -> None:
         self.monitor.watch_departures = False
@@ -643,6 +656,9 @@ class Panel:
         except ConfigError as e:
             raise BadInput("scenario", str(e)) from None
         info = self.run.start(req, sc, arg)
+        with self.monitor.lock:  # a new run: the last one's faults, goals and plot are history
+            self.monitor.faults.clear()
+            self.monitor.robots.pop(sc.robot, None)
         self.current = option_of(sc, req.scenario)
         self.monitor.expected = {s for s in sc.processes()}
         self.monitor.watch_departures = False  # until they have all come
@@ -988,5 +1004,5 @@ def cmd_up_ui(args: argparse.Namespace) -> int:
         print("hilsim up --ui: --only and --router are not supported with the panel (it owns the router; "
               "use hilsim ui --connect EP)", file=sys.stderr)
         return 2
-    req = RunRequest(args.scenario, args.world or "", "", args.clock or "realtime", "task", extra)
-    return serve(args.ui_host, args.ui_port, first=req, runs_dir=Path(args.out).parent if args.out else Path("runs"))
+    req = RunRequest(args.scenario, args.world or "", "", args.clock or "realtime", "task", extra, args.out or "")
+    return serve(args.ui_host, args.ui_port, first=req)
