@@ -10,7 +10,7 @@ import pytest
 
 from hilsim.config import ConfigError, load_scenario
 from hilsim.tools import tuning
-from hilsim.tools.rig import Experiment, Response
+from hilsim.tools.rig import Experiment, Response, loop_scenario
 from hilsim.tools.step_report import measure
 
 REPO = Path(__file__).resolve().parent.parent
@@ -91,3 +91,34 @@ def test_ziegler_nichols_one_joint_end_to_end() -> None:
     assert 0 < f.rise_time_s <= 0.25 and f.rise_time_s < f.settling_time_s <= 0.35
     assert f.overshoot_pct <= tuning.MARGIN * tuning.ZERO_OVERSHOOT_PCT and f.steady_state_error < 1e-3
     assert all(math.isfinite(v) and v >= 0 for v in r.gains.values()) and r.gains["kp"] < r.rule["kp"]
+
+
+def test_rover_loops_are_tuned_by_kind_and_judged_by_the_worst_wheel() -> None:
+    """`hilsim tune rover steering|traction`: a kind is its four wheels' loops, traction a speed loop;
+    a trial's figures are the worst wheel's; the steps alternate (the rover shuttles); the target is
+    relative to the step. (The tuner itself runs on the rover as on the arm: docs/seed-tables.md has
+    the gains it wrote; test_step_report.py::test_report_step_rover_end_to_end holds them to this target.)"""
+    sc = loop_scenario("rover")
+    steer, drive = tuning.loop_of(sc, "steering"), tuning.loop_of(sc, "traction")
+    assert steer.joints == ("fl_steering", "fr_steering", "rl_steering", "rr_steering") and not steer.velocity
+    assert drive.joints == ("fl_traction", "fr_traction", "rl_traction", "rr_traction") and drive.velocity
+    assert tuning.loop_of(sc, "rr_traction").velocity and tuning.loop_of(sc, "rr_traction").joints == ("rr_traction",)
+    assert [drive.sign(i) for i in range(4)] == [1.0, -1.0, 1.0, -1.0] and drive.kick == tuning.VELOCITY_KICK
+    with pytest.raises(ConfigError, match="wheel_9: not a joint"):
+        tuning.loop_of(sc, "wheel_9")
+    arm = tuning.loop_of(loop_scenario("arm"), "joint_2")
+    assert arm.sign(1) == 1.0 and arm.zeros(0.2) == (tuning.ZERO_OVERSHOOT_PCT, tuning.ZERO_TOL)
+    assert drive.zeros(2.0) == pytest.approx((0.5, 0.02))
+    target = tuning.rover_target(2.0)
+    assert (target.rise_s, target.settling_s, target.overshoot_pct, target.steady_state_error) == \
+        pytest.approx((0.25, 0.5, 0.5, 0.02))
+    # four wheels: a fast one and a slow, overshooting one; the trial is as good as the worst
+    t = np.arange(0.0, 1.0, 1e-3)
+    fast = 1 - np.exp(-t / 0.02)
+    slow = 1 - np.exp(-t / 0.1) * np.cos(20 * t)
+    rs = [Response(Experiment("traction", 1.0), t, y, 0.0, 1.0, n, "velocity")
+          for n, y in zip(drive.joints, [fast, fast, slow, fast], strict=True)]
+    f = drive.figures(rs)
+    fs = [drive.figures([r]) for r in rs]
+    assert f.rise_time_s == max(x.rise_time_s for x in fs) and f.settling_time_s == fs[2].settling_time_s
+    assert f.overshoot_pct == fs[2].overshoot_pct > 0 and fs[0].overshoot_pct == 0

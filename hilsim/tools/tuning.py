@@ -45,6 +45,15 @@ reproducible: same scenario and seed, same gains.
 The result is the figures of the chosen gains on the final step, checked against a target (by
 default the paper's Table II row of the joint); ``--write`` puts the gains into the scenario file
 (``controller.gains.<joint>``, that line only), ``--all`` tunes every joint in turn.
+
+**The rover** (``hilsim tune rover steering|traction``): a kind of loop is tuned for its four wheels
+at once (they share ``controller.gains.steering`` / ``.traction``), each trial stepping all four
+through the controller's kinematic layer (:mod:`hilsim.tools.rig`) and judged by the worst wheel.
+The thesis gives no figures, so the default target is :func:`rover_target`; "zero" overshoot and
+error are relative to the step (:data:`~hilsim.tools.step_report.ROVER_ZERO`: a rolling wheel's
+true speed ripples by ~0.2 %). The steps alternate in sign from trial to trial, so the rover
+shuttles instead of driving into a wall. The traction loop is a speed loop: its PID's derivative
+term acts on nothing (``kd`` stays 0, no damping search), and its kick is ``VELOCITY_KICK``.
 """
 
 from __future__ import annotations
@@ -64,10 +73,14 @@ from hilsim import control
 from hilsim.config import ConfigError, Scenario, load_scenario, scenario_path
 from hilsim.tools.metrics import ZERO_OVERSHOOT_PCT, ZERO_TOL, Figures, step_figures
 from hilsim.tools.rig import Experiment, Response, RigError, loop_scenario, run_experiments
+from hilsim.tools.step_report import DEFAULT_SPEED, ROVER_ZERO
 
 SUSTAINED = 0.95  # decay ratio per period counted as a sustained oscillation
 RELAY_FRACTION = 0.2  # relay amplitude h as a fraction of the actuator's limit
 KICK = 0.01  # [rad] step that starts the identification oscillations
+VELOCITY_KICK = 0.5  # [rad/s] the same for a velocity loop (a rover wheel's speed ripples by ~0.005 rad/s)
+ROVER_KINDS = ("steering", "traction")
+ROVER_ERROR = 0.01  # the rover's "0" steady-state error: half the 2 % band, of the step
 MARGIN = 0.5  # a refinement trial counts as without overshoot at half the paper's "0" tolerance
 MARGIN_T = 0.8  # and meets a time target at 80 % of it
 LONGER = 2.5  # trials of an integral gain are watched this many times longer
@@ -109,6 +122,69 @@ def paper_target(joint: str) -> Target:
 
     row = PAPER_TABLE_II.get(joint)
     return Target(row[0], row[1]) if row else Target()
+
+
+def rover_target(step: float) -> Target:
+    """The rover's loops (no seed figures): inside the 2 % band within 0.5 s, 10–90 % within 0.25 s,
+    overshoot at most 0.5 % and steady-state error at most 1 % of the step (half the band: a speed
+    loop on a wheel that carries the rover is an integrating plant, where integral action that
+    removes the last of the error must overshoot, as on the arm)."""
+    return Target(0.25, 0.5, overshoot_pct=100 * ROVER_ZERO, steady_state_error=ROVER_ERROR * abs(step))
+
+
+@dataclass(frozen=True)
+class Loop:
+    """What the tuner needs to know of a loop besides its gains (see the module)."""
+
+    joints: tuple[str, ...]  # the joints whose gains it sets and whose truth it judges
+    rover: bool = False
+    velocity: bool = False  # a speed loop (the rover's traction)
+
+    @property
+    def kick(self) -> float:
+        return VELOCITY_KICK if self.velocity else KICK
+
+    def sign(self, i: int) -> float:
+        """The rover alternates its steps (it drives: back and forth, not into a wall)."""
+        return -1.0 if self.rover and i % 2 else 1.0
+
+    def zeros(self, step: float) -> tuple[float, float]:
+        """The "0" of overshoot [% of the step] and of steady-state error [the loop's unit]."""
+        if not self.rover:
+            return ZERO_OVERSHOOT_PCT, ZERO_TOL
+        return 100 * ROVER_ZERO, ROVER_ERROR * abs(step)
+
+    def figures(self, rs: list[Response]) -> Figures:
+        """The figures of a trial: of its joint, or the worst of the rover's wheels."""
+        fs = []
+        for r in rs:
+            if self.rover:
+                z = ROVER_ZERO * abs(r.target - r.y0)
+                fs.append(step_figures(r.t, r.y, r.y0, r.target, zero_tol=z, zero_overshoot=z))
+            else:
+                fs.append(step_figures(r.t, r.y, r.y0, r.target))
+        if len(fs) == 1:
+            return fs[0]
+        return Figures(float(np.mean([f.step for f in fs])), max(f.rise_time_s for f in fs),
+                       max(f.settling_time_s for f in fs), max(f.peak_time_s for f in fs),
+                       max(f.overshoot_pct for f in fs), max(f.steady_state_error for f in fs))
+
+
+def loop_of(sc: Scenario, joint: str) -> Loop:
+    """A joint of the arm; on the rover a kind of loop (or one wheel's loop)."""
+    names = list(control.joint_table(sc.world.model).names)
+    rover = sc.controller.type == "four_wheel_steer"
+    if rover and joint in ROVER_KINDS:
+        return Loop(tuple(n for n in names if n.endswith(f"_{joint}")), True, joint == "traction")
+    if joint not in names:
+        extra = f"; or {' or '.join(ROVER_KINDS)}, every wheel's" if rover else ""
+        raise ConfigError(f"{joint}: not a joint of {sc.world.model.name} (joints: {', '.join(names)}{extra})")
+    return Loop((joint,), rover, rover and joint.endswith("_traction"))
+
+
+def _grouped(exps: list[Experiment], rs: list[Response]) -> list[list[Response]]:
+    """The responses of each experiment (a rover kind's has one per wheel)."""
+    return [[r for r in rs if r.experiment is e] for e in exps]
 
 
 @dataclass(frozen=True)
@@ -193,12 +269,14 @@ def _p_only(kp: float, effort: float) -> dict[str, float]:
 def ultimate_zn(robot: str, joint: str, say: Say, overrides: dict | None = None) -> tuple[Ultimate, int]:
     """Ziegler–Nichols: proportional only, kp doubled until the oscillation no longer decays."""
     sc = loop_scenario(robot, overrides)
-    effort = _effort(sc, joint)
-    kps = [effort / KICK * 2.0**i for i in range(-4, 6)]  # from well below saturation to far above
-    exps = [Experiment(joint, KICK, _p_only(kp, effort), measure=0.5, settle=0.3) for kp in kps]
+    loop = loop_of(sc, joint)
+    effort = _effort(sc, loop.joints[0])
+    kps = [effort / loop.kick * 2.0**i for i in range(-4, 6)]  # from well below saturation to far above
+    exps = [Experiment(joint, loop.sign(i) * loop.kick, _p_only(kp, effort), measure=0.5, settle=0.3)
+            for i, kp in enumerate(kps)]
     say(f"  ziegler-nichols: proportional only, kp {kps[0]:.4g} … {kps[-1]:.4g} ({len(kps)} trials)")
     rs = run_experiments(loop_scenario(robot, overrides), exps, progress=_count(say, "ultimate gain"))
-    found = [(kp, *decay_and_period(r)) for kp, r in zip(kps, rs, strict=True)]
+    found = [(kp, *_decay(g)) for kp, g in zip(kps, _grouped(exps, rs), strict=True)]
     for kp, ratio, period, _ in found:
         say(f"    kp {kp:9.4g}: decay ratio {ratio:.3f} per period, period {period:.4f} s")
     prev = None
@@ -215,14 +293,23 @@ def ultimate_zn(robot: str, joint: str, say: Say, overrides: dict | None = None)
     raise ConfigError(f"{joint}: no sustained oscillation up to kp {kps[-1]:.4g}; try --method relay")
 
 
+def _decay(rs: list[Response]) -> tuple[float, float, float]:
+    """:func:`decay_and_period` of one joint, or the median of the rover's wheels."""
+    if len(rs) == 1:
+        return decay_and_period(rs[0])
+    d = np.array([decay_and_period(r) for r in rs])
+    return float(np.median(d[:, 0])), float(np.median(d[:, 1])), float(np.median(d[:, 2]))
+
+
 def ultimate_relay(robot: str, joint: str, say: Say, overrides: dict | None = None) -> tuple[Ultimate, int]:
     """Åström–Hägglund: the controller as a relay of amplitude h; Ku = 4h/(πa) from the limit cycle."""
     sc = loop_scenario(robot, overrides)
-    h = RELAY_FRACTION * _effort(sc, joint)
+    loop = loop_of(sc, joint)
+    h = RELAY_FRACTION * _effort(sc, loop.joints[0])
     relay = {"kp": h / 1e-6, "ki": 0.0, "kd": 0.0, "output_limit": h}  # saturated beyond 1 µrad of error
-    say(f"  relay: h = {h:g} (a {RELAY_FRACTION:g} of the actuator's limit), kicked by {KICK:g} rad")
-    (r,) = run_experiments(sc, [Experiment(joint, KICK, relay, measure=1.5, settle=0.5)],
-                           progress=_count(say, "relay"))
+    say(f"  relay: h = {h:g} (a {RELAY_FRACTION:g} of the actuator's limit), kicked by {loop.kick:g}")
+    r, *_ = run_experiments(sc, [Experiment(joint, loop.kick, relay, measure=1.5, settle=0.5)],
+                            progress=_count(say, "relay"))  # the rover's kinds: the first wheel's
     half = r.t >= r.t[-1] / 2  # the limit cycle, once the kick's transient is gone
     ups, peaks = oscillation(r.t[half], r.y[half], r.target, 5e-5)
     if len(ups) < 3 or len(peaks) < 4:
@@ -257,11 +344,16 @@ def _count(say: Say, what: str) -> Callable[[int, int], None]:
 class Trial:
     gains: dict[str, float]
     figures: Figures
+    zero_overshoot_pct: float = ZERO_OVERSHOOT_PCT  # the loop's "0"s (Loop.zeros)
+    zero_error: float = ZERO_TOL
 
     def ok(self) -> bool:
         f = self.figures
-        return f.overshoot_pct <= MARGIN * ZERO_OVERSHOOT_PCT and f.steady_state_error < MARGIN * ZERO_TOL \
+        return f.overshoot_pct <= MARGIN * self.zero_overshoot_pct and f.steady_state_error < MARGIN * self.zero_error \
             and math.isfinite(f.settling_time_s)
+
+    def over(self) -> bool:
+        return self.figures.overshoot_pct > MARGIN * self.zero_overshoot_pct
 
     def key(self) -> tuple[float, float]:
         return (self.figures.settling_time_s, self.figures.rise_time_s)
@@ -279,12 +371,15 @@ def _full(g: dict[str, float], effort: float) -> dict[str, float]:
 def run_trials(robot: str, joint: str, step: float, cands: list[dict[str, float]], what: str, say: Say,
                overrides: dict | None, measure: float) -> list[Trial]:
     sc = loop_scenario(robot, overrides)
-    effort = _effort(sc, joint)
+    loop = loop_of(sc, joint)
+    effort = _effort(sc, loop.joints[0])
     cands = [{k: _r4(v) for k, v in {**g, "i_limit": 0.1 * effort}.items()} for g in cands]
     # home again between trials with the scenario's gains, which may be soft: time to settle
-    exps = [Experiment(joint, step, _full(g, effort), measure=measure, settle=0.6) for g in cands]
+    exps = [Experiment(joint, loop.sign(i) * step, _full(g, effort), measure=measure, settle=0.6)
+            for i, g in enumerate(cands)]
     rs = run_experiments(sc, exps, progress=_count(say, what))
-    return [Trial(g, step_figures(r.t, r.y, r.y0, r.target)) for g, r in zip(cands, rs, strict=True)]
+    zo, ze = loop.zeros(step)
+    return [Trial(g, loop.figures(group), zo, ze) for g, group in zip(cands, _grouped(exps, rs), strict=True)]
 
 
 def _show(say: Say, t: Trial) -> None:
@@ -298,6 +393,9 @@ def refine(robot: str, joint: str, rule: dict[str, float], step: float, target: 
            overrides: dict | None = None, measure: float = 1.0) -> tuple[Trial, int]:
     """Remove the rule's overshoot and make the response as fast as it goes without it (see the module)."""
     kp0, kd0, ki0 = rule["kp"], rule["kd"] * 8 / 3, rule["ki"]  # kd: Td = Tu/3 instead of Tu/8
+    speed_loop = loop_of(loop_scenario(robot, overrides), joint).velocity
+    if speed_loop:
+        kd0 = 0.0  # a speed loop's derivative term acts on nothing (services/rover_controller.py)
     trials = 0
     best: Trial | None = None
     damping = 1.0
@@ -311,6 +409,11 @@ def refine(robot: str, joint: str, rule: dict[str, float], step: float, target: 
         say(f"  refine a: ki = 0, kp {cands[-1]['kp']:.4g} … {cands[0]['kp']:.4g}, kd ∝ √kp "
             f"(damping x{damping:g})")
         got = run_trials(robot, joint, step, cands, "refine a", say, overrides, measure)
+        if speed_loop:
+            for t in got:
+                # proportional alone leaves a speed loop an offset (the wheel's drag over kp): removing
+                # it is refine c's integral's job, where the error counts again
+                t.zero_error = math.inf
         trials += len(got)
         for t in got:
             _show(say, t)
@@ -318,11 +421,11 @@ def refine(robot: str, joint: str, rule: dict[str, float], step: float, target: 
         if ok:
             fastest = min([t for t in (fastest, *ok) if t is not None], key=Trial.key)
         good = [t for t in ok if target.within(t.figures)]
-        over = [t for t in got if t.figures.overshoot_pct > MARGIN * ZERO_OVERSHOOT_PCT]
+        over = [t for t in got if t.over()]
         # more damping first, then choose: when most of the batch overshoots, or when only
         # overshooting trials are fast enough for the target
         fast_but_over = not good and any(target.within(t.figures) for t in over)
-        if first == 0 and (len(over) > len(got) // 2 or fast_but_over) and damping < 8.0:
+        if first == 0 and (len(over) > len(got) // 2 or fast_but_over) and damping < 8.0 and not speed_loop:
             damping *= 2.0
             continue
         if good and target.within(got[-1].figures) and got[-1].ok():
@@ -336,7 +439,7 @@ def refine(robot: str, joint: str, rule: dict[str, float], step: float, target: 
     if best is None:
         raise ConfigError(f"{joint}: no trial without overshoot; the loop may need a larger step window")
     kp, kd = best.gains["kp"], best.gains["kd"]
-    if not target.within(best.figures):
+    if not target.within(best.figures) and not speed_loop:
         cands = [{"kp": kp, "kd": kd * 2.0 ** (i / 2), "ki": 0.0} for i in (-2, -1, 1, 2)]
         say(f"  refine b: kd around {kd:.4g} (kp {kp:.4g}), the target not met yet")
         got = run_trials(robot, joint, step, cands, "refine b", say, overrides, measure)
@@ -365,10 +468,7 @@ def refine(robot: str, joint: str, rule: dict[str, float], step: float, target: 
 # ---------------------------------------------------------------- the whole tuning
 def tune(robot: str, joint: str, method: str, step: float, target: Target, say: Say,
          overrides: dict | None = None, measure: float = 1.0) -> Result:
-    sc = loop_scenario(robot, overrides)
-    names = list(control.joint_table(sc.world.model).names)
-    if joint not in names:
-        raise ConfigError(f"{joint}: not a joint of {robot} (joints: {', '.join(names)})")
+    loop_of(loop_scenario(robot, overrides), joint)  # a joint (or rover loop) it has: else one line
     say(f"{joint}: {method}")
     if method == "ziegler-nichols":
         u, n0 = ultimate_zn(robot, joint, say, overrides)
@@ -440,13 +540,14 @@ def cmd_tune(args: argparse.Namespace) -> int:
 
 def _cmd_tune(args: argparse.Namespace) -> int:
     sc = loop_scenario(args.robot)
+    rover = sc.controller.type == "four_wheel_steer"
     names = list(control.joint_table(sc.world.model).names)
     if args.all:
-        joints = names
+        joints = list(ROVER_KINDS) if rover else names
     elif args.joint:
         joints = [args.joint]
     else:
-        raise ConfigError("hilsim tune: name a JOINT or give --all")
+        raise ConfigError("hilsim tune: name a JOINT (the rover: steering or traction) or give --all")
     quiet = args.json
 
     def say(text: str) -> None:
@@ -455,12 +556,18 @@ def _cmd_tune(args: argparse.Namespace) -> int:
 
     results = []
     for j in joints:
-        base = paper_target(j)
+        loop = loop_of(sc, j)
+        # the step: --step, else 0.2 rad (the rover's traction: 2 rad/s of wheel speed, as its report)
+        step = args.step if args.step is not None else DEFAULT_SPEED if loop.velocity else 0.2
+        if not math.isfinite(step) or step == 0.0:
+            raise ConfigError(f"--step {step}: expected a non-zero step")
+        base = rover_target(step) if loop.rover else paper_target(j)
         if not 0 < args.margin <= 1:
             raise ConfigError(f"--margin {args.margin}: expected a fraction in (0, 1]")
         target = Target(args.rise if args.rise is not None else base.rise_s,
-                        args.settling if args.settling is not None else base.settling_s, margin=args.margin)
-        r = tune(args.robot, j, args.method, args.step, target, say, measure=args.measure)
+                        args.settling if args.settling is not None else base.settling_s,
+                        base.overshoot_pct, base.steady_state_error, margin=args.margin)
+        r = tune(args.robot, j, args.method, step, target, say, measure=args.measure)
         results.append(r)
         if not quiet:
             _print_result(r)
