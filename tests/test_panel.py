@@ -26,6 +26,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import psutil
 import pytest
 import zenoh
 from util import REPO, Observer, wait_until
@@ -189,6 +190,7 @@ def test_browser_start_run_goal_gain_stop(tmp_path: Path, router: str) -> None:
     panel = PanelProc("--connect", router)
     obs: Observer | None = None
     pids: list[int] = []
+    viewer = ""
     health: dict[str, str] = {}
     try:
         obs = Observer(panel.endpoint)
@@ -279,6 +281,20 @@ def test_browser_start_run_goal_gain_stop(tmp_path: Path, router: str) -> None:
             final = panel.state()["run"]
             assert final["rc"] == 0, final["output"]
             assert any(ln.startswith("result: OK") for ln in final["output"]), final["output"]
+            # the recording in Rerun's own web viewer (bundled with rerun-sdk), served on loopback
+            page.click("#open-viewer")
+            page.wait_for_selector("#viewer-link:not([hidden])")
+            viewer = page.get_attribute("#viewer-link", "href") or ""
+            assert viewer.startswith("http://127.0.0.1:"), viewer
+
+            def viewer_page() -> bytes:
+                try:
+                    with urllib.request.urlopen(viewer.split("?")[0], timeout=5) as r:
+                        return bytes(r.read())
+                except OSError:
+                    return b""
+
+            assert wait_until(lambda: b"Rerun" in viewer_page(), 20), viewer
             browser.close()
         sub.undeclare()
         assert wait_until(lambda: not any(_alive(p) for p in pids), 10), [p for p in pids if _alive(p)]
@@ -289,6 +305,13 @@ def test_browser_start_run_goal_gain_stop(tmp_path: Path, router: str) -> None:
             obs.close()
         assert panel.close() == 0, panel.out()
         assert not any(_alive(p) for p in pids), [p for p in pids if _alive(p)]
+        # nor the web viewer it served (``rerun`` is a wrapper around the real binary: both must go)
+        port = viewer.split("/")[2].split(":")[1] if viewer else ""
+        left = [p.info for p in psutil.process_iter(["pid", "cmdline"])
+                if port and port in " ".join(p.info["cmdline"] or []) and "--serve-web" in (p.info["cmdline"] or [])]
+        for p in left:
+            os.kill(p["pid"], signal.SIGKILL)
+        assert not left, f"the web viewer outlived the panel: {left}"
 
 
 def test_up_ui_and_panel_sigterm_leave_no_process() -> None:

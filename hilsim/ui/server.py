@@ -404,6 +404,21 @@ class Monitor:
         snap["gains"] = self.gains(robot)
         return _finite(snap)
 
+    def _stop_viewer(self) -> None:
+        """The viewer's whole process group: ``rerun`` may be a wrapper that starts the real binary."""
+        v = self.viewer
+        if v is None:
+            return
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(v.pid, signal.SIGTERM)
+        try:
+            v.wait(5)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(v.pid, signal.SIGKILL)
+            v.wait()
+        self.viewer = None
+
     def close(self) -> None:
         for s in self._subs:
             with contextlib.suppress(Exception):
@@ -804,9 +819,7 @@ class Panel:
         rec = str(self.run.info.get("recording") or "")
         if not rec or not Path(rec).is_file():
             raise BadInput("viewer", "no recording yet: start a run (with the logger) first", 409)
-        if self.viewer is not None and self.viewer.poll() is None:
-            self.viewer.terminate()
-            self.viewer.wait(5)
+        self._stop_viewer()
         web, grpc = transport.free_port(), transport.free_port()
         env = {**os.environ, **rerun_env(), "XDG_CONFIG_HOME": str(rerun_config_home())}
         self.viewer = subprocess.Popen(
@@ -816,13 +829,25 @@ class Panel:
         self.viewer_url = f"http://127.0.0.1:{web}/?url=rerun%2Bhttp%3A%2F%2F127.0.0.1%3A{grpc}%2Fproxy"
         return {"url": self.viewer_url}
 
+    def _stop_viewer(self) -> None:
+        """The viewer's whole process group: ``rerun`` may be a wrapper that starts the real binary."""
+        v = self.viewer
+        if v is None:
+            return
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(v.pid, signal.SIGTERM)
+        try:
+            v.wait(5)
+        except subprocess.TimeoutExpired:
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(v.pid, signal.SIGKILL)
+            v.wait()
+        self.viewer = None
+
     def close(self) -> None:
         self.closing.set()
         self.run.stop(wait=True)
-        if self.viewer is not None and self.viewer.poll() is None:
-            self.viewer.terminate()
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                self.viewer.wait(5)
+        self._stop_viewer()
         for c in self.clients.values():
             with contextlib.suppress(Exception):
                 c.close()
