@@ -8,8 +8,8 @@ the Zenoh router itself (``tcp/127.0.0.1:7447`` when free, as ``hilsim up`` woul
 runs with ``--router`` on it, so it sees every run it starts and ``hilsim topic`` finds it too.
 
 Reads (``<prefix>/<robot>/…``, any robot): ``alive/*`` (liveliness), ``health/*``, ``log/*``
-(faults: level ERROR and above), ``<prefix>/clock``, ``truth/joint_states`` (positions, sampled at
-about 20 Hz for the plot), ``controller/reference`` (setpoints), ``truth/odom`` (a rover's pose),
+(faults: level ERROR and above), ``<prefix>/clock``, ``truth/joint_states`` (positions; the latest
+about 20 times a second, for the plot), ``controller/reference`` (setpoints), ``truth/odom`` (a rover's pose),
 ``planner/feedback``, ``planner/result``, ``navigator/feedback``, ``navigator/result``.
 Queries: ``planner/goal``, ``planner/cancel``, ``navigator/goal``, ``navigator/cancel`` (through
 :class:`hilsim.planning.client.MoveClient`), ``controller/set_parameters`` (:mod:`hilsim.params`);
@@ -64,6 +64,7 @@ DEFAULT_HOST = "127.0.0.1"
 DEFAULT_PORT = 8080
 PLOT_PERIOD = 0.05  # wall seconds between plot samples (the truth comes at 500-1000 Hz)
 PLOT_POINTS = 240  # samples kept for the plot: 12 s at 20 Hz
+RING = 64  # samples of a high-rate key Zenoh keeps between two reads (the latest of each robot among them)
 EVENT_PERIOD = 0.25  # wall seconds between two server-sent states
 STOP_GRACE = 60.0  # wall seconds a run has to stop after SIGTERM (the recorder drains) before SIGKILL
 GAINS_SHOWN = ("kp", "ki", "kd", "i_limit")
@@ -178,13 +179,11 @@ class RobotView:
     history: deque[tuple[float, list[float], list[float]]] = field(default_factory=lambda: deque(maxlen=PLOT_POINTS))
     pose: tuple[float, float, float] | None = None  # a rover's truth: x, y, yaw
     goals: dict[str, dict[str, Any]] = field(default_factory=dict)
-    last_truth: float = 0.0
-    last_ref: float = 0.0
-    last_odom: float = 0.0
 
 
 class Monitor:
-    """Subscribes to the simulation's keys and keeps the latest of each (Zenoh callback threads)."""
+    """Subscribes to the simulation's keys and keeps the latest of each (Zenoh callbacks; the
+    high-rate keys through rings read by one thread)."""
 
     def __init__(self, session: zenoh.Session, prefix: str) -> None:
         self.session = session
@@ -201,11 +200,19 @@ class Monitor:
             session.liveliness().declare_subscriber(k.all_alive, self._on_alive, history=True),
             session.declare_subscriber(k.health("*"), self._on_health),
             session.declare_subscriber(k.log("*"), self._on_log),
-            session.declare_subscriber(k.clock, self._on_clock),
-            session.declare_subscriber(k.truth("joint_states"), self._on_truth),
-            session.declare_subscriber(k.topic("controller/reference"), self._on_reference),
-            session.declare_subscriber(k.truth("odom"), self._on_odom),
         ]
+        # The keys written every step (up to 1 kHz) go into bounded rings inside Zenoh, read 20 times
+        # a second by one thread: no Python call per sample (the panel would cost a busy loop a core's
+        # tenth otherwise), and the plot gets the latest of each. The setpoint before the truth, so
+        # each plot sample pairs a position with the setpoint in force.
+        self._rings: list[tuple[Any, Any]] = [
+            (session.declare_subscriber(key, zenoh.handlers.RingChannel(RING)), handle)
+            for key, handle in ((k.clock, self._on_clock), (k.topic("controller/reference"), self._on_reference),
+                                (k.truth("odom"), self._on_odom), (k.truth("joint_states"), self._on_truth))
+        ]
+        self._stop = threading.Event()
+        self._poller = threading.Thread(target=self._poll, name="panel-poll", daemon=True)
+        self._poller.start()
         for svc in ("planner", "navigator"):
             self._subs += [
                 session.declare_subscriber(k.topic(f"{svc}/feedback"), self._feedback_cb(svc)),
@@ -262,59 +269,50 @@ class Monitor:
         if m is not None and m.level >= 40:
             self.fault(m.name, m.msg)
 
+    def _poll(self) -> None:
+        while not self._stop.wait(PLOT_PERIOD):
+            for sub, handle in self._rings:
+                latest: dict[str, zenoh.Sample] = {}  # per key: one robot's latest each
+                try:
+                    while (sample := sub.try_recv()) is not None:
+                        latest[str(sample.key_expr)] = sample
+                except zenoh.ZError:  # undeclared while closing
+                    return
+                for sample in latest.values():
+                    handle(sample)
+
     def _on_clock(self, sample: zenoh.Sample) -> None:
-        now = time.monotonic()
-        if now - self.clock_wall < 0.1:  # every step: decode a few per second only
-            return
         c = self._decode(sample, msgs.Clock)
         if c is not None:
             with self.lock:
                 self.sim_time = msgs.seconds(c.clock)
-                self.clock_wall = now
+                self.clock_wall = time.monotonic()
 
     def _on_truth(self, sample: zenoh.Sample) -> None:
-        robot = _robot_of(str(sample.key_expr), self.prefix)
-        now = time.monotonic()
-        with self.lock:
-            rv = self.robot(robot)
-            if now - rv.last_truth < PLOT_PERIOD:
-                return
-            rv.last_truth = now
         m = self._decode(sample, msgs.JointState)
         if m is None:
             return
         with self.lock:
+            rv = self.robot(_robot_of(str(sample.key_expr), self.prefix))
             rv.joints, rv.position = list(m.name), list(m.position)
             ref = dict(zip(rv.ref_names, rv.setpoint, strict=False))
             sp = [ref.get(n, math.nan) for n in rv.joints]
             rv.history.append((msgs.seconds(m.header.stamp), rv.position, sp))
 
     def _on_reference(self, sample: zenoh.Sample) -> None:
-        robot = _robot_of(str(sample.key_expr), self.prefix)
-        now = time.monotonic()
-        with self.lock:
-            rv = self.robot(robot)
-            if now - rv.last_ref < PLOT_PERIOD / 2:
-                return
-            rv.last_ref = now
         m = self._decode(sample, msgs.JointState)
         if m is not None:
             with self.lock:
+                rv = self.robot(_robot_of(str(sample.key_expr), self.prefix))
                 rv.ref_names, rv.setpoint = list(m.name), list(m.position)
 
     def _on_odom(self, sample: zenoh.Sample) -> None:
-        robot = _robot_of(str(sample.key_expr), self.prefix)
-        now = time.monotonic()
-        with self.lock:
-            rv = self.robot(robot)
-            if now - rv.last_odom < PLOT_PERIOD:
-                return
-            rv.last_odom = now
         o = self._decode(sample, msgs.Odometry)
         if o is not None:
             p, q = o.pose.pose.position, o.pose.pose.orientation
             yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
             with self.lock:
+                rv = self.robot(_robot_of(str(sample.key_expr), self.prefix))
                 rv.pose = (p.x, p.y, yaw)
 
     def _goal(self, rv: RobotView, gid: str, service: str) -> dict[str, Any]:
@@ -420,7 +418,9 @@ class Monitor:
         self.viewer = None
 
     def close(self) -> None:
-        for s in self._subs:
+        self._stop.set()
+        self._poller.join(2)
+        for s in [*self._subs, *(sub for sub, _ in self._rings)]:
             with contextlib.suppress(Exception):
                 s.undeclare()
 
