@@ -162,6 +162,10 @@ def test_bad_requests_get_a_message_and_the_server_keeps_answering(idle_panel: P
         assert r.status == 200 and b"<title>hilsim control panel</title>" in r.read()
     st = idle_panel.state()
     assert st["run"]["state"] == "idle" and idle_panel.proc.poll() is None
+    # a second panel on the same port says so in one line and starts nothing
+    second = subprocess.run([sys.executable, "-m", "hilsim.cli", "ui", "--port", str(idle_panel.port)], cwd=REPO,
+                            capture_output=True, text=True, timeout=60)
+    assert second.returncode == 2 and "cannot listen on 127.0.0.1:" in second.stderr, second
 
 
 def _browser() -> tuple[Any, str]:
