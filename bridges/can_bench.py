@@ -3,13 +3,24 @@
 All on python-can's ``udp_multicast`` bus (a port of its own) and a Zenoh router in this process:
 
 - ``python_can``: the floor. Two bus objects of this process; one frame's way from ``send`` to
-  ``recv`` (p50/p99, paced), and the frames per second that get through when sent flat out.
+  ``recv`` (p50/p99, paced), the same at a saturated 1 Mbit/s bus's rate (:data:`BUS_RATE`),
+  and the frames per second that get through when sent flat out.
 - ``bridge``: ``hilsim run bridge-can`` as its own process serving joint_1 (node 0), this process
   playing the ODrive (heartbeats, closed loop on request). Latency *command on Zenoh -> frame on
   the bus* (a ``joint_commands`` sample put here -> its Set_Input_Pos received here) and *frame on
   the bus -> sample on Zenoh* (an encoder estimate sent here -> its ``hw/bridge-can/joint_states``
-  sample received here), p50/p99, paced at 200 Hz; then each direction flat out: the frames (or
-  samples) per second that come out of the bridge.
+  sample received here), p50/p99, paced at 200 Hz; then Zenoh -> CAN flat out (frames per
+  second out of the bridge), and CAN -> Zenoh at :data:`BUS_RATE` and flat out.
+
+CAN -> Zenoh under load: the bridge publishes once per batch of frames its reader drained
+together, each joint's newest estimate (``batch_window``). Every estimate sent here carries its
+own number (position = number × STEP), so each Zenoh sample says which frame it reflects. The
+figures: *offered* (frames sent per second), *absorbed* (estimates the bridge took in, from its
+health counters ``estimates`` / ``estimates_coalesced`` / ``state_samples``), *lost* (offered
+and never absorbed), *published* (samples), *coalesced* (absorbed estimates a newer one replaced
+before publication); whether the last sample reflects the last frame (the newest state wins);
+and the latency of the *oldest* frame each sample absorbed (the frame after the one the previous
+sample reflected: its send -> this sample's arrival), p50/p99, so coalescing hides no waiting.
 
 The send and receive times are taken by the same clock of the same process, so the figures include
 python-can's own path twice (out and back in): compare them with the ``python_can`` row.
@@ -40,7 +51,35 @@ from hilsim.config import CONFIG_DIR, ZenohConfig, load_scenario, write_scenario
 from hilsim.keys import Keys
 
 PACE = 0.005  # s between latency probes (200 Hz)
-STEP = 1e-4  # rad per probe number in joint_commands
+STEP = 1e-4  # rad per probe number in joint_commands, and per frame number in encoder estimates
+BUS_RATE = 7000.0  # frames/s of a saturated 1 Mbit/s bus (8-byte standard frames, ~140 bits each)
+
+
+def _paced(send: Any, first: int, rate: float, seconds: float) -> list[float]:
+    """Call ``send(k)`` for k = first, first + 1, … at ``rate`` per second for ``seconds``, each at
+    its own time (not in bursts); the send times (wall clock, as the bridge's sample timestamps), in order."""
+    times: list[float] = []
+    t0 = time.perf_counter()
+    n = int(rate * seconds)
+    for i in range(n):
+        due = t0 + i / rate
+        while (d := due - time.perf_counter()) > 0:
+            if d > 2e-4:
+                time.sleep(d - 1.5e-4)  # sleep overshoots by ~60 µs; spin the rest
+        times.append(time.time())
+        send(first + i)
+    return times
+
+
+def _flat_out(send: Any, first: int, seconds: float) -> list[float]:
+    times: list[float] = []
+    t0 = time.perf_counter()
+    k = first
+    while time.perf_counter() - t0 < seconds:
+        times.append(time.time())
+        send(k)
+        k += 1
+    return times
 
 
 def _pct(xs: list[float]) -> dict[str, float]:
@@ -66,26 +105,34 @@ def bench_python_can(port: int, n: int, seconds: float) -> dict[str, Any]:
         while not stop.is_set():
             m = rx.recv(0.05)
             if m is not None and m.arbitration_id == 0x123:
-                got[int.from_bytes(m.data[:4], "little")] = time.perf_counter()
+                got[int.from_bytes(m.data[:4], "little")] = time.time()
                 count[0] += 1
+
+    def send(k: int) -> None:
+        tx.send(can.Message(arbitration_id=0x123, data=k.to_bytes(4, "little") + bytes(4), is_extended_id=False))
 
     th = threading.Thread(target=reader, daemon=True)
     th.start()
     try:
         sent: dict[int, float] = {}
         for k in range(n):
-            sent[k] = time.perf_counter()
+            sent[k] = time.time()
             tx.send(can.Message(arbitration_id=0x123, data=k.to_bytes(4, "little") + bytes(4), is_extended_id=False))
             time.sleep(PACE)
         time.sleep(0.2)
         lat = [got[k] - sent[k] for k in sent if k in got]
+        # at the bus's rate
         count[0] = 0
-        t0 = time.perf_counter()
-        k = n
-        while time.perf_counter() - t0 < seconds:
-            k += 1
-            tx.send(can.Message(arbitration_id=0x123, data=k.to_bytes(4, "little") + bytes(4), is_extended_id=False))
-        sent_n = k - n
+        first = n + 1
+        times = _paced(send, first, BUS_RATE, seconds)
+        time.sleep(0.3)
+        rate_lat = [got[first + i] - t for i, t in enumerate(times) if first + i in got]
+        at_rate = {"offered_per_s": round(len(times) / seconds), "received_per_s": round(count[0] / seconds),
+                   "lost": len(times) - count[0], "latency": _pct(rate_lat)}
+        # flat out
+        count[0] = 0
+        first += len(times)
+        sent_n = len(_flat_out(send, first, seconds))
         time.sleep(0.3)
         fps = count[0] / seconds
     finally:
@@ -93,7 +140,7 @@ def bench_python_can(port: int, n: int, seconds: float) -> dict[str, Any]:
         th.join(2)
         tx.shutdown()
         rx.shutdown()
-    return {"latency": _pct(lat), "lost": n - len(lat), "frames_per_s": round(fps),
+    return {"latency": _pct(lat), "lost": n - len(lat), "at_bus_rate": at_rate, "frames_per_s": round(fps),
             "sent_per_s": round(sent_n / seconds)}
 
 
@@ -117,7 +164,7 @@ class FakeDrive:
             m = self.bus.recv(0.05)
             if m is None or self.p.direction(m) != "to_drive":
                 continue
-            t = time.perf_counter()
+            t = time.time()
             try:
                 ev = self.p.parse(m)
             except FrameError:
@@ -144,6 +191,48 @@ class FakeDrive:
         self.bus.shutdown()
 
 
+def _absorbed(first: int, times: list[float], seen: list[tuple[int, float, float]], before: dict[str, str],
+              after: dict[str, str], seconds: float, state_key: str) -> dict[str, Any]:
+    """What became of the estimates numbered ``first``… sent at ``times``: the bridge's counters
+    (``before``/``after`` the run) and the samples seen here ((frame number, arrival time, the
+    bridge's put time)). Latency of the oldest frame a sample absorbed: the frame after the one
+    the previous sample reflected (if that frame was lost on the way, an older one: the figure
+    errs high), to the sample's put by the bridge and to its arrival here.
+    A bridge without the ``estimates`` counter (before batching) published one sample per
+    estimate: its count of ``state_key`` samples is its count of estimates."""
+    last = first + len(times) - 1
+    mine = [x for x in seen if first <= x[0] <= last]
+    oldest: list[float] = []
+    oldest_put: list[float] = []
+    newest: list[float] = []
+    backwards = 0
+    prev = first - 1
+    for k, t, put in mine:
+        if k <= prev:
+            backwards += 1  # a sample older than one already seen: the newest state did not win
+            continue
+        oldest.append(t - times[prev + 1 - first])
+        oldest_put.append(put - times[prev + 1 - first])
+        newest.append(t - times[k - first])
+        prev = k
+
+    def delta(key: str) -> int:
+        if key not in after:
+            key = f"published:{state_key}"
+        return int(after.get(key, 0)) - int(before.get(key, 0))
+
+    absorbed, published = delta("estimates"), delta("state_samples")
+    return {
+        "offered": len(times), "offered_per_s": round(len(times) / seconds),
+        "absorbed": absorbed, "absorbed_per_s": round(absorbed / seconds), "lost": len(times) - absorbed,
+        "published": published, "published_per_s": round(published / seconds),
+        "coalesced": delta("estimates_coalesced") if "estimates_coalesced" in after else 0, "received": len(mine),
+        "distinct_frames_seen": len({x[0] for x in mine}), "backwards": backwards,
+        "last_sample_is_last_frame": bool(mine) and mine[-1][0] == last,
+        "latency_oldest": _pct(oldest), "latency_oldest_to_put": _pct(oldest_put), "latency_newest": _pct(newest),
+    }
+
+
 def bench_bridge(port: int, n: int, seconds: float, workdir: Path) -> dict[str, Any]:
     ep = f"tcp/127.0.0.1:{transport.free_port()}"
     router = transport.open_router(ep)
@@ -156,15 +245,37 @@ def bench_bridge(port: int, n: int, seconds: float, workdir: Path) -> dict[str, 
     session = transport.open_session(ZenohConfig(connect=[ep]))
     drive = FakeDrive(port)
     zen_rx: dict[int, float] = {}
-    zcount = [0]
+    # (estimate number, arrival here, put by the bridge) of every joint_states sample; wall clock
+    seen: list[tuple[int, float, float]] = []
+    health: list[tuple[float, dict[str, str]]] = [(0.0, {})]
+
+    def put_time(sample: Any) -> float:
+        att = transport.read_attachment(sample)
+        return att.source_ns * 1e-9 if att is not None else float("nan")
 
     def on_state(sample: Any) -> None:
-        t = time.perf_counter()
+        t = time.time()
         m = msgs.decode(msgs.JointState, sample.payload.to_bytes())
-        zen_rx[round(m.position[0] / STEP)] = t
-        zcount[0] += 1
+        k = round(m.position[0] / STEP)
+        zen_rx[k] = t
+        seen.append((k, t, put_time(sample)))
+
+    def on_health(sample: Any) -> None:
+        h = msgs.decode(msgs.DiagnosticArray, sample.payload.to_bytes())
+        health.append((put_time(sample), {kv.key: kv.value for kv in h.status[0].values}))
+
+    def counters() -> dict[str, str]:
+        """The bridge's health values from a report it made after now (it reports every second;
+        judged by the report's own timestamp: a loaded machine may deliver it late)."""
+        t = time.time()
+        while not health[-1][0] > t:
+            if time.time() - t > 5:
+                raise RuntimeError("bridge-can sent no health for 5 s")
+            time.sleep(0.02)
+        return health[-1][1]
 
     sub = session.declare_subscriber(keys.server_state("bridge-can"), on_state)
+    hsub = session.declare_subscriber(keys.health("bridge-can"), on_health)
     pub = session.declare_publisher(keys.topic("joint_commands"))
     log = open(workdir / "bridge-can.log", "wb")  # closed in the finally below
     proc = subprocess.Popen([sys.executable, "-m", "hilsim.cli", "run", "bridge-can", "--config", str(cfg)],
@@ -189,7 +300,7 @@ def bench_bridge(port: int, n: int, seconds: float, workdir: Path) -> dict[str, 
         # latency, command on Zenoh -> frame on the bus
         sent: dict[int, float] = {}
         for k in range(1, n + 1):
-            sent[k] = time.perf_counter()
+            sent[k] = time.time()
             command(k)
             time.sleep(PACE)
         time.sleep(0.3)
@@ -197,7 +308,7 @@ def bench_bridge(port: int, n: int, seconds: float, workdir: Path) -> dict[str, 
         # latency, frame on the bus -> sample on Zenoh
         sent = {}
         for k in range(1, n + 1):
-            sent[k] = time.perf_counter()
+            sent[k] = time.time()
             drive.estimate(k)
             time.sleep(PACE)
         time.sleep(0.3)
@@ -212,16 +323,18 @@ def bench_bridge(port: int, n: int, seconds: float, workdir: Path) -> dict[str, 
         cmd_sent = k
         time.sleep(0.5)
         out_fps = (drive.setpoints - before) / seconds
-        # flat out, CAN -> Zenoh
-        zcount[0] = 0
-        t0 = time.perf_counter()
-        k = 0
-        while time.perf_counter() - t0 < seconds:
-            k += 1
-            drive.estimate(k % 1000)
-        est_sent = k
+        # CAN -> Zenoh at the bus's rate, then flat out; every estimate numbered
+        first = n + 1
+        before = counters()
+        times = _paced(drive.estimate, first, BUS_RATE, seconds)
         time.sleep(0.5)
-        in_fps = zcount[0] / seconds
+        after = counters()
+        state_key = keys.server_state("bridge-can")
+        at_rate = _absorbed(first, times, seen, before, after, seconds, state_key)
+        first += len(times)
+        times = _flat_out(drive.estimate, first, seconds)
+        time.sleep(0.5)
+        flat = _absorbed(first, times, seen, after, counters(), seconds, state_key)
     finally:
         proc.send_signal(signal.SIGINT)
         try:
@@ -232,14 +345,16 @@ def bench_bridge(port: int, n: int, seconds: float, workdir: Path) -> dict[str, 
         log.close()
         drive.close()
         sub.undeclare()
+        hsub.undeclare()
         pub.undeclare()
         session.close()
         router.close()
     return {
         "zenoh_to_can": {"latency": _pct(out_lat), "lost": n - len(out_lat), "frames_per_s": round(out_fps),
                          "offered_per_s": round(cmd_sent / seconds)},
-        "can_to_zenoh": {"latency": _pct(in_lat), "lost": n - len(in_lat), "samples_per_s": round(in_fps),
-                         "offered_per_s": round(est_sent / seconds)},
+        "can_to_zenoh": {"latency": _pct(in_lat), "lost": n - len(in_lat), "at_bus_rate": at_rate,
+                         "flat_out": flat, "samples_per_s": flat["published_per_s"],
+                         "absorbed_per_s": flat["absorbed_per_s"], "offered_per_s": flat["offered_per_s"]},
     }
 
 
@@ -255,13 +370,24 @@ def cmd_can(args: argparse.Namespace) -> int:
         return 0
     b, o, i = base, bridge["zenoh_to_can"], bridge["can_to_zenoh"]
     print(f"hilsim bench can ({res['bus']}; {args.samples} paced probes at {1 / PACE:.0f} Hz, "
-          f"{args.seconds:g} s flat out per direction)")
+          f"{args.seconds:g} s at {BUS_RATE:.0f} frames/s and flat out)")
     print(f"{'path':34s} {'p50 [µs]':>9s} {'p99 [µs]':>9s} {'lost':>5s} {'out [1/s]':>10s} {'offered [1/s]':>14s}")
     rows = [("python-can alone: send -> recv", b["latency"], b["lost"], b["frames_per_s"], b["sent_per_s"]),
             ("bridge: Zenoh command -> CAN frame", o["latency"], o["lost"], o["frames_per_s"], o["offered_per_s"]),
-            ("bridge: CAN frame -> Zenoh sample", i["latency"], i["lost"], i["samples_per_s"], i["offered_per_s"])]
+            ("bridge: CAN frame -> Zenoh sample", i["latency"], i["lost"], i["absorbed_per_s"], i["offered_per_s"])]
     for name, lat, lost, fps, offered in rows:
         print(f"{name:34s} {lat['p50_us']:9.0f} {lat['p99_us']:9.0f} {lost:5d} {fps:10d} {offered:14d}")
     added = [(o["latency"]["p50_us"] - b["latency"]["p50_us"]), (i["latency"]["p50_us"] - b["latency"]["p50_us"])]
     print(f"added by the bridge over python-can alone (p50): command {added[0]:.0f} µs, state {added[1]:.0f} µs")
+    r = b["at_bus_rate"]
+    print(f"python-can alone at {BUS_RATE:.0f} frames/s: {r['received_per_s']} received/s of {r['offered_per_s']}, "
+          f"lost {r['lost']}, latency p50 {r['latency']['p50_us']:.0f} µs p99 {r['latency']['p99_us']:.0f} µs")
+    print("CAN -> Zenoh under load (absorbed: estimates the bridge took in; published: joint_states samples, "
+          "each the newest estimate of its batch; latency: oldest frame a sample absorbed -> that sample here)")
+    print(f"{'run':10s} {'offered/s':>9s} {'absorbed/s':>10s} {'lost':>6s} {'published/s':>11s} {'coalesced':>9s} "
+          f"{'newest last':>11s} {'backwards':>9s} {'p50 [µs]':>9s} {'p99 [µs]':>9s}")
+    for name, r in (("bus rate", i["at_bus_rate"]), ("flat out", i["flat_out"])):
+        print(f"{name:10s} {r['offered_per_s']:9d} {r['absorbed_per_s']:10d} {r['lost']:6d} {r['published_per_s']:11d} "
+              f"{r['coalesced']:9d} {r['last_sample_is_last_frame']!s:>11s} {r['backwards']:9d} "
+              f"{r['latency_oldest']['p50_us']:9.0f} {r['latency_oldest']['p99_us']:9.0f}")
     return 0

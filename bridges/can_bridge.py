@@ -31,8 +31,11 @@ Reads:
   ``<prefix>/<robot>/joint_commands`` (sensor_msgs/JointState; the entries of its joints only)
 Writes:
   ``<prefix>/<robot>/hw/bridge-can/joint_states`` (sensor_msgs/JointState: position, velocity of
-  the joint whose encoder estimate just arrived), one message per estimate, stamped with the sim
-  time of the latest command;
+  the joints whose encoder estimates just arrived), stamped with the sim time of the latest
+  command. One message per batch of frames the bus reader drained together (``batch_window``):
+  on a quiet bus that is one per estimate; when estimates arrive faster than they can be
+  published one by one, each joint's newest estimate of the batch is published and the older
+  ones are counted as coalesced (health ``estimates``, ``estimates_coalesced``, ``state_samples``);
   ``<prefix>/<robot>/health/bridge-can`` (per joint: status, fault, node, axis state and error,
   heartbeat age; frame counters) and ``<prefix>/<robot>/log/bridge-can``.
 """
@@ -74,6 +77,12 @@ class BridgeConfig(BaseModel):
                                           "second (default: one per joint_commands message)")
     on_fault: Literal["hold_all", "hold_faulted"] = "hold_all"
     on_stop: Literal["idle", "hold"] = Field("idle", description="what the drives are told when the bridge stops")
+    batch_window: float = Field(3e-4, ge=0, le=0.01, description="[s] the most an encoder estimate waits while "
+                                "the reader drains the frames that came with it (all published together, the "
+                                "newest per joint); 0: one sample per estimate")
+    rx_buffer: int = Field(1 << 20, ge=0, description="[bytes] receive buffer asked for on the bus's socket "
+                           "(socketcan, udp_multicast): frames wait there while the process is not scheduled "
+                           "instead of being dropped; capped by net.core.rmem_max; 0: the system's default")
 
 
 class BridgedJoint:
@@ -89,6 +98,7 @@ class BridgedJoint:
         self.setup_t = -1e9
         self.pos = self.vel = 0.0
         self.have_estimate = False
+        self.dirty = False  # an estimate not published yet
         self.held = False
         self.rejoin = False
         self.sp = 0.0  # last position setpoint sent [joint rad]
@@ -135,9 +145,13 @@ class CanBridgeService(Service):
         self.frames_host = 0  # host -> drive frames seen (our own, echoed by the bus, or another host's)
         self.frames_other_nodes = 0
         self.commands = 0
+        self.estimates = 0  # encoder estimates of our joints taken in
+        self.state_samples = 0  # joint_states samples published
+        self.coalesced = 0  # estimates a newer one of the same joint replaced before publication
         self._warned: dict[str, float] = {}
         self.link = CanLink(c.bus, self._on_frame, self._on_bus, reconnect_interval=c.reconnect_interval,
-                            name=self.name)
+                            name=self.name, on_batch_end=self._publish_states, batch_window=c.batch_window,
+                            rx_buffer=c.rx_buffer)
 
     # ---------------------------------------------------------------- wiring
     def setup(self) -> None:
@@ -208,10 +222,25 @@ class CanBridgeService(Service):
         m = j.map
         j.pos, j.vel = m.to_joint(ev.position), m.vel_to_joint(ev.velocity)
         j.have_estimate = True
-        if self.stop_event.is_set():
-            return
-        self.pub.put(msgs.JointState(header=msgs.header(self.sim_ns), name=[j.name], position=[j.pos],
-                                     velocity=[j.vel]))
+        self.estimates += 1
+        if j.dirty:
+            self.coalesced += 1  # the older estimate of this batch will not be published on its own
+        j.dirty = True
+
+    def _publish_states(self) -> None:
+        """After each batch the bus reader drained: the newest estimate of every joint that had one."""
+        with self.lock:
+            fresh = [j for j in self.joints.values() if j.dirty]
+            if not fresh:
+                return
+            for j in fresh:
+                j.dirty = False
+            msg = msgs.JointState(header=msgs.header(self.sim_ns), name=[j.name for j in fresh],
+                                  position=[j.pos for j in fresh], velocity=[j.vel for j in fresh])
+            if self.stop_event.is_set():
+                return
+            self.state_samples += 1  # counted with the estimates, so the counters always add up
+        self.pub.put(msg)
 
     def _on_heartbeat(self, j: BridgedJoint, hb: Heartbeat) -> None:
         j.hb, j.hb_t = hb, time.monotonic()
@@ -372,6 +401,8 @@ class CanBridgeService(Service):
             "frames_tx_failed": self.link.tx_failed, "error_frames": self.link.error_frames,
             "frames_host": self.frames_host, "frames_other_nodes": self.frames_other_nodes,
             **{f"frames_{k}": v for k, v in self.bad.items()}, "commands": self.commands,
+            "estimates": self.estimates, "estimates_coalesced": self.coalesced, "state_samples": self.state_samples,
+            "rx_batches": self.link.batches, "rx_buffer_bytes": self.link.rx_buffer_granted,
         }
         for j in self.joints.values():
             hb = j.hb

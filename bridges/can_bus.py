@@ -15,6 +15,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -101,15 +102,33 @@ class CanLink:
     when the bus cannot be opened, fails to receive, goes bus-off, reports an error state or
     keeps refusing frames, closes it, calls ``on_state(False, reason)`` (once per outage), and
     reopens it every ``reconnect_interval`` s; ``on_state(True, "")`` once it works again.
-    Sending never raises: a refused frame is counted."""
+    Sending never raises: a refused frame is counted.
+
+    With ``on_batch_end``, the reader drains the bus after each frame it waited for: it goes on
+    reading what is already there (``recv(timeout=0)``, any interface) for at most
+    ``batch_window`` seconds after the first frame came, hands each frame to ``on_frame`` as
+    before, then calls ``on_batch_end()`` once. A busy bus's frames that arrived together are
+    thus answered together (the bridge publishes the newest state once per batch instead of
+    once per frame), and no frame waits in the batch longer than ``batch_window``.
+
+    ``rx_buffer`` (bytes, 0: the system's default): the receive buffer asked for on the bus's
+    socket (interfaces with one: socketcan, udp_multicast), so that frames arriving while this
+    process is not scheduled wait there instead of being dropped by the kernel (the default
+    holds ~256 udp_multicast frames, 36 ms of a saturated bus); the kernel caps it at
+    ``net.core.rmem_max``."""
 
     SEND_FAILURES_DOWN = 50  # consecutive refused frames that count as the bus being down
 
     def __init__(self, cfg: BusConfig, on_frame: Callable[[can.Message], None],
                  on_state: Callable[[bool, str], None], *, reconnect_interval: float = 1.0,
-                 name: str = "can", opener: Callable[[BusConfig], can.BusABC] = open_bus) -> None:
+                 name: str = "can", opener: Callable[[BusConfig], can.BusABC] = open_bus,
+                 on_batch_end: Callable[[], None] | None = None, batch_window: float = 3e-4,
+                 rx_buffer: int = 0) -> None:
         self.cfg = cfg
         self.on_frame, self.on_state = on_frame, on_state
+        self.on_batch_end, self.batch_window = on_batch_end, batch_window
+        self.rx_buffer = rx_buffer
+        self.rx_buffer_granted: int | None = None  # bytes, as the kernel reports it (None: not set)
         self.reconnect_interval = reconnect_interval
         self.opener = opener
         self.log = logging.getLogger(f"hilsim.{name}.bus")
@@ -121,6 +140,7 @@ class CanLink:
         self._reopen: str | None = None  # set by a sender that saw the bus fail; the reader acts on it
         self._thread = threading.Thread(target=self._run, daemon=True, name=f"{name}-rx")
         self.rx = self.tx = self.tx_failed = self.error_frames = self.outages = 0
+        self.batches = 0  # on_batch_end calls
         self._consecutive_failures = 0
 
     def start(self) -> None:
@@ -180,6 +200,11 @@ class CanLink:
                     continue
                 self._consecutive_failures = 0
                 self._reopen = None
+                if self.rx_buffer > 0:
+                    self.rx_buffer_granted = grow_rx_buffer(self.bus, self.rx_buffer)
+                    self.log.info("receive buffer: %s bytes asked, %s granted", self.rx_buffer,
+                                  self.rx_buffer_granted if self.rx_buffer_granted is not None
+                                  else "none (the interface has no socket)")
                 self.up, self.reason = True, ""
                 self.on_state(True, "")
             if self._reopen is not None:
@@ -200,17 +225,72 @@ class CanLink:
                     continue
             if msg is None:
                 continue
-            if msg.is_error_frame:
-                self.error_frames += 1
-                if is_bus_off(msg):
-                    self._down("bus-off (error frame from the controller)")
+            if self.on_batch_end is None:
+                if not self._take(msg):
                     self._stop.wait(self.reconnect_interval)
                 continue
-            self.rx += 1
-            try:
-                self.on_frame(msg)
-            except Exception as e:  # the owner's bug must not end the reader
-                self.log.exception("frame handler failed: %s", e)
+            self._drain(msg)
+
+    def _take(self, msg: can.Message) -> bool:
+        """Hand one received frame on; False if it said the bus went off (it is closed then)."""
+        if msg.is_error_frame:
+            self.error_frames += 1
+            if is_bus_off(msg):
+                self._down("bus-off (error frame from the controller)")
+                return False
+            return True
+        self.rx += 1
+        try:
+            self.on_frame(msg)
+        except Exception as e:  # the owner's bug must not end the reader
+            self.log.exception("frame handler failed: %s", e)
+        return True
+
+    def _drain(self, first: can.Message) -> None:
+        """``first`` and whatever else is readable now (within ``batch_window``), then ``on_batch_end``."""
+        end = time.monotonic() + self.batch_window
+        ok = self._take(first)
+        bus = self.bus
+        try:
+            while ok and bus is not None and time.monotonic() < end:
+                msg = bus.recv(0)
+                if msg is None:
+                    break
+                ok = self._take(msg)
+        except (can.CanError, OSError, ValueError) as e:
+            self._down(f"receive failed: {type(e).__name__}: {e}")
+            ok = False
+        self.batches += 1
+        assert self.on_batch_end is not None
+        try:
+            self.on_batch_end()
+        except Exception as e:
+            self.log.exception("batch handler failed: %s", e)
+        if not ok:
+            self._stop.wait(self.reconnect_interval)
+
+
+def grow_rx_buffer(bus: can.BusABC, size: int) -> int | None:
+    """Set SO_RCVBUF of the bus's socket (python-can's ``fileno()``) to ``size`` bytes; what the
+    kernel granted (it doubles the figure for its bookkeeping and caps it at rmem_max), or None
+    where the interface has no socket."""
+    try:
+        fd = bus.fileno()
+    except (NotImplementedError, AttributeError, OSError):
+        return None
+    if not isinstance(fd, int) or fd < 0:
+        return None
+    try:
+        s = socket.socket(fileno=os.dup(fd))  # a second handle on the same socket, closed below
+    except OSError:
+        return None
+    try:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, size)
+        return int(s.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
+    except OSError:
+        return None
+    finally:
+        s.close()
 
 
 def _bus_state(bus: can.BusABC) -> Any:

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import importlib
 import math
+import struct
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from functools import cache
@@ -163,6 +164,13 @@ class OdriveCanSimple(DriveProfile):
                     self.INPUT_VEL, self.INPUT_TORQUE, self.CLEAR_ERRORS):
             if cmd not in self.by_cmd:
                 raise ConfigError(f"{path}: no message with id 0x{cmd:02X} (ODrive CAN Simple)")
+        # the cyclic encoder estimate is most of a busy bus: decoded by a struct laid out from the
+        # DBC's own signals (None: the DBC's layout has no struct equivalent, cantools decodes it)
+        enc = self.by_cmd[self.ENCODER]
+        layout = struct_layout(enc)
+        self.encoder_struct: struct.Struct | None = None
+        if layout is not None and layout[1] == ("Pos_Estimate", "Vel_Estimate"):
+            self.encoder_struct = layout[0]
 
     def _frame(self, node: int, cmd: int, values: dict[str, float]) -> can.Message:
         m = self.by_cmd[cmd]
@@ -230,6 +238,12 @@ class OdriveCanSimple(DriveProfile):
         if msg.is_extended_id or msg.is_error_frame:
             raise FrameError("unknown_id", f"id 0x{msg.arbitration_id:X}: not an 11-bit data frame")
         node, cmd = msg.arbitration_id >> 5, msg.arbitration_id & 0x1F
+        if cmd == self.ENCODER and self.encoder_struct is not None and len(msg.data) == 8 \
+                and not msg.is_remote_frame:
+            pos, vel = self.encoder_struct.unpack(msg.data)
+            if math.isfinite(pos) and math.isfinite(vel):
+                return Estimate(node, pos * TAU, vel * TAU)
+            # else cantools below says what is wrong with it
         m = self.by_cmd.get(cmd)
         if m is None:
             raise FrameError("unknown_id", f"id 0x{msg.arbitration_id:03X}: command 0x{cmd:02X} is not handled")
@@ -263,6 +277,34 @@ class OdriveCanSimple(DriveProfile):
         if cmd == self.INPUT_TORQUE:
             return DriveCommand(node, "torque", c=float(v["Input_Torque"]))
         return DriveCommand(node, "clear_errors")
+
+
+def struct_layout(message: Any) -> tuple[struct.Struct, tuple[str, ...]] | None:
+    """A :class:`struct.Struct` that unpacks a cantools ``message`` exactly as its ``decode``
+    does (``decode_choices=False``), with the signal names in its order; None where there is
+    none: a signal not byte-aligned, big-endian, scaled or offset, multiplexed, or overlapping."""
+    if message.is_multiplexed():
+        return None
+    fmt, names, at = "<", [], 0
+    for sig in sorted(message.signals, key=lambda s: s.start):
+        if sig.byte_order != "little_endian" or sig.start % 8 or sig.scale != 1 or sig.offset != 0 \
+                or sig.start < at * 8:
+            return None
+        if sig.is_float:
+            code = {32: "f", 64: "d"}.get(sig.length)
+        else:
+            code = {8: "b", 16: "h", 32: "i", 64: "q"}.get(sig.length)
+            if code is not None and not sig.is_signed:
+                code = code.upper()
+        if code is None:
+            return None
+        fmt += "x" * (sig.start // 8 - at) + code
+        at = sig.start // 8 + sig.length // 8
+        names.append(sig.name)
+    fmt += "x" * (message.length - at)
+    if at > message.length:
+        return None
+    return struct.Struct(fmt), tuple(names)
 
 
 # -------------------------------------------------------------------- lookup

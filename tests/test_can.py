@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import random
 import struct
 import threading
 import time
@@ -23,7 +24,7 @@ from hilsim import msgs, transport
 from hilsim.bridges import can_bus
 from hilsim.bridges.can_bridge import CanBridgeService
 from hilsim.bridges.can_bus import BusConfig, JointMap
-from hilsim.bridges.can_profiles import DriveCommand, Estimate, FrameError, Heartbeat, make_profile
+from hilsim.bridges.can_profiles import DriveCommand, Estimate, FrameError, Heartbeat, make_profile, struct_layout
 from hilsim.bridges.drive_emulator import DriveEmulatorService
 from hilsim.config import ConfigError, ZenohConfig, load_scenario
 from hilsim.keys import Keys
@@ -181,11 +182,11 @@ class Rig:
         return None
 
 
-def wait_for(cond: Callable[[], Any], timeout: float = 5.0, what: str = "") -> None:
+def wait_for(cond: Callable[[], Any], timeout: float = 5.0, what: str | Callable[[], str] = "") -> None:
     deadline = time.monotonic() + timeout
     while not cond():
         if time.monotonic() > deadline:
-            raise AssertionError(f"timed out waiting for {what or cond}")
+            raise AssertionError(f"timed out waiting for {(what() if callable(what) else what) or cond}")
         time.sleep(0.01)
 
 
@@ -326,3 +327,157 @@ def test_nothing_on_the_bus_is_a_fault_not_a_hang(rig: Callable[..., Rig]) -> No
     # the two faults are said one after the other: wait for the second too, do not race it
     wait_for(lambda: r.said(40, "joint_2 (node 1): no heartbeat from node 1"), what="the second no-drive fault")
     assert r.measured("joint_1") is None
+
+
+# ------------------------------------------------------------------ the state path under load
+def test_the_encoder_fast_path_decodes_exactly_like_cantools(tmp_path: Path) -> None:
+    """The struct the profile lays out from the DBC gives what cantools gives, for random frames of
+    every message that has one, and ``parse`` of the cyclic encoder estimate uses it; a DBC whose
+    encoder layout has no struct equivalent (scaled) is decoded by cantools, by its own scale."""
+    rng = random.Random(8)
+    p = make_profile("odrive")
+    assert p.encoder_struct is not None  # the fast path is on for the shipped DBC
+    laid_out = 0
+    for m in p.db.messages:
+        layout = struct_layout(m)
+        if layout is None:
+            continue
+        laid_out += 1
+        st, names = layout
+        assert st.size == m.length and set(names) == {s.name for s in m.signals}
+        for _ in range(300):
+            data = rng.randbytes(m.length)
+            ref = m.decode(data, decode_choices=False)
+            got = dict(zip(names, st.unpack(data), strict=True))
+            for n in names:
+                assert got[n] == ref[n] or (math.isnan(got[n]) and math.isnan(ref[n])), (m.name, data, n)
+    assert laid_out >= 5
+    enc = p.by_cmd[p.ENCODER]
+    specials = [struct.pack("<ff", x, y) for x, y in ((0.0, -0.0), (1e-45, -3.4e38), (math.inf, 0.0),
+                                                       (0.0, math.nan), (123.456, -7.5))]
+    for data in specials + [rng.randbytes(8) for _ in range(2000)]:
+        f = can.Message(arbitration_id=5 << 5 | 0x09, data=data, is_extended_id=False)
+        ref = enc.decode(data, decode_choices=False)
+        if all(math.isfinite(v) for v in ref.values()):
+            assert p.parse(f) == Estimate(5, ref["Pos_Estimate"] * 2 * math.pi, ref["Vel_Estimate"] * 2 * math.pi)
+        else:
+            with pytest.raises(FrameError) as e:
+                p.parse(f)
+            assert e.value.kind == "malformed"
+    # the DBC stays the truth: a scaled encoder position has no struct, cantools applies the scale
+    dbc = tmp_path / "scaled.dbc"
+    text = (REPO / "config" / "can" / "odrive-cansimple.dbc").read_text()
+    assert " SG_ Pos_Estimate : 0|32@1- (1,0)" in text
+    dbc.write_text(text.replace(" SG_ Pos_Estimate : 0|32@1- (1,0)", " SG_ Pos_Estimate : 0|32@1- (0.5,0)"))
+    scaled = make_profile("odrive", dbc)
+    assert scaled.encoder_struct is None
+    e = scaled.parse(can.Message(arbitration_id=0x09, data=struct.pack("<ff", 3.0, 1.0), is_extended_id=False))
+    assert isinstance(e, Estimate) and e.position == pytest.approx(1.5 * 2 * math.pi)
+
+
+def _burst(r: Rig, n: int) -> list[float]:
+    """``n`` encoder estimates of node 0 (joint_1), sent back to back while the bridge's reader is
+    held (it waits for the bridge's lock on the first one), so the rest queue up on the bus
+    together; the joint positions they stand for, in order. Before: one estimate that must come
+    through (the bridge's publisher has met the test's subscriber); the rig's states and the
+    bridge's counters start from zero after it."""
+    jm, p, b = r.bridge.joints["joint_1"].map, r.bridge.profile, r.bridge
+    frames = [p.estimate_frame(Estimate(0, 0.001 * (k + 1), -0.001 * k)) for k in range(n)]
+    bus = can.Bus(interface="virtual", channel=r.channel)
+    try:
+        wait_for(lambda: b.link.up, what="bus up")
+        deadline = time.monotonic() + 10
+        while not r.states:
+            assert time.monotonic() < deadline, "no state sample on Zenoh"
+            bus.send(p.estimate_frame(Estimate(0, -1.0, 0.0)))
+            time.sleep(0.1)
+        time.sleep(0.2)
+        with b.lock, r.lock:
+            r.states.clear()
+            b.estimates = b.coalesced = b.state_samples = 0
+        with b.lock:
+            for f in frames:
+                bus.send(f)
+    finally:
+        bus.shutdown()
+    return [jm.to_joint(e.position) for e in map(p.parse, frames) if isinstance(e, Estimate)]
+
+
+def test_a_burst_of_estimates_is_all_absorbed_and_the_newest_state_published(rig: Callable[..., Rig]) -> None:
+    """A burst the bridge cannot publish frame by frame: every estimate is taken in (counted, none
+    lost), the samples on Zenoh only ever move forward, the last one is the last frame's state,
+    and what was not published on its own is counted as coalesced."""
+    r = rig(**{"bridge-can.batch_window": 0.005})
+    r.start(r.bridge)  # no drive: the test is the drive
+    n = 3000
+    want = _burst(r, n)
+    b = r.bridge
+    index = {round(q, 9): k for k, q in enumerate(want)}
+
+    def seen() -> list[int]:
+        """Which burst frame each sample received reflects (a late warm-up sample is none)."""
+        with r.lock:
+            qs = [round(m.position[0], 9) for m in r.states if m.name == ["joint_1"]]
+        return [index[q] for q in qs if q in index]
+
+    # absorbed, and the last batch published (every estimate either published or coalesced)
+    wait_for(lambda: b.estimates == n and b.coalesced + b.state_samples == n, what=f"{n} estimates absorbed")
+    wait_for(lambda: len(seen()) == b.state_samples,
+             what=lambda: f"every published sample received ({len(seen())} of {b.state_samples})")
+    h = b.health_values()
+    assert h["estimates"] == n and h["estimates_coalesced"] + h["state_samples"] == n
+    assert 0 < h["state_samples"] < n / 5, h  # batched: far fewer samples than frames
+    ks = seen()
+    assert ks == sorted(set(ks)), "a sample went back to an older frame"
+    assert ks[-1] == n - 1
+    assert b.joints["joint_1"].pos == pytest.approx(want[-1], abs=1e-9)
+
+
+def test_with_no_batch_window_each_estimate_is_its_own_sample(rig: Callable[..., Rig]) -> None:
+    r = rig(**{"bridge-can.batch_window": 0.0})
+    r.start(r.bridge)
+    want = _burst(r, 300)
+    b = r.bridge
+    wait_for(lambda: b.estimates == 300 and b.state_samples == 300, what="300 samples published")
+    assert b.coalesced == 0
+    time.sleep(0.3)
+    # what reached the test (a realtime publisher may drop a burst's sample) came in frame order
+    index = {round(q, 9): k for k, q in enumerate(want)}
+    with r.lock:
+        ks = [index[q] for q in (round(m.position[0], 9) for m in r.states) if q in index]
+    assert ks == sorted(set(ks)) and len(ks) >= 30, ks
+
+
+def test_a_bigger_receive_buffer_keeps_a_burst_the_reader_was_late_for() -> None:
+    """A burst that arrives while nobody reads (the process not scheduled): with the bridge's
+    receive buffer every frame waits on the socket; with the system's default, the kernel drops
+    what does not fit (udp_multicast: ~256 frames)."""
+    rmem_max = int(Path("/proc/sys/net/core/rmem_max").read_text())
+    if rmem_max < 1 << 20:
+        pytest.skip(f"net.core.rmem_max is {rmem_max}: the kernel caps the buffer below 1 MiB")
+    port = random.SystemRandom().randint(20000, 60000)
+    cfg = BusConfig(interface="udp_multicast", port=port)
+    tx, small, big = can_bus.open_bus(cfg), can_bus.open_bus(cfg), can_bus.open_bus(cfg)
+    try:
+        granted = can_bus.grow_rx_buffer(big, 1 << 20)
+        assert granted is not None and granted >= 1 << 20
+        v = can.Bus(interface="virtual", channel=f"hilsim-test-{next(_channels)}")
+        assert can_bus.grow_rx_buffer(v, 1 << 20) is None  # no socket: nothing to grow, no error
+        v.shutdown()
+        p = make_profile("odrive")
+        n = 1500
+        for k in range(n):
+            tx.send(p.estimate_frame(Estimate(0, 0.001 * k, 0.0)))
+        time.sleep(0.2)
+
+        def drain(bus: can.BusABC) -> int:
+            got = 0
+            while bus.recv(0) is not None:
+                got += 1
+            return got
+
+        assert drain(big) == n
+        assert drain(small) < n
+    finally:
+        for b in (tx, small, big):
+            b.shutdown()

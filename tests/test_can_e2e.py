@@ -273,3 +273,11 @@ def test_bench_can_measures_both_directions_against_python_can() -> None:
         assert r[path]["latency"]["n"] >= 55, r  # a probe may be lost on a loaded machine, not many
         assert 0 < r[path]["latency"]["p50_us"] <= r[path]["latency"]["p99_us"], r
     assert r["zenoh_to_can"]["frames_per_s"] > 100 and r["can_to_zenoh"]["samples_per_s"] > 100, r
+    # under load (CAN -> Zenoh at the bus's rate and flat out): the accounting adds up, every sample
+    # names the frame it reflects and they only move forward (the newest state wins)
+    for run in ("at_bus_rate", "flat_out"):
+        x = r["can_to_zenoh"][run]
+        assert x["offered"] > 0 and 0 < x["absorbed"] <= x["offered"] and x["lost"] == x["offered"] - x["absorbed"]
+        assert x["absorbed"] - 1 <= x["published"] + x["coalesced"] <= x["absorbed"], x  # one batch may be open
+        assert x["backwards"] == 0 and 0 < x["distinct_frames_seen"] <= x["published"], x
+        assert x["latency_oldest"]["n"] > 0 and x["latency_oldest"]["p50_us"] > 0, x
