@@ -82,6 +82,10 @@ class ClockConfig(_Model):
     start_delay: float = Field(
         0.5, ge=0, description="wall seconds between every service being live and step 0 (peers finish connecting)"
     )
+    start_timeout: float = Field(
+        120.0, gt=0, description="wall seconds hilsim up and physics wait for every service to announce itself "
+        "before the run fails (hilsim up --wait sets it)",
+    )
 
 
 class WorldConfig(_Model):
@@ -261,6 +265,8 @@ class Scenario(_Model):
     logger: LoggerConfig = Field(default_factory=LoggerConfig)
     restart: RestartConfig = Field(default_factory=RestartConfig)
     source: Path | None = Field(None, exclude=True, description="file this came from")
+    fleet_member: bool = Field(False, exclude=True, description="set by hilsim.fleet: one robot's view of a "
+                               "scenario with robots > 1 (its files in the run directory carry its name)")
 
     @field_validator("prefix", "robot")
     @classmethod

@@ -102,7 +102,8 @@ def robot_scenario(sc: Scenario, robot: str) -> Scenario:
         raise ConfigError(f"{sc.source or 'scenario'}: robots: no robot {robot!r} (robots: {', '.join(names)})")
     if sc.robots == 1:
         return sc
-    own = {"robot": robot, "robots": 1, "seed": sc.seed + names.index(robot), "robot_overrides": {}}
+    own = {"robot": robot, "robots": 1, "seed": sc.seed + names.index(robot), "robot_overrides": {},
+           "fleet_member": True}
     over = sc.robot_overrides.get(robot)
     if not over:
         return sc.model_copy(update=own, deep=True)  # nothing shared: a robot may change its own (live gains)
@@ -115,7 +116,7 @@ def robot_scenario(sc: Scenario, robot: str) -> Scenario:
         out = Scenario.model_validate(data)
     except ValidationError as e:
         raise ConfigError(format_error(sc.source or "scenario", e, prefix=f"robot_overrides.{robot}")) from None
-    out.source = sc.source
+    out.source, out.fleet_member = sc.source, True  # neither is in the dump
     return out
 
 

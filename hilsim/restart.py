@@ -5,7 +5,8 @@
 of a service's state comes back on its own: the controller measures where the arm is from
 ``joint_states``, the planner re-sends the trajectory being executed when a controller
 (re)appears. What only the dead process knew (live gain changes, how far the scenario task had
-got) a service keeps with :func:`keep` in ``<run dir>/state/<service>.json`` (written atomically,
+got) a service keeps with :func:`keep` in ``<run dir>/state/<service>.json`` (one robot of several:
+``<service>@<robot>.json``) (written atomically,
 so a SIGKILL leaves the previous version or the new one) and reads back with :func:`kept`, which
 answers only in a restarted process: a fresh run never inherits a previous run's state
 (``hilsim up`` also empties ``state/`` when it starts).
@@ -15,6 +16,7 @@ from __future__ import annotations
 
 import json
 import os
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +37,9 @@ def restarted() -> int:
 def state_path(sc: Scenario, service: str) -> Path | None:
     """Where ``service`` keeps its state in this run (None outside ``hilsim up``: no run dir)."""
     d = sc.logger.run_dir
-    return None if d is None else Path(d) / STATE_DIR / f"{service}.json"
+    # one robot of several (robots: N): its own file, <service>@<robot>.json (hilsim.fleet)
+    name = f"{service}@{sc.robot}" if sc.fleet_member else service
+    return None if d is None else Path(d) / STATE_DIR / f"{name}.json"
 
 
 def keep(sc: Scenario, service: str, state: dict[str, Any]) -> None:
@@ -44,7 +48,7 @@ def keep(sc: Scenario, service: str, state: dict[str, Any]) -> None:
     if path is None:
         return
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(f".{os.getpid()}.tmp")
+    tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")  # composed: services share a pid
     tmp.write_text(json.dumps(state, sort_keys=True))
     tmp.replace(path)
 

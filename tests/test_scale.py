@@ -146,3 +146,32 @@ def test_a_bad_fleet_field_is_one_line() -> None:
             assert want in str(e) and "\n" not in str(e), e
         else:
             raise AssertionError(f"{over} accepted")
+
+
+def test_each_robot_keeps_its_own_restart_state(tmp_path: Path) -> None:
+    """Planners of several robots share one process: each keeps its own state file, written
+    without racing the others (hilsim.restart)."""
+    from hilsim import restart
+
+    sc = load_scenario("arm", {"robots": 2, "logger.run_dir": str(tmp_path)})
+    one = load_scenario("arm", {"logger.run_dir": str(tmp_path)})
+    assert restart.state_path(one, "planner") == tmp_path / "state" / "planner.json"  # one robot: as always
+    rs = [fleet.robot_scenario(sc, r) for r in ("arm0", "arm1")]
+    paths = [restart.state_path(r, "planner") for r in rs]
+    assert [p.name for p in paths if p] == ["planner@arm0.json", "planner@arm1.json"]
+    errors: list[BaseException] = []
+
+    def write(r: object, k: int) -> None:
+        try:
+            for i in range(200):
+                restart.keep(r, "planner", {"robot": k, "i": i})  # type: ignore[arg-type]
+        except BaseException as e:
+            errors.append(e)
+
+    threads = [threading.Thread(target=write, args=(r, k)) for k, r in enumerate(rs)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors, errors
+    assert [json.loads(p.read_text())["robot"] for p in paths if p] == [0, 1]
