@@ -101,8 +101,8 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--only", metavar="A,B,...",
                     help="start only these services here and wait for the others from other hosts "
                          "(docs/deployment.md); use with --router")
-    up.add_argument("--wait", type=float, default=120.0, metavar="S",
-                    help="seconds to wait for every service to announce itself (default 120)")
+    up.add_argument("--wait", type=float, metavar="S",
+                    help="seconds to wait for every service to announce itself (default: clock.start_timeout, 120)")
     up.add_argument("--ui", action="store_true", help="start the browser control panel with this run (docs/panel.md)")
     up.add_argument("--ui-host", default="127.0.0.1", help="with --ui: the panel's address (default loopback)")
     up.add_argument("--ui-port", type=int, default=8080, help="with --ui: the panel's port (default 8080)")

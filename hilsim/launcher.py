@@ -740,6 +740,8 @@ def cmd_up(args: argparse.Namespace) -> int:
         overrides["duration"] = args.duration
     if args.seed is not None:
         overrides["seed"] = args.seed
+    if getattr(args, "wait", None) is not None:  # physics waits as long as the launcher does
+        overrides["clock.start_timeout"] = args.wait
     if args.compose:
         overrides["compose"] = [[n.strip() for n in g.split(",") if n.strip()] for g in args.compose]
     only = [n.strip() for n in args.only.split(",") if n.strip()] if getattr(args, "only", None) else None
@@ -772,7 +774,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         la.start()
-        if la.wait_ready(args.wait if getattr(args, "wait", None) else 120.0):
+        if la.wait_ready(sc.clock.start_timeout):
             if not sc.task.targets and sc.duration is None:
                 how = (f"send goals with `hilsim goal {sc.robot} --joints …`" if "planner" in sc.services
                        else f"send goals with `hilsim goal {sc.robot} --xy X Y`" if "navigator" in sc.services

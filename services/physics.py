@@ -399,7 +399,7 @@ class PhysicsService(Service):
         (e.g. the sensors publishing to the planner) learn of them over their own links a moment
         later, and a step-0 message sent before that would be lost and stall the lockstep.
         """
-        deadline = time.monotonic() + 120.0
+        deadline = time.monotonic() + self.sc.clock.start_timeout
         others = [s for s in self.sc.processes() if s != self.name]
         if others:
             self.log.info("waiting for %s", ", ".join(others))

@@ -63,3 +63,26 @@ def test_a_stopped_or_killed_launcher_leaves_no_process(tmp_path: Path, sig: sig
         for k in kids:
             if k.is_running():
                 k.kill()
+
+
+def test_physics_gives_up_after_the_start_timeout(tmp_path: Path) -> None:
+    """A physics process started on its own (docker compose, another host) whose services never
+    come waits `clock.start_timeout` (`hilsim up --wait`), not a fixed two minutes, and says who
+    is missing."""
+    import sys
+
+    from hilsim import transport
+
+    ep = f"tcp/127.0.0.1:{transport.free_port()}"
+    router = transport.open_router(ep)  # a private router: no other test's services answer
+    try:
+        t0 = time.monotonic()
+        r = subprocess.run([sys.executable, "-m", "hilsim.cli", "run", "physics", "--config", "config/arm.yaml",
+                            "--set", "clock.start_timeout=2", "--set", f"zenoh.connect=[{ep}]"],
+                           capture_output=True, text=True, timeout=60, cwd=Path(__file__).parent.parent)
+        took = time.monotonic() - t0
+    finally:
+        router.close()
+    out = r.stdout + r.stderr
+    assert "services never appeared: sensors, controller, planner, logger" in out, out
+    assert took < 30, f"physics waited {took:.0f} s, not the 2 s asked for"
