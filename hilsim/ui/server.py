@@ -33,6 +33,7 @@ import logging
 import math
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -60,8 +61,6 @@ from hilsim.keys import Keys
 log = logging.getLogger("hilsim.ui")
 
 STATIC = Path(__file__).resolve().parent / "static"
-DEFAULT_HOST = "127.0.0.1"
-DEFAULT_PORT = 8080
 PLOT_PERIOD = 0.05  # wall seconds between plot samples (the truth comes at 500-1000 Hz)
 PLOT_POINTS = 240  # samples kept for the plot: 12 s at 20 Hz
 RING = 64  # samples of a high-rate key Zenoh keeps between two reads (the latest of each robot among them)
@@ -651,8 +650,7 @@ class Panel:
         mode = body.get("mode") or "interactive"
         if mode not in ("interactive", "task"):
             raise BadInput("mode", f"mode: expected interactive or task, got {str(mode)[:40]!r}")
-        extra = body.get("extra") or []
-        return self.start_request(RunRequest(name, world, planner, clock, mode, list(extra)))
+        return self.start_request(RunRequest(name, world, planner, clock, mode))
 
     def start_request(self, req: RunRequest) -> dict[str, Any]:
         from hilsim.launcher import world_scenario
@@ -703,15 +701,15 @@ class Panel:
                                            service=service)
         return self.clients[key]
 
-    def _live_option(self) -> ScenarioOption:
+    def _live_option(self, fld: str) -> ScenarioOption:
         opt = self.option()
         if opt is None or not self.run.busy():
-            raise BadInput("goal", "no run is running: start one first", 409)
+            raise BadInput(fld, "no run is running: start one first", 409)
         return opt
 
     def goal(self, body: dict[str, Any]) -> dict[str, Any]:
         """Validate and send a goal (blocking: the planner answers the query)."""
-        opt = self._live_option()
+        opt = self._live_option("goal")
         kind = body.get("kind")
         planner = body.get("planner") or ""
         if not isinstance(planner, str) or (planner and planner not in self.planners):
@@ -775,7 +773,7 @@ class Panel:
         gid = body.get("goal_id")
         if not isinstance(gid, str) or not gid:
             raise BadInput("cancel", "goal_id: a goal id is required")
-        self._live_option()
+        self._live_option("cancel")
         with self.monitor.lock:
             g = self.monitor.robot(self.robot()).goals.get(gid)
         if g is None:
@@ -788,7 +786,7 @@ class Panel:
     def gains(self, body: dict[str, Any]) -> dict[str, Any]:
         from hilsim.params import set_parameters
 
-        opt = self._live_option()
+        opt = self._live_option("gains")
         joint = body.get("joint")
         if not isinstance(joint, str) or joint not in opt.joints:
             raise BadInput("gains", f"joint: expected one of {', '.join(opt.joints) or 'the joints'}, got "
@@ -964,11 +962,15 @@ def serve(host: str, port: int, *, connect: str | None = None, prefix: str | Non
     """Run the panel until SIGINT/SIGTERM; the run it started is stopped before it exits."""
     import uvicorn
 
+    # uvicorn shuts down on SIGINT/SIGTERM, then raises the signal again for the handler it found:
+    # with Python's defaults that would end the process before the run is stopped. Installed first,
+    # so that a signal while the panel is starting also stops it in order (it then does not serve).
+    stopped: list[int] = []
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda signum, _frame: stopped.append(signum))
     if host not in ("127.0.0.1", "localhost", "::1"):
         print(f"warning: the panel listens on {host}: anyone who reaches it can start runs and move the robot "
               "(it has no authentication); keep it on a trusted network", file=sys.stderr, flush=True)
-    import socket
-
     try:  # a taken port is said before anything starts (not after a run was started for nothing)
         with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
             s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -995,13 +997,10 @@ def serve(host: str, port: int, *, connect: str | None = None, prefix: str | Non
         config = uvicorn.Config(make_app(panel), host=host, port=port, log_level="warning",
                                 timeout_graceful_shutdown=2)
         server = uvicorn.Server(config)
-        # uvicorn shuts down on SIGINT/SIGTERM, then raises the signal again for the handler it
-        # found: with Python's defaults that would end the process before the run is stopped
-        stopped: list[int] = []
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, lambda signum, _frame: stopped.append(signum))
+        if stopped:  # asked to stop while starting
+            return 0
         server.run()
-        return 0 if server.started else 2
+        return 0 if server.started or stopped else 2
     finally:
         print("hilsim panel: stopping", flush=True)
         panel.close()
