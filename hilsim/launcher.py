@@ -776,9 +776,10 @@ def cmd_up(args: argparse.Namespace) -> int:
         la.start()
         if la.wait_ready(sc.clock.start_timeout):
             if not sc.task.targets and sc.duration is None:
-                how = (f"send goals with `hilsim goal {sc.robot} --joints …`" if "planner" in sc.services
-                       else f"send goals with `hilsim goal {sc.robot} --xy X Y`" if "navigator" in sc.services
-                       else f"drive it with geometry_msgs/Twist on {Keys(sc.prefix, sc.robot).topic('cmd_vel')}")
+                robot = fleet.robot_names(sc)[0] if sc.robots > 1 else sc.robot  # robots > 1: e.g. arm0
+                how = (f"send goals with `hilsim goal {robot} --joints …`" if "planner" in sc.services
+                       else f"send goals with `hilsim goal {robot} --xy X Y`" if "navigator" in sc.services
+                       else f"drive it with geometry_msgs/Twist on {Keys(sc.prefix, robot).topic('cmd_vel')}")
                 print(f"no task targets and no --duration: running until Ctrl-C ({how})", flush=True)
             la.follow()
     except KeyboardInterrupt:
