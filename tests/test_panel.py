@@ -318,10 +318,12 @@ def test_browser_start_run_goal_gain_stop(tmp_path: Path, router: str) -> None:
         assert not left, f"the web viewer outlived the panel: {left}"
 
 
-def test_up_ui_and_panel_sigterm_leave_no_process() -> None:
-    """``hilsim up arm-lean … --ui``: the panel starts the run; SIGTERM to the panel stops the run
-    and every service with it."""
-    panel = PanelProc(up=["config/arm-lean.yaml", "--clock", "realtime", "--set", "task.targets=[]"])
+def test_up_ui_shows_a_dead_service_and_panel_sigterm_leaves_no_process() -> None:
+    """``hilsim up arm-lean … --ui``: the panel starts the run; a service killed is a fault on the
+    panel, and it comes back (restart policy); SIGTERM to the panel then stops the run and every
+    service with it, the restarted one included."""
+    panel = PanelProc(up=["config/arm-lean.yaml", "--clock", "realtime", "--set", "task.targets=[]",
+                          "--set", "restart.services.sensors=on-failure"])
     pids: list[int] = []
     try:
         assert any(ln.startswith("started: ") for ln in panel.lines), panel.out()
@@ -331,6 +333,16 @@ def test_up_ui_and_panel_sigterm_leave_no_process() -> None:
         assert len(pids) == 6, st["run"]["output"]
         assert wait_until(lambda: sum(s["alive"] for s in panel.state()["services"]) == 5, 20)
         assert wait_until(lambda: math.isfinite(float(panel.state()["sim_time"] or "nan")), 20)
+        assert panel.state()["faults"] == []
+        sensors = int(re.search(r"sensors \(pid (\d+)\)", next(
+            ln for ln in st["run"]["output"] if ln.startswith("ready:")))[1])
+        os.kill(sensors, signal.SIGKILL)
+        assert wait_until(lambda: any("sensors" in f["text"] for f in panel.state()["faults"]), 15), panel.state()
+        # the restarted process is alive again, and counted among the run's processes
+        assert wait_until(lambda: any(ln.strip().startswith("sensors is back")
+                                      for ln in panel.state()["run"]["output"]), 60), panel.state()["run"]["output"]
+        assert wait_until(lambda: sum(s["alive"] for s in panel.state()["services"]) == 5, 10)
+        pids += [int(p) for ln in panel.state()["run"]["output"] for p in re.findall(r"pid (\d+)", ln)]
     finally:
         rc = panel.close()
     assert rc == 0, panel.out()
