@@ -231,7 +231,7 @@ function renderServices(st) {
     tr.dataset.service = s.name;
     const lvl = s.level === null || s.level === undefined ? "" : ["OK", "WARN", "ERROR", "STALE"][s.level] || s.level;
     tr.innerHTML = `<th scope="row">${s.name}</th><td class="${s.alive ? "up" : "down"}">${s.alive ? "alive" : "gone"}</td>
-      <td>${s.state || ""}</td><td class="lvl${s.level}">${lvl}${s.message ? ": " + s.message : ""}${s.last_error ? " (" + s.last_error + ")" : ""}</td>`;
+      <td class="${["fault", "stalled", "error"].includes(s.state) ? "down" : ""}">${s.state || ""}</td><td class="lvl${s.level}">${lvl}${s.message ? ": " + s.message : ""}${s.last_error ? " (" + s.last_error + ")" : ""}</td>`;
     return tr;
   }));
 }
