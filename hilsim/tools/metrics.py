@@ -79,7 +79,8 @@ def step_figures(
     if step == 0.0:
         raise ValueError("step_figures: zero step")
     frac = (y - y0) / step  # 0 at the start, 1 at the target, whatever the step's sign
-    rise = _crossing(t, frac, 0.9) - _crossing(t, frac, 0.1)
+    c90 = _crossing(t, frac, 0.9)
+    rise = c90 - _crossing(t, frac, 0.1) if math.isfinite(c90) else math.inf  # never 90 %: never risen
     err = np.abs(y - target)
     tol = band * abs(step)
     outside = np.nonzero(err > tol)[0]
