@@ -227,6 +227,13 @@ def test_browser_start_run_goal_gain_stop(tmp_path: Path, router: str) -> None:
             pids = _service_pids(st)
             assert {s["name"] for s in st["services"] if s["alive"]} == set(st["run"]["services"])
 
+            # whatever a Zenoh participant writes is shown as text, never run as markup
+            evil = msgs.DiagnosticArray(status=[msgs.DiagnosticStatus(
+                level=1, name="<b id=injected>evil</b>", message="<img id=injected2 src=x>")])
+            obs.session.put(obs.keys.health("evil"), msgs.encode(evil))
+            page.wait_for_function("document.getElementById('services').textContent.includes('<b id=injected>')")
+            assert page.locator("#injected, #injected2").count() == 0
+
             # one run at a time, said to the page's caller with a 409 and a message
             status, data = _http(panel.url + "/api/run", {"scenario": "arm"})
             assert status == 409 and "stop it first" in data["error"], data

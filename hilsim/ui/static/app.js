@@ -7,6 +7,9 @@ const COLORS = ["#0969da", "#cf222e", "#1a7f37", "#8250df", "#bf8700", "#1b7c83"
 let options = { scenarios: [], planners: [], gain_fields: [] };
 let last = null;          // the latest state
 let builtFor = "";        // the run (pid) the goal and gains forms were built for
+// everything that came over Zenoh (names, messages, goal ids) is text, never markup: any participant
+// of the network may write a health message
+const esc = (x) => String(x ?? "").replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" }[c]));
 const fmt = (v, d = 3) => (v === null || v === undefined || Number.isNaN(v)) ? "–" : Number(v).toFixed(d);
 
 function clearErrors(form) {
@@ -101,11 +104,12 @@ function buildGoalForms(sc, st) {
     const v = pos[i] !== undefined && pos[i] !== null ? Math.min(hi, Math.max(lo, pos[i])) : 0;
     const row = document.createElement("div");
     row.className = "slider";
-    row.innerHTML = `<label for="range-${name}">${name}</label>
-      <input type="range" id="range-${name}" min="${lo}" max="${hi}" step="0.001" value="${v}" aria-describedby="lim-${name}">
-      <input id="joint-${name}" inputmode="decimal" value="${v.toFixed(3)}" aria-label="${name} target [rad]">
-      <span class="lim" id="lim-${name}">${lo.toFixed(2)} … ${hi.toFixed(2)} rad</span>
-      <span class="err" id="err-joint-${name}" aria-live="polite"></span>`;
+    const n = esc(name);
+    row.innerHTML = `<label for="range-${n}">${n}</label>
+      <input type="range" id="range-${n}" min="${lo}" max="${hi}" step="0.001" value="${v}" aria-describedby="lim-${n}">
+      <input id="joint-${n}" inputmode="decimal" value="${v.toFixed(3)}" aria-label="${n} target [rad]">
+      <span class="lim" id="lim-${n}">${lo.toFixed(2)} … ${hi.toFixed(2)} rad</span>
+      <span class="err" id="err-joint-${n}" aria-live="polite"></span>`;
     box.append(row);
     const range = row.querySelector("input[type=range]"), num = $("joint-" + name);
     range.addEventListener("input", () => { num.value = Number(range.value).toFixed(3); });
@@ -157,9 +161,10 @@ function buildGains(sc) {
   if (!sc || sc.mobile) return;
   for (const name of sc.joints) {
     const tr = document.createElement("tr");
-    tr.innerHTML = `<th scope="row">${name}</th>` + options.gain_fields.map((f) =>
-      `<td><input id="gain-${name}-${f}" inputmode="decimal" aria-label="${name} ${f}" data-joint="${name}" data-field="${f}"></td>`).join("") +
-      `<td><button type="button" class="small" id="apply-${name}">Apply</button></td>`;
+    const n = esc(name);
+    tr.innerHTML = `<th scope="row">${n}</th>` + options.gain_fields.map((f) =>
+      `<td><input id="gain-${n}-${f}" inputmode="decimal" aria-label="${n} ${f}"></td>`).join("") +
+      `<td><button type="button" class="small" id="apply-${n}">Apply</button></td>`;
     tb.append(tr);
     for (const inp of tr.querySelectorAll("input")) inp.addEventListener("input", () => { inp.dataset.dirty = "1"; });
     tr.querySelector("button").addEventListener("click", () => applyGains(name));
@@ -230,8 +235,8 @@ function renderServices(st) {
     const tr = document.createElement("tr");
     tr.dataset.service = s.name;
     const lvl = s.level === null || s.level === undefined ? "" : ["OK", "WARN", "ERROR", "STALE"][s.level] || s.level;
-    tr.innerHTML = `<th scope="row">${s.name}</th><td class="${s.alive ? "up" : "down"}">${s.alive ? "alive" : "gone"}</td>
-      <td class="${["fault", "stalled", "error"].includes(s.state) ? "down" : ""}">${s.state || ""}</td><td class="lvl${s.level}">${lvl}${s.message ? ": " + s.message : ""}${s.last_error ? " (" + s.last_error + ")" : ""}</td>`;
+    tr.innerHTML = `<th scope="row">${esc(s.name)}</th><td class="${s.alive ? "up" : "down"}">${s.alive ? "alive" : "gone"}</td>
+      <td class="${["fault", "stalled", "error"].includes(s.state) ? "down" : ""}">${esc(s.state)}</td><td class="lvl${Number(s.level)}">${esc(lvl)}${s.message ? ": " + esc(s.message) : ""}${s.last_error ? " (" + esc(s.last_error) + ")" : ""}</td>`;
     return tr;
   }));
 }
@@ -241,8 +246,8 @@ function renderJoints(st) {
   tb.replaceChildren(...j.names.map((n, i) => {
     const tr = document.createElement("tr");
     const p = j.position[i], s = j.setpoint[i];
-    tr.innerHTML = `<th scope="row"><span class="swatch" style="background:${COLORS[i % COLORS.length]}"></span>${n}</th>
-      <td class="num" data-joint="${n}">${fmt(p)}</td><td class="num">${fmt(s)}</td><td class="num">${s === null || p === null ? "–" : fmt(p - s, 4)}</td>`;
+    tr.innerHTML = `<th scope="row"><span class="swatch" style="background:${COLORS[i % COLORS.length]}"></span>${esc(n)}</th>
+      <td class="num">${fmt(p)}</td><td class="num">${fmt(s)}</td><td class="num">${s === null || p === null ? "–" : fmt(p - s, 4)}</td>`;
     return tr;
   }));
   $("pose").textContent = st.pose ? `base (truth): x ${fmt(st.pose[0], 2)} m, y ${fmt(st.pose[1], 2)} m, yaw ${fmt(st.pose[2], 2)} rad` : "";
@@ -293,8 +298,8 @@ function renderGoals(st) {
     tr.dataset.goal = g.id; tr.dataset.state = g.state;
     const err = g.error && g.error.length ? "max error " + Math.max(...g.error.map(Math.abs)).toFixed(4) : "";
     const res = g.done ? (g.success ? "reached" : "failed") + (g.message ? ": " + g.message : "") + (err ? "; " + err : "") : "";
-    tr.innerHTML = `<td>${g.id}</td><td class="${g.success === false ? "down" : g.success ? "up" : ""}">${g.state}</td>
-      <td class="num">${Math.round(100 * (g.progress || 0))} %</td><td>${res}</td><td></td>`;
+    tr.innerHTML = `<td>${esc(g.id)}</td><td class="${g.success === false ? "down" : g.success ? "up" : ""}">${esc(g.state)}</td>
+      <td class="num">${Math.round(100 * (Number(g.progress) || 0))} %</td><td>${esc(res)}</td><td></td>`;
     if (!g.done) {
       const b = document.createElement("button");
       b.type = "button"; b.className = "small"; b.textContent = "Cancel"; b.setAttribute("aria-label", "cancel goal " + g.id);
