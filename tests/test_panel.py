@@ -227,12 +227,17 @@ def test_browser_start_run_goal_gain_stop(tmp_path: Path, router: str) -> None:
             pids = _service_pids(st)
             assert {s["name"] for s in st["services"] if s["alive"]} == set(st["run"]["services"])
 
-            # whatever a Zenoh participant writes is shown as text, never run as markup
+            # an impostor on physics' health is not believed; what a participant writes on a key nobody
+            # announced is shown, as text, never run as markup
+            fake = msgs.DiagnosticArray(status=[msgs.DiagnosticStatus(level=2, name="physics", message="impostor")])
+            obs.session.put(obs.keys.health("physics"), msgs.encode(fake))
             evil = msgs.DiagnosticArray(status=[msgs.DiagnosticStatus(
                 level=1, name="<b id=injected>evil</b>", message="<img id=injected2 src=x>")])
             obs.session.put(obs.keys.health("evil"), msgs.encode(evil))
             page.wait_for_function("document.getElementById('services').textContent.includes('<b id=injected>')")
             assert page.locator("#injected, #injected2").count() == 0
+            assert "impostor" not in page.text_content("#services")
+            assert panel.state()["ignored"] >= 1 and panel.state()["faults"] == []
 
             # one run at a time, said to the page's caller with a 409 and a message
             status, data = _http(panel.url + "/api/run", {"scenario": "arm"})

@@ -11,6 +11,8 @@ Reads (``<prefix>/<robot>/…``, any robot): ``alive/*`` (liveliness), ``health/
 (faults: level ERROR and above), ``<prefix>/clock``, ``truth/joint_states`` (positions; the latest
 about 20 times a second, for the plot), ``controller/reference`` (setpoints), ``truth/odom`` (a rover's pose),
 ``planner/feedback``, ``planner/result``, ``navigator/feedback``, ``navigator/result``.
+Samples are believed as every service believes them (:mod:`hilsim.provenance`: on a key with an
+announced writer, only that writer's), and whatever is shown is text, never markup.
 Queries: ``planner/goal``, ``planner/cancel``, ``navigator/goal``, ``navigator/cancel`` (through
 :class:`hilsim.planning.client.MoveClient`), ``controller/set_parameters`` (:mod:`hilsim.params`);
 the gains in force are read back from the controller's health (``gains:<joint>``).
@@ -57,6 +59,7 @@ from hilsim import msgs, transport
 from hilsim.config import CONFIG_DIR, ConfigError, Scenario, load_scenario, parse_overrides
 from hilsim.control import GAIN_FIELDS
 from hilsim.keys import Keys
+from hilsim.provenance import Provenance
 
 log = logging.getLogger("hilsim.ui")
 
@@ -195,7 +198,12 @@ class Monitor:
         self.faults: deque[dict[str, Any]] = deque(maxlen=50)
         self.expected: set[str] = set()  # the services of the panel's run while it runs (a departure is a fault)
         self.watch_departures = False
+        self.prov = Provenance()
+        self._prov_lock = threading.Lock()
+        self.ignored = 0  # samples from writers other than the keys' announced ones, or undecodable
         self._subs: list[Any] = [
+            # first: who writes what, so that only the services' own samples are believed
+            session.liveliness().declare_subscriber(k.all_writers, self._on_writer, history=True),
             session.liveliness().declare_subscriber(k.all_alive, self._on_alive, history=True),
             session.declare_subscriber(k.health("*"), self._on_health),
             session.declare_subscriber(k.log("*"), self._on_log),
@@ -226,11 +234,23 @@ class Monitor:
         with self.lock:
             self.faults.append({"wall": time.time(), "source": source, "text": text})
 
-    @staticmethod
-    def _decode(sample: zenoh.Sample, cls: type) -> Any:
+    def _on_writer(self, sample: zenoh.Sample) -> None:
+        with self._prov_lock:
+            self.prov.on_token(sample)
+
+    def _decode(self, sample: zenoh.Sample, cls: type) -> Any:
+        """The message, if it comes from the key's announced writer (as every service judges it:
+        :mod:`hilsim.provenance`) and decodes; else None, counted in ``ignored``."""
+        with self._prov_lock:
+            why, _ = self.prov.check(str(sample.key_expr), transport.read_attachment(sample))
+            if why is not None:
+                self.ignored += 1
+                return None
         try:
             return msgs.decode(cls, sample.payload.to_bytes())
         except msgs.BadMessage:
+            with self._prov_lock:
+                self.ignored += 1
             return None  # a stranger's garbage on a key must not reach the page
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
@@ -397,6 +417,7 @@ class Monitor:
                 "pose": rv.pose,
                 "goals": list(reversed(rv.goals.values())),
                 "faults": list(reversed(self.faults))[:20],
+                "ignored": self.ignored,
             }
         snap["gains"] = self.gains(robot)
         return _finite(snap)
