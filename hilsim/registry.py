@@ -103,7 +103,7 @@ def lockstep_participants(scenario: Any) -> dict[str, int]:
     as their classes declare them (physics itself learns them from their announcements)."""
     out: dict[str, int] = {}
     for name in scenario.processes():
-        period = service_class(name, scenario).lockstep_period(scenario)
+        period = service_class(name.split("@")[0], scenario).lockstep_period(scenario)  # controller@arm3
         if period is not None:
             out[name] = int(period)
     return out
