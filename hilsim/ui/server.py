@@ -622,16 +622,36 @@ class Panel:
 
     # -- state
     def robot(self) -> str:
-        return str(self.run.info.get("robot") or self.default_robot)
+        """The robot shown: the panel's run's; else one whose services are alive (a run started
+        elsewhere, e.g. ``hilsim up`` in a terminal with ``hilsim ui --connect``)."""
+        if self.run.busy():
+            return str(self.run.info.get("robot") or self.default_robot)
+        with self.monitor.lock:
+            live = sorted(r for r, rv in self.monitor.robots.items() if any(rv.alive.values()))
+        return live[0] if live else str(self.run.info.get("robot") or self.default_robot)
 
     def option(self) -> ScenarioOption | None:
-        return self.current
+        """What goals and gains are checked against: the panel's run's scenario while it runs; for a
+        run started elsewhere whose planner (or navigator) is alive, a scenario of ``config/`` for
+        the same robot (its joints and their limits)."""
+        if self.run.busy():
+            return self.current
+        robot = self.robot()
+        with self.monitor.lock:
+            rv = self.monitor.robots.get(robot)
+            alive = {s for s, up in rv.alive.items() if up} if rv is not None else set()
+        if not alive & {"planner", "navigator"}:
+            return None
+        same = [o for o in self.options.values() if o.robot == robot and ("navigator" in alive) == o.mobile]
+        return next((o for o in same if o.name == robot), same[0] if same else None)
 
     def state(self) -> dict[str, Any]:
         snap = self.monitor.snapshot(self.robot())
         snap["run"] = self.run.status()
         snap["endpoint"] = self.endpoint
-        snap["scenario"] = self.current.as_json() if self.current is not None else None
+        opt = self.option()
+        snap["scenario"] = opt.as_json() if opt is not None else None
+        snap["external"] = opt is not None and not self.run.busy()  # commanding a run started elsewhere
         snap["viewer"] = self.viewer_url if self.viewer is not None and self.viewer.poll() is None else ""
         return snap
 
@@ -679,6 +699,13 @@ class Panel:
         if self.run.busy():
             raise BadInput("run", f"a run is already {self.run.state} ({self.run.info.get('scenario')}): "
                            "stop it first", 409)
+        with self.monitor.lock:  # two simulations on the same keys would mix: one at a time here too
+            elsewhere = {r: sorted(s for s, up in rv.alive.items() if up) for r, rv in self.monitor.robots.items()}
+        elsewhere = {r: s for r, s in elsewhere.items() if s}
+        if elsewhere:
+            who = "; ".join(f"robot {r}: {', '.join(s)}" for r, s in sorted(elsewhere.items()))
+            raise BadInput("run", f"a simulation started elsewhere runs on this Zenoh network with prefix "
+                           f"{self.prefix} ({who}): stop it first", 409)
         try:
             arg = world_scenario(req.scenario, req.world) if req.world else req.scenario
             overrides: dict[str, Any] = {"clock.mode": req.clock}
@@ -724,7 +751,7 @@ class Panel:
 
     def _live_option(self, fld: str) -> ScenarioOption:
         opt = self.option()
-        if opt is None or not self.run.busy():
+        if opt is None:
             raise BadInput(fld, "no run is running: start one first", 409)
         return opt
 

@@ -213,9 +213,12 @@ function renderRun(st) {
     cls = r.rc === 0 ? "idle" : "failed";
     text = `Finished: ${r.scenario}, exit code ${r.rc}` + (r.rc === 0 ? " (OK)" : "");
   }
+  if (!(r.state === "running" || r.state === "stopping") && st.external) {
+    cls = "running"; text = `Connected to a run started elsewhere: ${st.robot}`;
+  }
   b.className = "banner " + cls; b.textContent = text;
   const busy = r.state === "running" || r.state === "stopping";
-  $("start").disabled = busy; $("stop").disabled = !busy || r.state === "stopping";
+  $("start").disabled = busy || !!st.external; $("stop").disabled = !busy || r.state === "stopping";
   $("run-cmd").textContent = r.command || "hilsim up";
   const out = $("output"), atEnd = out.scrollTop + out.clientHeight >= out.scrollHeight - 4;
   out.textContent = (r.output || []).join("\n");
@@ -327,11 +330,12 @@ function render(st) {
   $("rtf").textContent = st.rtf || "–";
   $("overruns").textContent = st.overruns === null || st.overruns === undefined ? "–" : st.overruns;
   $("robot").textContent = st.robot;
-  const key = st.scenario && (st.run.state === "running") ? String(st.run.pid) : "";
+  // the forms follow the run they command: the panel's (by pid), or one started elsewhere
+  const key = !st.scenario ? "" : st.external ? "external-" + st.robot + "-" + st.scenario.name : String(st.run.pid);
   if (key !== builtFor && (key === "" || (st.joints.names.length || (st.scenario && st.scenario.mobile)))) {
     builtFor = key;
     // the run form shows what runs (a run started elsewhere, or before this page was opened)
-    if (key && scenarioOption(st.run.scenario) && $("scenario").value !== st.run.scenario) {
+    if (key && !st.external && scenarioOption(st.run.scenario) && $("scenario").value !== st.run.scenario) {
       $("scenario").value = st.run.scenario; fillWorlds();
       if ([...$("world").options].some((o) => o.value === st.run.world)) $("world").value = st.run.world;
     }
