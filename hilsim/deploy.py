@@ -50,6 +50,13 @@ def _rel(path: Path) -> str:
         raise ConfigError(f"{path}: not inside the repository ({REPO_ROOT}), so not in the image") from None
 
 
+def container_name(unit: str) -> str:
+    """A launch unit as a compose service name (``[a-zA-Z0-9._-]`` only): a composed process
+    ``a+b`` is ``a_b``, every robot's ``controller@*`` is ``controller-fleet``, one robot's
+    ``controller@arm3`` is ``controller-arm3``."""
+    return unit.replace("+", "_").replace("@*", "-fleet").replace("@", "-")
+
+
 def _mavlink_passthrough(sc: Scenario) -> dict[str, Any]:
     """Ports or devices for ``bridge-mavlink.connection`` (pymavlink syntax: udpin:HOST:PORT,
     udp:…, tcp:…, or a serial device such as /dev/ttyUSB0[,BAUD])."""
@@ -98,7 +105,7 @@ def compose(scenario: str | Path, hil: list[str | Path] | tuple[str | Path, ...]
                    "command": ["router", "--listen", f"tcp/0.0.0.0:{ROUTER_PORT}"],
                    "ports": [f"{ROUTER_PORT}:{ROUTER_PORT}"]}}
     for u, profile in sorted(units.items(), key=lambda kv: (kv[1] or "", list(units).index(kv[0]))):
-        name = u.replace("+", "_")  # a composed process a+b: one container
+        name = container_name(u)  # a composed process a+b: one container
         svc: dict[str, Any] = {"<<": anchor}
         if profile:
             svc["profiles"] = [profile]
@@ -110,7 +117,7 @@ def compose(scenario: str | Path, hil: list[str | Path] | tuple[str | Path, ...]
             # realtime: physics asks for SCHED_FIFO (it runs without when refused, and says so)
             svc["cap_add"] = ["SYS_NICE"]
             svc["ulimits"] = {"rtprio": 99}
-            others = [n.replace("+", "_") for n, p in units.items() if n != u and p is None]
+            others = [container_name(n) for n, p in units.items() if n != u and p is None]
             svc["depends_on"] = ["router", *others]
         if profile in HOST_NETWORK:
             svc["network_mode"] = "host"

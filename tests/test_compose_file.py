@@ -135,3 +135,21 @@ def test_each_container_command_runs_outside_docker(tmp_path: Path) -> None:
     rrds = list(runs.glob("*/recording.rrd"))
     assert len(rrds) == 1 and rrds[0].stat().st_size > 10_000, rrds
     assert all(p.returncode in (0, -signal.SIGINT) for p in procs.values()), {n: p.returncode for n, p in procs.items()}
+
+
+def test_many_robots_get_valid_container_names() -> None:
+    """`robots: 2` runs one process per service kind for every robot (`controller@*`): its
+    containers get names docker compose accepts, and physics waits for each of them."""
+    import re
+
+    sc = REPO / "config" / f"_test-two-arms-{os.getpid()}.yaml"  # a scenario must be inside the image
+    sc.write_text("extends: arm.yaml\nrobots: 2\n")
+    try:
+        comp = compose(sc)
+    finally:
+        sc.unlink()
+    names = set(comp["services"])
+    assert all(re.fullmatch(r"[a-zA-Z0-9][a-zA-Z0-9_.-]*", n) for n in names), names
+    assert {"controller-fleet", "sensors-fleet", "planner-fleet"} <= names, names
+    assert comp["services"]["controller-fleet"]["command"][:2] == ["run", "controller@*"]
+    assert set(comp["services"]["physics"]["depends_on"]) <= names
