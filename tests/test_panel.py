@@ -29,7 +29,7 @@ from typing import Any
 import psutil
 import pytest
 import zenoh
-from util import REPO, Observer, wait_until
+from util import LEAN, REPO, Observer, finish, up, wait_until
 
 from hilsim import msgs, transport
 
@@ -359,3 +359,39 @@ def test_up_ui_shows_a_dead_service_and_panel_sigterm_leaves_no_process() -> Non
         rc = panel.close()
     assert rc == 0, panel.out()
     assert wait_until(lambda: not any(_alive(p) for p in pids), 10), [p for p in pids if _alive(p)]
+
+
+def test_a_run_started_elsewhere_is_watched_and_commanded(router: str) -> None:
+    """``hilsim ui --connect`` beside a ``hilsim up`` of a terminal: the panel shows that run, sends
+    it a joint goal (reached in the physics truth) and starts no run of its own beside it."""
+    run = up(LEAN, "--clock", "realtime", "--set", "task.targets=[]", "--router", router, "--wait", "60")
+    panel: PanelProc | None = None
+    obs: Observer | None = None
+    try:
+        panel = PanelProc("--connect", router)
+        obs = Observer(router)
+        assert wait_until(lambda: panel.state()["external"] and panel.state()["scenario"] is not None, 60), \
+            panel.state()
+        st = panel.state()
+        assert st["robot"] == "arm" and st["run"]["state"] == "idle", st
+        status, data = _http(panel.url + "/api/run", {"scenario": "arm-lean"})
+        assert status == 409 and "started elsewhere" in data["error"], data
+        target = [-0.4, -0.2, 0.1, 0.0, -0.4, 0.0]
+        status, data = _http(panel.url + "/api/goal", {"kind": "joints", "positions": target})
+        assert status == 200, data
+        gid = data["goal_id"]
+        assert wait_until(lambda: any(g["id"] == gid and g["done"] for g in panel.state()["goals"]), 60)
+        goal = next(g for g in panel.state()["goals"] if g["id"] == gid)
+        assert goal["success"], goal
+        done_ns = round(goal["sim"] * 1e9)
+        assert wait_until(lambda: bool(obs.truth) and obs.truth[-1][0] >= done_ns, 20)
+        err = max(abs(a - b) for a, b in zip(obs.truth_at(done_ns).tolist(), target, strict=True))
+        assert err < 0.01, err
+    finally:
+        if obs is not None:
+            obs.close()
+        if panel is not None:
+            assert panel.close() == 0, panel.out()
+        run.send_signal(signal.SIGINT)
+        out = finish(run, 90)
+    assert "result: OK" in out, out
