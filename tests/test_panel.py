@@ -275,6 +275,13 @@ def test_browser_start_run_goal_gain_stop(tmp_path: Path, router: str) -> None:
             err = max(abs(a - b) for a, b in zip(truth, GOAL, strict=True))
             assert err < 0.01, f"truth {truth} vs goal {GOAL}: {err:.4f} rad"
 
+            # a long move, cancelled from its row while it executes: the planner says so
+            page.fill("#joint-joint_1", "-1.5")
+            page.click("#send-joints")
+            page.wait_for_selector("#goals tbody tr[data-state='executing']", timeout=30_000)
+            page.click("#goals tbody tr[data-state='executing'] button")
+            page.wait_for_selector("#goals tbody tr[data-state='canceled']", timeout=30_000)
+
             # a gain changed in the page is the controller's: read back from its health over Zenoh
             old = health.get("gains:joint_2", "")
             page.fill("#gain-joint_2-kp", "41.5")
