@@ -264,16 +264,30 @@ def bench_bridge(port: int, n: int, seconds: float, workdir: Path) -> dict[str, 
         h = msgs.decode(msgs.DiagnosticArray, sample.payload.to_bytes())
         health.append((put_time(sample), {kv.key: kv.value for kv in h.status[0].values}))
 
-    def counters() -> dict[str, str]:
-        """The bridge's health values from a report it made after now (it reports every second;
+    def report_after(t: float) -> tuple[float, dict[str, str]]:
+        """The bridge's first health report made after ``t`` (wall clock; it reports every second,
         judged by the report's own timestamp: a loaded machine may deliver it late)."""
-        t = time.time()
-        while not health[-1][0] > t:
+        while True:
+            made = [h for h in health if h[0] > t]
+            if made:
+                return made[0]
             if time.time() - t > 5:
                 raise RuntimeError("bridge-can sent no health for 5 s")
             time.sleep(0.02)
-        return health[-1][1]
 
+    def counters() -> dict[str, str]:
+        """The bridge's counters once it has taken in all it will: two reports in a row (a second
+        apart) with the same number of estimates (a bridge behind on a loaded machine is still
+        reading its socket's backlog)."""
+        t, last = report_after(time.time())
+        for _ in range(10):
+            t, now = report_after(t)
+            if now.get("estimates", now.get(state_key)) == last.get("estimates", last.get(state_key)):
+                return now
+            last = now
+        return last
+
+    state_key = f"published:{keys.server_state('bridge-can')}"
     sub = session.declare_subscriber(keys.server_state("bridge-can"), on_state)
     hsub = session.declare_subscriber(keys.health("bridge-can"), on_health)
     pub = session.declare_publisher(keys.topic("joint_commands"))
@@ -329,12 +343,11 @@ def bench_bridge(port: int, n: int, seconds: float, workdir: Path) -> dict[str, 
         times = _paced(drive.estimate, first, BUS_RATE, seconds)
         time.sleep(0.5)
         after = counters()
-        state_key = keys.server_state("bridge-can")
-        at_rate = _absorbed(first, times, seen, before, after, seconds, state_key)
+        at_rate = _absorbed(first, times, seen, before, after, seconds, keys.server_state("bridge-can"))
         first += len(times)
         times = _flat_out(drive.estimate, first, seconds)
         time.sleep(0.5)
-        flat = _absorbed(first, times, seen, after, counters(), seconds, state_key)
+        flat = _absorbed(first, times, seen, after, counters(), seconds, keys.server_state("bridge-can"))
     finally:
         proc.send_signal(signal.SIGINT)
         try:
