@@ -20,9 +20,13 @@ layout) is ``hilsim.rerun_rows``; the robot model and tool kinematics ``hilsim.k
 
 The Zenoh callback only appends ``(key, payload)`` to a queue; a worker thread decodes
 (``hilsim.msgs.decode``), turns messages into rows (``RowWriter``) and sends them with
-``send_columns`` every 0.5 s or every few thousand rows. A payload that does not decode is
-counted as rejected and still recorded, as a text row under ``rejected/…``. Every sample
-taken in is recorded: ``received == recorded``.
+``send_columns`` every 0.5 s or every 20,000 rows. The per-step keys (clock, joint states, IMU)
+take a fast path once one of their messages decoded: a payload laid out like it (same size, same
+bytes but stamp and values) is kept as bytes and read into columns with numpy at the batch, its
+values checked there (``RowWriter.raw``/``drain``). A payload that does not decode or validate
+(on either path) is counted as rejected and still recorded, as a text row under
+``rejected/…``. Every sample taken in is recorded: ``received == recorded``; a sample counts
+as recorded once its batch reached the file.
 
 Losses. Lockstep: publishers block when the logger is slow (Zenoh congestion control BLOCK)
 and the queue is unbounded, so nothing is lost (``lost`` is 0; anything else is a fault).
@@ -272,26 +276,34 @@ class LoggerService(Service):
     def _handle(self, key: str, payload: bytes) -> None:
         rows = self.rows
         assert rows is not None
+        if rows.raw(key, payload):  # a clock, joint state or IMU sample of a layout seen before
+            self.sim_ns = rows.clock_ns
+            self._pending[key] += 1
+            return
         try:
             cls = message_type(key)
             with self._codec_lock:
                 msg = msgs.decode(cls, payload)
         except (UnknownKey, msgs.BadMessage) as e:
-            with self.lock:
-                self.rejected[key] += 1
-            if key not in self._warned:  # one warning per key; the rest are counted
-                self._warned.add(key)
-                self.warn(f"rejected payload on {key}: {e} (further ones on this key are only counted)")
+            self._reject(key, e)
             rows.rejected(key, len(payload), e)
             self._pending[key] += 1
             return
         try:
             rows.message(key, msg)
+            rows.learn(key, payload, msg)
         except Exception as e:  # a bug here must not lose the sample: record it as text
             self.fault(f"cannot turn {key} into rows: {type(e).__name__}: {e}", exc=e)
             rows.error(key, e, msg)
         self.sim_ns = rows.clock_ns
         self._pending[key] += 1
+
+    def _reject(self, key: str, e: Exception) -> None:
+        with self.lock:
+            self.rejected[key] += 1
+        if key not in self._warned:  # one warning per key; the rest are counted
+            self._warned.add(key)
+            self.warn(f"rejected payload on {key}: {e} (further ones on this key are only counted)")
 
     def _flush(self) -> None:
         """Send every buffered row and push it through Rerun's batcher into the file, then count
@@ -299,7 +311,11 @@ class LoggerService(Service):
         written) thus leaves a file that holds everything up to its last flush, FLUSH_PERIOD_S
         ago at most; ``hilsim.recording.recover_rrd`` makes it a complete .rrd again."""
         assert self.rows is not None and self.rec is not None
-        if self.rows.flush():
+        ok = self.rows.flush()
+        for key, e in self.rows.rejections:  # found while the fast path's batches were turned into rows
+            self._reject(key, e)
+        self.rows.rejections.clear()
+        if ok:
             try:
                 self.rec.flush(timeout_sec=FILE_FLUSH_TIMEOUT_S)
             except Exception as e:  # a slow disk: the rows are still on their way to the file
