@@ -477,7 +477,8 @@ def test_a_bigger_receive_buffer_keeps_a_burst_the_reader_was_late_for() -> None
             return got
 
         assert drain(big) == n
-        assert drain(small) < n
+        if int(Path("/proc/sys/net/core/rmem_default").read_text()) <= 256 * 1024:
+            assert drain(small) < n  # the usual default buffer: the kernel dropped part of the burst
     finally:
         for b in (tx, small, big):
             b.shutdown()
