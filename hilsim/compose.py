@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import logging
 import queue
-import signal
 import threading
 from collections.abc import Callable
 from typing import Any
@@ -150,18 +149,14 @@ class ComposedSession:
 def run(names: list[str], sc: Any) -> int:
     """``hilsim run a+b+c``: the services ``names`` in this process; returns the exit code."""
     from hilsim.fleet import instantiate
+    from hilsim.service import on_stop_signals
 
     # names: services, or with robots > 1 robots' services (controller@arm3: hilsim.fleet)
     services = [instantiate(n, sc) for n in names]
     # start as the launcher does (the reverse of stop_rank: physics last, once the others listen)
     order = sorted(services, key=lambda s: -s.stop_rank)
     stop = threading.Event()
-
-    def on_signal(*_: Any) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
+    on_stop_signals(stop.set)  # not stop.set in a signal handler: it may deadlock (see there)
     try:
         real = transport.open_session(sc.zenoh)
     except ConnectionError as e:

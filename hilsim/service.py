@@ -19,6 +19,7 @@ What the base does once for all:
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import sys
 import threading
@@ -75,6 +76,37 @@ class Publisher:
     def undeclare(self) -> None:
         self._token.undeclare()
         self._pub.undeclare()
+
+
+
+def on_stop_signals(callback: Callable[[], None], signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> None:
+    """Call ``callback`` from a watcher thread when one of ``signals`` arrives (main thread only).
+
+    A Python signal handler runs in the main thread between two bytecodes, maybe while that
+    thread holds a lock: inside ``Event.wait``, or in a first handler's ``Event.set`` when a
+    second signal lands. Setting an Event there took its non-reentrant lock twice and hung the
+    process for good (seen: a controller that outlived its killed launcher). So the handlers do
+    nothing; the interpreter's C handler writes the signal number to a wake-up pipe, and a
+    thread reads it and calls back where taking locks is safe."""
+    r, w = os.pipe()
+    os.set_blocking(w, False)
+    signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+    for s in signals:
+        signal.signal(s, lambda *_: None)
+    wanted = {int(s) for s in signals}
+
+    def watch() -> None:
+        while True:
+            try:
+                data = os.read(r, 64)
+            except OSError:
+                return
+            if not data:
+                return
+            if wanted.intersection(data):
+                callback()
+
+    threading.Thread(target=watch, daemon=True, name="signals").start()
 
 
 class Service:
@@ -384,8 +416,7 @@ class Service:
     def run(self) -> int:
         """Run the service until stopped; returns the process exit code."""
         if threading.current_thread() is threading.main_thread():
-            signal.signal(signal.SIGINT, self.request_stop)
-            signal.signal(signal.SIGTERM, self.request_stop)
+            on_stop_signals(self.request_stop)
         try:
             session = transport.open_session(self.sc.zenoh)
         except ConnectionError as e:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -43,6 +44,25 @@ def _started(tmp_path: Path) -> tuple[subprocess.Popen[str], list[psutil.Process
     return p, kids
 
 
+def _still_there(kids: list[psutil.Process]) -> str:
+    """Which children are left, and where each one's threads are (py-spy, when installed)."""
+    import shutil
+
+    out = []
+    for k in kids:
+        try:
+            if not k.is_running() or k.status() == psutil.STATUS_ZOMBIE:
+                continue
+            out.append(f"{k.pid}: {' '.join(k.cmdline())}")
+        except psutil.NoSuchProcess:
+            continue
+        spy = shutil.which("py-spy") or str(Path(sys.executable).parent / "py-spy")
+        if Path(spy).exists():
+            out.append(subprocess.run([spy, "dump", "--pid", str(k.pid)], capture_output=True, text=True,
+                                      timeout=30).stdout)
+    return "\n".join(out)
+
+
 def _all_gone(kids: list[psutil.Process]) -> bool:
     return all(not k.is_running() or k.status() == psutil.STATUS_ZOMBIE for k in kids)
 
@@ -56,7 +76,7 @@ def test_a_stopped_or_killed_launcher_leaves_no_process(tmp_path: Path, sig: sig
         time.sleep(0.5)
         os.kill(p.pid, sig)  # the launcher only, not its process group
         p.wait(timeout=60)
-        assert wait_until(lambda: _all_gone(kids), 30.0), [k for k in kids if k.is_running()]
+        assert wait_until(lambda: _all_gone(kids), 30.0), _still_there(kids)
     finally:
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
@@ -69,8 +89,6 @@ def test_physics_gives_up_after_the_start_timeout(tmp_path: Path) -> None:
     """A physics process started on its own (docker compose, another host) whose services never
     come waits `clock.start_timeout` (`hilsim up --wait`), not a fixed two minutes, and says who
     is missing."""
-    import sys
-
     from hilsim import transport
 
     ep = f"tcp/127.0.0.1:{transport.free_port()}"
@@ -86,3 +104,31 @@ def test_physics_gives_up_after_the_start_timeout(tmp_path: Path) -> None:
     out = r.stdout + r.stderr
     assert "services never appeared: sensors, controller, planner, logger" in out, out
     assert took < 30, f"physics waited {took:.0f} s, not the 2 s asked for"
+
+
+
+_SIGNAL_WHILE_LOCKED = """
+import os, signal, sys, threading, time
+from hilsim.service import on_stop_signals
+ev = threading.Event()
+if sys.argv[1] == "handler":  # what services did before: set the Event in the signal handler
+    signal.signal(signal.SIGTERM, lambda *_: ev.set())
+else:
+    on_stop_signals(ev.set)
+with ev._cond:  # the main thread holds the Event's lock, as inside Event.wait or a first handler's set
+    os.kill(os.getpid(), signal.SIGTERM)
+    time.sleep(0.3)  # the Python-level handler runs here, between two bytecodes
+print("stopped" if ev.wait(5) else "not stopped", flush=True)
+"""
+
+
+@pytest.mark.parametrize("how", ["watcher", pytest.param("handler", marks=pytest.mark.xfail(
+    strict=True, raises=subprocess.TimeoutExpired, reason="the old way: deadlocks on the Event's lock"))])
+def test_a_stop_signal_landing_while_a_lock_is_held_still_stops_the_service(how: str) -> None:
+    """A service's stop signal may land while its main thread holds the stop Event's lock (a
+    controller once outlived its SIGKILLed launcher that way, hung for good): hilsim's services
+    take stop signals through a wake-up pipe and a watcher thread (``on_stop_signals``), so it
+    stops. The old way, kept as a strict xfail, hangs: the test would catch a return to it."""
+    r = subprocess.run([sys.executable, "-c", _SIGNAL_WHILE_LOCKED, how], capture_output=True, text=True,
+                       timeout=15 if how == "watcher" else 4, cwd=Path(__file__).parent.parent)
+    assert r.stdout.strip() == "stopped", r.stdout + r.stderr
