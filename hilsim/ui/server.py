@@ -422,21 +422,6 @@ class Monitor:
         snap["gains"] = self.gains(robot)
         return _finite(snap)
 
-    def _stop_viewer(self) -> None:
-        """The viewer's whole process group: ``rerun`` may be a wrapper that starts the real binary."""
-        v = self.viewer
-        if v is None:
-            return
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(v.pid, signal.SIGTERM)
-        try:
-            v.wait(5)
-        except subprocess.TimeoutExpired:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(v.pid, signal.SIGKILL)
-            v.wait()
-        self.viewer = None
-
     def close(self) -> None:
         self._stop.set()
         self._poller.join(2)
