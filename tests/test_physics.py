@@ -147,3 +147,39 @@ def test_position_actuators_track_a_commanded_position(scenario: Any) -> None:
     assert abs(w.positions() - target).max() < 0.01
     # the effort limit still holds in position mode
     assert (abs(w.data.actuator_force) <= w.effort_limit + 1e-9).all()
+
+
+def test_a_touch_is_published_on_truth_contacts(scenario: Any) -> None:
+    """The arm end-to-end test's "nothing touched" is only worth something if physics publishes a
+    touch when there is one: the arm bent down into the obstacle is on ``truth/contacts`` (its
+    link and the obstacle's geom, penetration > 0), and the contact ending is published too."""
+    import mujoco
+
+    from hilsim.inproc import Bus
+
+    sc = scenario("arm", {"clock.mode": "lockstep", "task.targets": []})
+    bus = Bus()
+    got: list[msgs.Contacts] = []
+    ses = bus.session()
+    ses.declare_subscriber(Keys(sc.prefix, sc.robot).truth("contacts"),
+                           lambda s: got.append(msgs.decode(msgs.Contacts, s.payload.to_bytes())))
+    phys = PhysicsService(sc)
+    phys.attach(bus.session())
+    w = phys.robots[0].world
+    with phys.lock:
+        phys._advance()  # step 0: nothing touches
+        w.data.qpos[w.qpos_adr] = [0.0, -1.5, 0.0, 0.0, 0.0, 0.0]  # shoulder down: the elbow in the obstacle
+        mujoco.mj_forward(w.model, w.data)
+        phys._advance()
+        w.data.qpos[w.qpos_adr] = [0.0] * 6
+        w.data.qvel[:] = 0.0
+        mujoco.mj_forward(w.model, w.data)
+        phys._advance()
+    bus.drain()
+    phys.request_stop()
+    phys.teardown()
+    assert len(got) == 3 and got[0].contacts == [] and got[-1].contacts == [], got
+    touch = got[1].contacts
+    assert touch and all("world" in (c.body1, c.body2) for c in touch), touch  # the arm against the scene
+    assert any("elbow_link" in (c.body1, c.body2) and "obstacle" in (c.geom1, c.geom2) for c in touch), touch
+    assert max(c.depth for c in touch) > 0, touch
