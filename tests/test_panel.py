@@ -402,3 +402,17 @@ def test_a_run_started_elsewhere_is_watched_and_commanded(router: str) -> None:
         run.send_signal(signal.SIGINT)
         out = finish(run, 90)
     assert "result: OK" in out, out
+
+
+def test_a_many_robot_run_shows_its_first_robot_with_every_service() -> None:
+    """`robots: N`: the page shows the first robot (arm0) and lists each service once by its
+    name (controller@arm0 is the controller under hilsim/arm0/), physics and the recorder beside
+    them; one robot's run is unchanged."""
+    from hilsim.config import load_scenario
+    from hilsim.ui.server import shown_robot
+
+    one = load_scenario(REPO / "config" / "arm.yaml")
+    assert shown_robot(one) == ("arm", one.processes())
+    two = load_scenario(REPO / "config" / "arm.yaml", {"robots": 2})
+    robot, services = shown_robot(two)
+    assert robot == "arm0" and sorted(services) == sorted(one.processes()), (robot, services)

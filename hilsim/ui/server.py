@@ -168,6 +168,24 @@ def _robot_of(key: str, prefix: str) -> str:
     return rest.split("/", 1)[0]
 
 
+def shown_robot(sc: Scenario) -> tuple[str, list[str]]:
+    """The robot a run's page shows and the services it lists. With ``robots: N`` (hilsim.fleet)
+    that is the first robot, ``arm0``: its own services by their names (``controller@arm0`` is
+    ``controller`` under ``<prefix>/arm0/``) beside the ones every robot shares (physics, logger)."""
+    from hilsim import fleet
+
+    robots = fleet.robot_names(sc)
+    if len(robots) <= 1:
+        return sc.robot, sc.processes()
+    first = robots[0]
+    names = []
+    for p in sc.processes():
+        svc, _, r = p.partition("@")
+        if not r or r in (first, "*"):
+            names.append(svc)
+    return first, list(dict.fromkeys(names))
+
+
 @dataclass
 class RobotView:
     """What the panel knows of one robot of the simulation."""
@@ -501,10 +519,11 @@ class RunManager:
                                          stdin=subprocess.DEVNULL, env=env, preexec_fn=_child_setup)
             self.state, self.ready, self.rc = "running", False, None
             self.output.clear()
-            self.info = {"scenario": req.scenario, "world": req.world or sc.world.model.stem, "robot": sc.robot,
-                         "prefix": sc.prefix, "clock": req.clock, "mode": req.mode,
+            robot, services = shown_robot(sc)
+            self.info = {"scenario": req.scenario, "world": req.world or sc.world.model.stem, "robot": robot,
+                         "base_robot": sc.robot, "prefix": sc.prefix, "clock": req.clock, "mode": req.mode,
                          "planner": req.planner or (sc.planner.planner if "planner" in sc.services else ""),
-                         "services": sc.processes(), "pid": self.proc.pid, "run_dir": str(run_dir),
+                         "services": services, "pid": self.proc.pid, "run_dir": str(run_dir),
                          "recording": str(run_dir / "recording.rrd") if "logger" in sc.services else "",
                          "command": " ".join(argv[2:]).replace("hilsim.cli", "hilsim", 1).removeprefix("-m "),
                          "started": time.time()}
@@ -631,7 +650,16 @@ class Panel:
         return next((o for o in same if o.name == robot), same[0] if same else None)
 
     def state(self) -> dict[str, Any]:
-        snap = self.monitor.snapshot(self.robot())
+        robot = self.robot()
+        snap = self.monitor.snapshot(robot)
+        base = self.run.info.get("base_robot") if self.run.busy() else None
+        if base and base != robot:  # robots: N: physics and the recorder serve them all, under the base name
+            shared = self.monitor.snapshot(base)
+            have = {s["name"] for s in snap["services"]}
+            snap["services"] = sorted([*snap["services"], *(s for s in shared["services"] if s["name"] not in have)],
+                                      key=lambda s: s["name"])
+            for k in ("rtf", "overruns", "paused_for"):  # physics' health figures
+                snap[k] = snap.get(k) or shared.get(k)
         snap["run"] = self.run.status()
         snap["endpoint"] = self.endpoint
         opt = self.option()
@@ -706,7 +734,7 @@ class Panel:
             self.monitor.faults.clear()
             self.monitor.robots.pop(sc.robot, None)
         self.current = option_of(sc, req.scenario)
-        self.monitor.expected = {s for s in sc.processes()}
+        self.monitor.expected = {s.split("@")[0] for s in sc.processes()}  # alive/<service>, per robot
         self.monitor.watch_departures = False  # until they have all come
         threading.Thread(target=self._arm_departures, args=(info["pid"],), daemon=True).start()
         return info
