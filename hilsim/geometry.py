@@ -2,7 +2,20 @@
 
 from __future__ import annotations
 
+import math
+from typing import Any
+
 import numpy as np
+
+
+def heading(w: float, x: float, y: float, z: float) -> float:
+    """Yaw [rad] of the unit quaternion (w, x, y, z): its rotation about z, ZYX convention."""
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+
+
+def yaw_of(q: Any) -> float:
+    """Yaw [rad] of a quaternion message (anything with ``w``, ``x``, ``y``, ``z``)."""
+    return heading(q.w, q.x, q.y, q.z)
 
 
 def rpy_to_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:

@@ -77,6 +77,7 @@ from typing import Any
 import numpy as np
 
 from hilsim import msgs
+from hilsim.geometry import yaw_of
 from hilsim.msgs import fastcdr
 from hilsim.recording import disable_analytics
 
@@ -128,11 +129,6 @@ def log_level(level: int) -> str:
         if level >= threshold:
             return name
     return "TRACE"
-
-
-def yaw_of(q: msgs.Quaternion) -> float:
-    """Heading [rad] of a quaternion (rotation about z, ZYX convention)."""
-    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
 
 
 def scan_points(msg: msgs.LaserScan, cache: dict[tuple[int, float, float], np.ndarray] | None = None) -> np.ndarray:

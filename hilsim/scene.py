@@ -21,12 +21,13 @@ world positions on the map and GPS fixes into the world.
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from hilsim.geometry import heading
 
 # A plane is drawn this far beyond the rest of the static geometry: a quarter of that geometry's
 # reach, between 0.5 m and PLANE_MARGIN (a table's floor stays small, the outdoor ground 5 m wide)
@@ -171,7 +172,7 @@ class Scene:
             scene.base = m.body(b).name
             scene.base_box = _body_box(m, b)
             x, y, z, qw, qx, qy, qz = (float(v) for v in m.qpos0[m.jnt_qposadr[free[0]]:][:7])
-            scene.base_start = (x, y, z, math.atan2(2 * (qw * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz)))
+            scene.base_start = (x, y, z, heading(qw, qx, qy, qz))
         elif root_link is not None:
             try:
                 b = m.body(root_link).id

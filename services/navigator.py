@@ -60,6 +60,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from hilsim import msgs
 from hilsim.config import ConfigError, Scenario
+from hilsim.geometry import heading, yaw_of
 from hilsim.navigation import grid as gridmod
 from hilsim.navigation.follower import Follower, FollowerParams, wrap
 from hilsim.navigation.planner import Footprint, SE2Planner, path_length
@@ -144,12 +145,8 @@ def initial_pose(model: Any) -> tuple[float, float, float]:
             a = model.jnt_qposadr[j]
             x, y = float(model.qpos0[a]), float(model.qpos0[a + 1])
             w, qx, qy, qz = (float(v) for v in model.qpos0[a + 3:a + 7])
-            return x, y, math.atan2(2 * (w * qz + qx * qy), 1 - 2 * (qy * qy + qz * qz))
+            return x, y, heading(w, qx, qy, qz)
     raise ConfigError("world.model: the navigator needs a mobile base (a free joint); this model has none")
-
-
-def yaw_of(q: msgs.Quaternion) -> float:
-    return math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
 
 
 def quat_of(yaw: float) -> msgs.Quaternion:

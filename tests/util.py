@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 import os
 import signal
 import subprocess
@@ -16,7 +15,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from hilsim import msgs, transport
+from hilsim import geometry, msgs, transport
 from hilsim.config import ZenohConfig
 from hilsim.keys import Keys
 
@@ -131,8 +130,7 @@ ROVER = Keys("hilsim", "rover")
 
 
 def yaw_of(o: msgs.Odometry) -> float:
-    q = o.pose.pose.orientation
-    return math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+    return geometry.yaw_of(o.pose.pose.orientation)
 
 
 class Capture:

@@ -58,6 +58,7 @@ from starlette.staticfiles import StaticFiles
 from hilsim import msgs, transport
 from hilsim.config import CONFIG_DIR, ConfigError, Scenario, load_scenario, parse_overrides
 from hilsim.control import GAIN_FIELDS
+from hilsim.geometry import yaw_of
 from hilsim.keys import Keys
 from hilsim.provenance import Provenance
 
@@ -346,8 +347,7 @@ class Monitor:
     def _on_odom(self, sample: zenoh.Sample) -> None:
         o = self._decode(sample, msgs.Odometry)
         if o is not None:
-            p, q = o.pose.pose.position, o.pose.pose.orientation
-            yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
+            p, yaw = o.pose.pose.position, yaw_of(o.pose.pose.orientation)
             with self.lock:
                 rv = self.robot(_robot_of(str(sample.key_expr), self.prefix))
                 rv.pose = (p.x, p.y, yaw)
