@@ -99,10 +99,10 @@ def _subscribe_main(endpoint: str, key: str, n: int) -> int:
 
     from hilsim import transport
     from hilsim.config import ZenohConfig
+    from hilsim.service import on_stop_signals
 
     stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
+    on_stop_signals(stop.set)
     counts = [0] * n
     sessions: list[zenoh.Session] = []
     subs: list[Any] = []

@@ -811,11 +811,10 @@ def cmd_router(args: argparse.Namespace) -> int:
         print(f"error: {e}", file=sys.stderr)
         return 2
     print(f"zenoh router listening on {where} (Ctrl-C to stop)", flush=True)
+    from hilsim.service import on_stop_signals
+
     stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    try:
-        stop.wait()
-    except KeyboardInterrupt:
-        pass
+    on_stop_signals(stop.set)  # Ctrl-C or SIGTERM: not stop.set in a signal handler (see there)
+    stop.wait()
     r.close()
     return 0
