@@ -34,6 +34,23 @@ def wait_until(cond: Callable[[], bool], timeout: float = 5.0) -> bool:
     return cond()
 
 
+def sim_rate(marks: list[tuple[int, float]], from_ns: int = 1_000_000_000, window_s: float = 0.5) -> float:
+    """Sim seconds per wall second from (sim stamp ns, wall arrival s) marks, from ``from_ns`` on.
+
+    An arrival is the sample's instant on the wall clock plus a delivery delay that is never
+    negative but comes and goes (a callback queue behind a busy core): the promptest arrival in
+    the first and in the last ``window_s`` of sim time stand for the run's two ends, so a late
+    last sample is not read as physics falling behind, while physics truly behind is still seen.
+    """
+    pts = [(s / 1e9, w) for s, w in marks if s >= from_ns]
+    if len(pts) < 2:
+        raise AssertionError(f"too few truth samples after {from_ns / 1e9:g} s of sim time: {len(pts)}")
+    first, last = pts[0][0], pts[-1][0]
+    sh, wh = min((p for p in pts if p[0] <= first + window_s), key=lambda p: p[1] - p[0])
+    st, wt = min((p for p in pts if p[0] >= last - window_s), key=lambda p: p[1] - p[0])
+    return (st - sh) / (wt - wh)
+
+
 class Observer:
     """The test's own view of a run: physics truth, the joint server's reports, task results."""
 
