@@ -120,6 +120,14 @@ def bench_composed(sim_seconds: float, tmp: Path) -> float:
     return float(h["real_time_factor"])
 
 
+def bench_composed_recorder(sim_seconds: float, tmp: Path) -> float:
+    """The recorder composed too (physics, sensors, controller and logger in one process): the
+    process's samples reach it without crossing Zenoh; the planner apart."""
+    sc = _scenario(sim_seconds, compose=[["physics", "sensors", "controller", "logger"]])
+    h = _launch(sc, tmp / "composed_recorder")
+    return float(h["real_time_factor"])
+
+
 def bench_realtime(seconds: float, tmp: Path) -> dict[str, float]:
     h = _launch(_scenario(seconds, **{"clock.mode": "realtime"}), tmp / "realtime")
     return {
@@ -151,6 +159,12 @@ def cmd_loop(args: argparse.Namespace) -> int:
 
     res["ring_round_us"] = round_trip_us()
     say(f"    {res['ring_round_us']:.0f} µs per round ({PAYLOAD_BYTES}-byte payloads, median)")
+    say("  recording floor: CPU per sample sent to another process …")
+    from hilsim.ring import KEYS_PER_STEP, sample_cost_us
+
+    res["sample_cost_us"] = c = sample_cost_us()
+    say(f"    receiver {c['callback']:.1f} µs (callback), {c['channel']:.1f} µs (FIFO channel); "
+        f"sender {c['put']:.1f} µs")
     with TemporaryDirectory(prefix="hilsim-bench-") as d:
         say("  distributed (5 processes over Zenoh, logging on) …")
         res["distributed_rtf"] = bench_distributed(sim, Path(d))
@@ -158,6 +172,9 @@ def cmd_loop(args: argparse.Namespace) -> int:
         say("  composed (physics, sensors, controller in one process; planner and logger apart) …")
         res["composed_rtf"] = bench_composed(sim, Path(d))
         say(f"    {res['composed_rtf']:.2f}x real time")
+        say("  composed with the recorder (physics, sensors, controller, logger in one process) …")
+        res["composed_recorder_rtf"] = bench_composed_recorder(sim, Path(d))
+        say(f"    {res['composed_recorder_rtf']:.2f}x real time")
         if args.realtime_seconds > 0:
             say(f"  realtime mode for {args.realtime_seconds:g} s …")
             res["realtime"] = bench_realtime(args.realtime_seconds, Path(d))
@@ -174,13 +191,18 @@ def cmd_loop(args: argparse.Namespace) -> int:
     print()
     print("| pipeline | real-time factor | vs in-process | vs bare |")
     print("|---|---|---|---|")
-    for k in ("bare", "in_process", "distributed", "composed"):
+    for k in ("bare", "in_process", "distributed", "composed", "composed_recorder"):
         v = res[f"{k}_rtf"]
         print(f"| {k} | {v:.2f}x | {v / res['in_process_rtf']:.3f} | {v / res['bare_rtf']:.3f} |")
     fl = res["ring_round_us"] + step_us["in_process"]
     print(f"\nper step: distributed {step_us['distributed']:.0f} µs, floor {fl:.0f} µs (ring round "
           f"{res['ring_round_us']:.0f} + in-process {step_us['in_process']:.0f}): ratio "
           f"{res['ratio_distributed_vs_floor']:.2f} (goal <= 1.5); composed {step_us['composed']:.0f} µs")
+    c = res["sample_cost_us"]
+    per_s = KEYS_PER_STEP * 1000 * 10 * (min(c["callback"], c["channel"]) + c["put"]) / 1e6
+    print(f"recording floor: a recorder in its own process costs {min(c['callback'], c['channel']):.1f} + "
+          f"{c['put']:.1f} µs of CPU per sample on Zenoh alone; at 10x real time the arm's "
+          f"{KEYS_PER_STEP} keys per step take {per_s:.2f} cores for it")
     if "realtime" in res:
         r = res["realtime"]
         print(f"\nrealtime 1 kHz, {args.realtime_seconds:g} s: tick jitter p50 {r['jitter_p50_ms']:.3f} ms, "

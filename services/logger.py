@@ -18,6 +18,11 @@ This module is the service's wiring: subscriptions, the queue, the worker thread
 accounting, health and lifecycle. What is written for each kind of message (and the entity
 layout) is ``hilsim.rerun_rows``; the robot model and tool kinematics ``hilsim.kinematics``.
 
+Composed with other services (``--compose physics,sensors,controller,logger``, hilsim.compose),
+it takes their samples as message objects in the process (none of them crosses Zenoh) and the
+rest over Zenoh; the worker encodes a message object once, so both are recorded from the same
+bytes, the same way.
+
 The Zenoh callback only appends ``(key, payload)`` to a queue; a worker thread decodes
 (``hilsim.msgs.decode``), turns messages into rows (``RowWriter``) and sends them with
 ``send_columns`` every 0.5 s or every 20,000 rows. The per-step keys (clock, joint states, IMU)
@@ -104,7 +109,7 @@ class LoggerService(Service):
         self.rec: rr.RecordingStream | None = None
         self.rows: RowWriter | None = None
         self.model: RobotModel | None = None
-        self._queue: deque[tuple[str, bytes]] = deque()
+        self._queue: deque[tuple[str, Any]] = deque()  # payload bytes, or a composed service's message
         self.realtime = scenario.clock.mode == "realtime"
         self.queue_limit: int | None = REALTIME_QUEUE_LIMIT if self.realtime else None
         self._key_names: dict[str, str] = {}
@@ -176,10 +181,14 @@ class LoggerService(Service):
         self._worker.start()
         if self.delay_s:
             self.warn(f"{DELAY_ENV}: every received sample is delayed by {self.delay_s * 1e6:.0f} µs (fault injection)")
+        # composed: samples of this process's own services never cross Zenoh (hilsim.compose)
+        local = getattr(self.session, "local_subscriber", None)
         for expr in self.sc.logger.record:
-            sub = self.session.declare_subscriber(self.keys.scoped(expr), self._on_sample)
-            self._subs.append(sub)
-            self._declared.append(sub)
+            subs = [self.session.declare_subscriber(self.keys.scoped(expr), self._on_sample)]
+            if local is not None:
+                subs.append(local(self.keys.scoped(expr), self._on_local))
+            self._subs.extend(subs)
+            self._declared.extend(subs)
         limit = f"queue limit {self.queue_limit}" if self.queue_limit else "unbounded queue"
         self.log.info(
             "recording %s to %s (clock %s, %s)",
@@ -213,9 +222,16 @@ class LoggerService(Service):
         if self.delay_s and not self.stop_event.is_set():
             time.sleep(self.delay_s)
         k = str(sample.key_expr)
-        k = self._key_names.setdefault(k, k)  # one string per key, not one per queued sample
-        att = transport.read_attachment(sample)
-        payload = sample.payload.to_bytes()
+        self._take(self._key_names.setdefault(k, k), transport.read_attachment(sample), sample.payload.to_bytes())
+
+    def _on_local(self, key: str, msg: Any, att: transport.Attachment) -> None:
+        # composed (hilsim.compose): a message object from a service of this process; encoded by
+        # the worker, so it is recorded from the same bytes (and rows) as one that came over Zenoh
+        if self.delay_s and not self.stop_event.is_set():
+            time.sleep(self.delay_s)
+        self._take(self._key_names.setdefault(key, key), att, msg)
+
+    def _take(self, k: str, att: transport.Attachment | None, payload: Any) -> None:
         self._last_arrival = time.monotonic()
         # The base's health thread iterates these counters under self.lock.
         with self.lock:
@@ -273,9 +289,17 @@ class LoggerService(Service):
                 self._flush()
                 last_flush = time.monotonic()
 
-    def _handle(self, key: str, payload: bytes) -> None:
+    def _handle(self, key: str, payload: Any) -> None:
         rows = self.rows
         assert rows is not None
+        if not isinstance(payload, bytes):  # a message object of this process (_on_local)
+            try:
+                payload = msgs.encode(payload)  # pycdr2's buffer is per thread (hilsim.msgs.codec)
+            except Exception as e:  # not encodable: still recorded, as the error and the message's text
+                self.fault(f"cannot encode {key} from this process: {type(e).__name__}: {e}", exc=e)
+                rows.error(key, e, payload)
+                self._pending[key] += 1
+                return
         if rows.raw(key, payload):  # a clock, joint state or IMU sample of a layout seen before
             self.sim_ns = rows.clock_ns
             self._pending[key] += 1

@@ -16,3 +16,16 @@ def test_the_zenoh_ring_measures_a_round_and_its_relays_exit() -> None:
     left = [p for p in psutil.Process().children(recursive=True) if p.pid not in before and p.is_running()
             and p.status() != psutil.STATUS_ZOMBIE]
     assert not left, left
+
+
+def test_the_recording_floor_measures_both_sides_and_its_publisher_exits() -> None:
+    from hilsim.ring import sample_cost_us
+
+    before = {p.pid for p in psutil.Process().children(recursive=True)}
+    c = sample_cost_us(samples=1200, tick_us=300.0)  # waits for every sample: raises if one is lost
+    assert set(c) == {"callback", "channel", "put"}, c
+    # receiving costs something real (a count of 0 µs would mean the samples never came)
+    assert 0.5 < c["callback"] < 10_000 and 0.5 < c["channel"] < 10_000 and 0.0 <= c["put"] < 10_000, c
+    left = [p for p in psutil.Process().children(recursive=True) if p.pid not in before and p.is_running()
+            and p.status() != psutil.STATUS_ZOMBIE]
+    assert not left, left
