@@ -187,6 +187,9 @@ def build_parser() -> argparse.ArgumentParser:
     bc.add_argument("--samples", type=int, default=1000, help="paced latency probes per path")
     bc.add_argument("--seconds", type=float, default=3.0, help="flat-out duration per direction")
     bc.add_argument("--port", type=int, default=None, help="udp_multicast port (default: a random one)")
+    bc.add_argument("--realtime-priority", type=int, default=0, metavar="N",
+                    help="run the bridge with bridge-can.realtime_priority N (SCHED_FIFO, as a HIL rig would; "
+                         "needs root or CAP_SYS_NICE; default 0: none)")
     bc.set_defaults(func=_lazy("hilsim.bridges.can_bench", "cmd_can"))
     bm = bsub.add_parser("mavlink", help="MAVLink bridge: added latency GPS message -> Zenoh sample vs pymavlink alone")
     bm.add_argument("--json", action="store_true")

@@ -16,7 +16,8 @@ bridges; those bridges become containers under a profile:
 
 ``HILSIM_SCENARIO=config/hil/arm-can.yaml docker compose -f docker/compose.yaml --profile hil-can up``
 then runs that HIL set-up. The recording goes to ``runs/`` on the host (a mounted volume); physics
-may use SCHED_FIFO in realtime (``cap_add: SYS_NICE`` and an ``rtprio`` limit; docs/deployment.md).
+(in realtime) and the drive bridges (with ``realtime_priority``) may use SCHED_FIFO (``cap_add:
+SYS_NICE`` and an ``rtprio`` limit; docs/deployment.md, docs/hil.md).
 ``tests/test_compose_file.py`` checks that ``docker/compose.yaml`` is this module's output and runs
 each container's command outside docker.
 """
@@ -40,6 +41,9 @@ PROFILES = {"bridge-can": "hil-can", "drive-emulator": "hil-can", "bridge-mavlin
             "gps-emulator": "hil-mavlink"}
 HOST_NETWORK = {"hil-can"}  # can0 is an interface of the host, not of a container network
 
+
+# services that may ask for a real-time scheduling class: their containers are allowed to
+REALTIME_CAPABLE = {"physics", "bridge-can", "drive-emulator"}
 
 def _rel(path: Path) -> str:
     """A scenario path as the image sees it (its WORKDIR holds the repository's config/)."""
@@ -113,10 +117,12 @@ def compose(scenario: str | Path, hil: list[str | Path] | tuple[str | Path, ...]
         if "logger" in u.split("+"):
             cmd += ["--set", f"logger.out_dir={IN_CONTAINER_RUNS}"]
             svc["volumes"] = [f"../runs:{IN_CONTAINER_RUNS}"]
-        if "physics" in u.split("+"):
-            # realtime: physics asks for SCHED_FIFO (it runs without when refused, and says so)
+        if REALTIME_CAPABLE & set(u.split("+")):
+            # physics in realtime, and the drive bridges with realtime_priority, ask for SCHED_FIFO
+            # (they run without when refused, and say so)
             svc["cap_add"] = ["SYS_NICE"]
             svc["ulimits"] = {"rtprio": 99}
+        if "physics" in u.split("+"):
             others = [container_name(n) for n, p in units.items() if n != u and p is None]
             svc["depends_on"] = ["router", *others]
         if profile in HOST_NETWORK:
