@@ -77,7 +77,8 @@ class ClockConfig(_Model):
     )
     max_age: float = Field(
         0.05, ge=0, description="realtime: a received sample older than this (wall seconds since it was sent) is "
-        "dropped as stale and counted, so a service that fell behind catches up; 0 = keep every sample",
+        "dropped as stale and counted, so a service that fell behind catches up (streams only: a trajectory, "
+        "given once, is never dropped); 0 = keep every sample",
     )
     start_delay: float = Field(
         0.5, ge=0, description="wall seconds between every service being live and step 0 (peers finish connecting)"

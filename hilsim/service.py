@@ -198,12 +198,19 @@ class Service:
         *,
         n_joints: int | None = None,
         with_attachment: bool = False,
+        stream: bool = True,
     ) -> None:
         """Call ``handler(msg, key)`` for every valid message on ``key`` (may be a key expression);
-        with ``with_attachment``, ``handler(msg, key, attachment)`` (None if the sample has none)."""
+        with ``with_attachment``, ``handler(msg, key, attachment)`` (None if the sample has none).
+
+        ``stream``: the key carries a stream (states, commands at a rate), where in realtime a
+        sample older than ``clock.max_age`` is dropped because a newer one follows. ``False`` for
+        a key whose samples are each an order given once (a trajectory): never dropped as stale,
+        since nothing would replace it (a task would never start)."""
         assert self.session is not None
 
-        max_age_ns = round(self.sc.clock.max_age * 1e9) if self.sc.clock.mode == "realtime" else 0
+        realtime = self.sc.clock.mode == "realtime" and stream
+        max_age_ns = round(self.sc.clock.max_age * 1e9) if realtime else 0
 
         def admit(k: str, att: transport.Attachment | None) -> bool:
             self.counts_in[k] += 1

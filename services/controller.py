@@ -109,7 +109,8 @@ class ControllerService(Service):
         self.ref_pub = self.publisher(self.keys.topic("controller/reference"))
         self.subscribe(self.keys.topic("joint_states"), msgs.JointState, self.on_joint_states, n_joints=self.n)
         # No n_joints here: a trajectory may name a subset of the joints.
-        self.subscribe(self.keys.topic("joint_trajectory"), msgs.JointTrajectory, self.on_trajectory)
+        # a trajectory is given once: late (a loaded machine) it is still the task's (stream=False)
+        self.subscribe(self.keys.topic("joint_trajectory"), msgs.JointTrajectory, self.on_trajectory, stream=False)
         self.queryable(
             self.keys.topic("controller/set_parameters"),
             msgs.SetParameters,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -311,3 +312,39 @@ def test_lockstep_chain_with_sensors_and_mujoco(
     finally:
         for x in decl:
             x.undeclare()
+
+
+def test_realtime_drops_a_stale_joint_state_but_never_a_trajectory(
+        scenario: Callable[..., Any], session: Any, run_service: Callable[[Any], Any]) -> None:
+    """Realtime: a joint state older than clock.max_age is dropped (a newer one follows, the loop
+    works on fresh data), a trajectory just as old is taken (given once: dropped, a task would
+    never start; seen on a loaded machine as a target never moved to)."""
+    sc = scenario("arm", {"clock.mode": "realtime", "clock.max_age": 0.05})
+    with run_service(ControllerService(sc)) as svc:
+        rig = Rig(svc, session)
+        try:
+            gid = transport.new_gid()
+            old = time.time_ns() - 1_000_000_000  # sent a second ago: queued behind a busy core
+
+            def att(seq: int, ns: int) -> bytes:
+                return transport.Attachment(seq, ns, gid).encode()
+
+            k_js = rig.keys.topic("joint_states")
+            rig.pub_js.put(msgs.encode(js(0)), attachment=att(1, old))
+            assert wait_until(lambda: svc.stale[k_js] == 1, 5.0), svc.stale
+            time.sleep(0.2)
+            assert rig.cmds == [], "a stale joint state was answered"
+            rig.pub_js.put(msgs.encode(js(1)), attachment=att(2, time.time_ns()))
+            with rig.cv:
+                assert rig.cv.wait_for(lambda: len(rig.cmds) == 1, 5.0), "a fresh joint state was not answered"
+            tr = msgs.JointTrajectory(header=msgs.header(2 * DT_NS), joint_names=["joint_1"], points=[
+                msgs.JointTrajectoryPoint(positions=[0.0], time_from_start=msgs.duration(0.0)),
+                msgs.JointTrajectoryPoint(positions=[0.3], time_from_start=msgs.duration(1.0))])
+            k_tr = rig.keys.topic("joint_trajectory")
+            rig.pub_traj.put(msgs.encode(tr), attachment=att(1, old))
+            assert wait_until(lambda: svc.counts_in[k_tr] == 1, 5.0)
+            with svc.lock:
+                assert svc.stale[k_tr] == 0 and svc.rejected[k_tr] == 0
+                assert svc.next_traj is not None or svc.traj is not None, "the trajectory was not taken"
+        finally:
+            rig.close()

@@ -240,9 +240,9 @@ def test_arm_across_three_hosts_in_realtime(hosts: Hosts, tmp_path: Path) -> Non
     """The lean arm in realtime across the same three hosts, without a recorder: the target is
     reached in the truth, and sim time kept the wall clock as the test measured it (truth stamps
     against their arrival in the root namespace), every sample through the router."""
-    # clock.max_age: a realtime service drops a sample older than this as stale (0.05 s by default,
-    # one host); two hops through the router on a loaded 2-core machine take longer now and then, and
-    # a dropped joint_trajectory is a task never started (docs/deployment.md)
+    # clock.max_age: a realtime service drops a stream's sample older than this as stale (0.05 s by
+    # default, one host); two hops through the router on a loaded 2-core machine take longer now and
+    # then, as docs/deployment.md advises for several hosts
     out, obs = _run_across_hosts(hosts, tmp_path, LEAN, ["--clock", "realtime", "--no-logger",
                                                          "--set", "clock.max_age=0.25", *LEAN_ARGS])
     try:
