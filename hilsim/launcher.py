@@ -65,9 +65,15 @@ def stop_order(sc: Scenario) -> list[str]:
     first, the recorder last); they start in the reverse order."""
     from hilsim.registry import service_class
 
-    names = sc.launch_units()  # a composed process a+b+c stops at the rank of its first-stopping member
-    return sorted(names, key=lambda n: (min(service_class(fleet.split_id(m)[0], sc).stop_rank
-                                            for m in n.split("+")), names.index(n)))
+    names = sc.launch_units()
+
+    def rank(unit: str) -> int:
+        # a composed process a+b+c stops at the rank of its first-stopping member, except one that
+        # holds the recorder: it stops last, recording what the others publish as they stop
+        ranks = {fleet.split_id(m)[0]: service_class(fleet.split_id(m)[0], sc).stop_rank for m in unit.split("+")}
+        return ranks["logger"] if "logger" in ranks else min(ranks.values())
+
+    return sorted(names, key=lambda n: (rank(n), names.index(n)))
 
 
 def _pdeathsig() -> None:

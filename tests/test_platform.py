@@ -125,6 +125,11 @@ def test_registry_lists_without_importing_and_names_what_is_available() -> None:
     order = stop_order(sc)
     assert order[0] == "physics" and order[-1] == "logger" and order.index("motor-model") > order.index("controller")
     assert registry.lockstep_participants(load_scenario("arm")) == {"controller": 1, "planner": 10}
+    # composed: a group stops with its first-stopping member, a group holding the recorder last
+    assert stop_order(load_scenario("arm", {"compose": [["physics", "sensors", "controller"]]})) == [
+        "physics+sensors+controller", "planner", "logger"]
+    assert stop_order(load_scenario("arm", {"compose": [["physics", "sensors", "controller", "logger"]]})) == [
+        "planner", "physics+sensors+controller+logger"]
 
 
 def test_controller_type_picks_the_control_law() -> None:
