@@ -112,19 +112,11 @@ def bench_distributed(sim_seconds: float, tmp: Path) -> float:
     return float(h["real_time_factor"])
 
 
-def bench_composed(sim_seconds: float, tmp: Path) -> float:
-    """Physics, sensors and controller in one process (hilsim.compose); planner and recorder
-    separate, recording everything."""
-    sc = _scenario(sim_seconds, compose=[["physics", "sensors", "controller"]])
-    h = _launch(sc, tmp / "composed")
-    return float(h["real_time_factor"])
-
-
-def bench_composed_recorder(sim_seconds: float, tmp: Path) -> float:
-    """The recorder composed too (physics, sensors, controller and logger in one process): the
-    process's samples reach it without crossing Zenoh; the planner apart."""
-    sc = _scenario(sim_seconds, compose=[["physics", "sensors", "controller", "logger"]])
-    h = _launch(sc, tmp / "composed_recorder")
+def bench_composed(sim_seconds: float, tmp: Path, with_recorder: bool = False) -> float:
+    """Physics, sensors and controller in one process (hilsim.compose), the planner separate, recording
+    everything; ``with_recorder``: the recorder in that process too (its samples never cross Zenoh)."""
+    group = ["physics", "sensors", "controller", *(["logger"] if with_recorder else [])]
+    h = _launch(_scenario(sim_seconds, compose=[group]), tmp / "+".join(group))
     return float(h["real_time_factor"])
 
 
@@ -173,7 +165,7 @@ def cmd_loop(args: argparse.Namespace) -> int:
         res["composed_rtf"] = bench_composed(sim, Path(d))
         say(f"    {res['composed_rtf']:.2f}x real time")
         say("  composed with the recorder (physics, sensors, controller, logger in one process) …")
-        res["composed_recorder_rtf"] = bench_composed_recorder(sim, Path(d))
+        res["composed_recorder_rtf"] = bench_composed(sim, Path(d), with_recorder=True)
         say(f"    {res['composed_recorder_rtf']:.2f}x real time")
         if args.realtime_seconds > 0:
             say(f"  realtime mode for {args.realtime_seconds:g} s …")

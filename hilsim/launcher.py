@@ -70,7 +70,7 @@ def stop_order(sc: Scenario) -> list[str]:
     def rank(unit: str) -> int:
         # a composed process a+b+c stops at the rank of its first-stopping member, except one that
         # holds the recorder: it stops last, recording what the others publish as they stop
-        ranks = {fleet.split_id(m)[0]: service_class(fleet.split_id(m)[0], sc).stop_rank for m in unit.split("+")}
+        ranks = {b: service_class(b, sc).stop_rank for b in (fleet.split_id(m)[0] for m in unit.split("+"))}
         return ranks["logger"] if "logger" in ranks else min(ranks.values())
 
     return sorted(names, key=lambda n: (rank(n), names.index(n)))

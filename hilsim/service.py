@@ -78,7 +78,6 @@ class Publisher:
         self._pub.undeclare()
 
 
-
 def on_stop_signals(callback: Callable[[], None], signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> None:
     """Call ``callback`` from a watcher thread when one of ``signals`` arrives (main thread only).
 

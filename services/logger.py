@@ -219,19 +219,17 @@ class LoggerService(Service):
     # ------------------------------------------------------------------ receiving (Zenoh thread)
     def _on_sample(self, sample: zenoh.Sample) -> None:
         # Only queue: decoding here would slow Zenoh's delivery to every other subscriber.
-        if self.delay_s and not self.stop_event.is_set():
-            time.sleep(self.delay_s)
-        k = str(sample.key_expr)
-        self._take(self._key_names.setdefault(k, k), transport.read_attachment(sample), sample.payload.to_bytes())
+        self._take(str(sample.key_expr), transport.read_attachment(sample), sample.payload.to_bytes())
 
     def _on_local(self, key: str, msg: Any, att: transport.Attachment) -> None:
         # composed (hilsim.compose): a message object from a service of this process; encoded by
         # the worker, so it is recorded from the same bytes (and rows) as one that came over Zenoh
-        if self.delay_s and not self.stop_event.is_set():
-            time.sleep(self.delay_s)
-        self._take(self._key_names.setdefault(key, key), att, msg)
+        self._take(key, att, msg)
 
     def _take(self, k: str, att: transport.Attachment | None, payload: Any) -> None:
+        if self.delay_s and not self.stop_event.is_set():
+            time.sleep(self.delay_s)
+        k = self._key_names.setdefault(k, k)  # one string per key, not one per queued sample
         self._last_arrival = time.monotonic()
         # The base's health thread iterates these counters under self.lock.
         with self.lock:
