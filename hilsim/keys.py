@@ -131,11 +131,12 @@ class Keys:
     def all_server_states(self) -> str:
         return f"{self.prefix}/{self.robot}/hw/*/joint_states"
 
-    def lockstep(self, service: str, period: int, via: str, gid: str) -> str:
-        """Liveliness token of a lockstep participant: physics waits for ``service`` every
-        ``period`` steps; its acknowledgement is ``sync/<service>`` (``via`` = ``sync``) or its
-        ``joint_commands`` (``via`` = ``joint_commands``), written by the publisher ``gid`` (hex)."""
-        return f"{self.prefix}/{self.robot}/lockstep/{service}/{period}/{via}/{gid}"
+    def lockstep(self, service: str, period: int, lag: int, via: str, gid: str) -> str:
+        """Liveliness token of a lockstep participant: ``service`` acknowledges every ``period``-th
+        step, and physics waits for the acknowledgement of step k before stepping past k + ``lag``;
+        it is ``sync/<service>`` (``via`` = ``sync``) or its ``joint_commands`` (``via`` =
+        ``joint_commands``), written by the publisher ``gid`` (hex)."""
+        return f"{self.prefix}/{self.robot}/lockstep/{service}/{period}/{lag}/{via}/{gid}"
 
     @property
     def all_lockstep(self) -> str:

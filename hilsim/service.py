@@ -132,6 +132,13 @@ class Service:
         return None
 
     @classmethod
+    def lockstep_lag(cls, sc: Scenario) -> int:
+        """Steps physics may run past a step this service owes before waiting for it (0: wait at
+        that step). Only for a service whose output for step k takes effect at a later step it
+        stamps itself (the planner's trajectories), so that waiting later changes nothing."""
+        return 0
+
+    @classmethod
     def resolve(cls, sc: Scenario) -> type[Service]:
         """The class that actually runs for this scenario (e.g. the controller by ``controller.type``)."""
         return cls
@@ -414,7 +421,8 @@ class Service:
             ack = self.ack_publisher()
             if ack is None:
                 raise RuntimeError(f"{self.name}: lockstep participant without an acknowledgement publisher")
-            token = self.keys.lockstep(self.name, int(period or 1), self.ack_via, ack.gid.hex())
+            token = self.keys.lockstep(self.name, int(period or 1), self.lockstep_lag(self.sc), self.ack_via,
+                                       ack.gid.hex())
             self._declared.append(session.liveliness().declare_token(token))
         self._declared.append(session.liveliness().declare_token(self.keys.alive(self.name)))
         self.state = "running"

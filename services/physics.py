@@ -67,10 +67,10 @@ def _percentile(hist: np.ndarray, n: int, q: float) -> float:
 class Participant:
     """A lockstep participant as it announced itself."""
 
-    __slots__ = ("gid", "period", "via")
+    __slots__ = ("gid", "lag", "period", "via")
 
-    def __init__(self, period: int, via: str, gid: str) -> None:
-        self.period, self.via, self.gid = period, via, gid
+    def __init__(self, period: int, lag: int, via: str, gid: str) -> None:
+        self.period, self.lag, self.via, self.gid = period, lag, via, gid
 
 
 class Robot:
@@ -206,18 +206,19 @@ class PhysicsService(Service):
         self.log.info("%s gone: simulated joints without torque until commands come again", svc)
 
     def _on_lockstep(self, sample: zenoh.Sample) -> None:
-        # <prefix>/<robot>/lockstep/<service>/<period>/<via>/<gid>
+        # <prefix>/<robot>/lockstep/<service>/<period>/<lag>/<via>/<gid>
         key = str(sample.key_expr)
-        period, via, gid = key.split("/")[-3:]
+        period, lag, via, gid = key.split("/")[-4:]
         svc = fleet.service_id(self.sc, key, "lockstep")
         with self.lock:
             if sample.kind != zenoh.SampleKind.PUT:
                 self.announced.pop(svc, None)
                 return
-            if via not in ("sync", "joint_commands") or not period.isdigit() or int(period) < 1:
-                self.fault(f"lockstep token of {svc} not understood: period {period!r}, via {via!r}")
+            if (via not in ("sync", "joint_commands") or not period.isdigit() or int(period) < 1
+                    or not lag.isdigit()):
+                self.fault(f"lockstep token of {svc} not understood: period {period!r}, lag {lag!r}, via {via!r}")
                 return
-            p = Participant(int(period), via, gid)
+            p = Participant(int(period), int(lag), via, gid)
             self.announced[svc] = p
             if svc in self.participants:  # a participant that came back (e.g. restarted): new writer id
                 self.participants[svc] = p
@@ -378,10 +379,17 @@ class PhysicsService(Service):
         return out
 
     def _missing(self) -> list[str]:
-        """Participants that still owe an acknowledgement for the current step."""
-        t, k = self.world.time_ns, self.world.step_index
-        # e.g. the controller answers at control steps only, the planner at its own decision steps
-        return [p for p, ns in self.acked.items() if ns < t and k % self.participants[p].period == 0]
+        """Participants that still owe an acknowledgement physics must have before stepping on:
+        for step k - lag, where that step is one of theirs (the controller answers at control
+        steps, the planner at its decision ticks, and is waited for ``lag`` steps later)."""
+        t, k, dt = self.world.time_ns, self.world.step_index, self.sc.dt_ns
+        missing = []
+        for name, ns in self.acked.items():
+            p = self.participants[name]
+            due = k - p.lag
+            if due >= 0 and due % p.period == 0 and ns < t - p.lag * dt:
+                missing.append(name)
+        return missing
 
     def fix_participants(self) -> None:
         """Before step 0: the lockstep participants are those that announced themselves by now."""
@@ -390,7 +398,8 @@ class PhysicsService(Service):
             self.acked = {p: -1 for p in self.participants}
         if self.participants:
             self.log.info("lockstep participants: %s", ", ".join(
-                f"{n} (every {p.period} steps, via {p.via})" for n, p in self.participants.items()))
+                f"{n} (every {p.period} steps, via {p.via}" + (f", waited for {p.lag} steps later)" if p.lag else ")")
+                for n, p in self.participants.items()))
 
     def _wait_for_services(self) -> bool:
         """Before step 0: every service of the scenario is live, then a short grace.
@@ -460,6 +469,11 @@ class PhysicsService(Service):
         if time.monotonic() - self.back_at < self.sc.clock.start_delay:
             return
         back = ", ".join(sorted(self.gone))
+        for s in self.gone:
+            if s in self.acked:
+                # a step before this one that a lagging participant owed died with it: the new
+                # process starts from this step and never saw that one
+                self.acked[s] = max(self.acked[s], self.world.time_ns - 1)
         self.gone.clear()
         self.state = "running"
         self.last_progress = time.monotonic()

@@ -5,7 +5,8 @@ Reads:
   execution monitoring. Every ``planner.rate_hz`` step's joint state is a *decision tick*: goals
   start there, and in lockstep mode the tick is acknowledged only once the trajectory is out
   (planning takes no sim time). Deciding on the joint state itself, not on the clock, means a
-  plan always starts from the state of its own step: reproducible bit for bit.
+  plan always starts from the state of its own step: reproducible bit for bit. Physics waits for
+  a tick's acknowledgement only ``lockstep_lag`` steps later (the trajectory acts later still).
 
 Writes:
 - ``joint_trajectory`` (trajectory_msgs/JointTrajectory) for the joint trajectory controller,
@@ -32,6 +33,7 @@ from __future__ import annotations
 import queue
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -89,6 +91,16 @@ class PlannerService(Service):
     def lockstep_period(cls, sc: Scenario) -> int | None:
         return sc.planner_decimation  # it decides, and acknowledges, on its own ticks only
 
+    @classmethod
+    def lockstep_lag(cls, sc: Scenario) -> int:
+        # What the planner decides at tick t acts from t + START_DELAY_NS on (the trajectory's
+        # stamp), so physics need not stop at t for it: it simulates on while the planner's round
+        # trip is under way and waits at t + lag at the latest (measured: the planner's wait was
+        # half the time of a composed step; docs/performance.md). Half the start delay at most,
+        # so the trajectory, sent before the acknowledgement, still has half of it to reach the
+        # controller; one decision period at most, so at most one tick is owed at a time.
+        return max(0, min(sc.planner_decimation, START_DELAY_NS // (2 * sc.dt_ns)))
+
     def __init__(self, scenario: Scenario) -> None:
         super().__init__(scenario)
         self.library = PlannerLibrary.load(scenario.planner.library)
@@ -116,7 +128,9 @@ class PlannerService(Service):
         self.plans = 0
         self.goals_rejected = 0
         self.last_planning_time = 0.0
-        self._jobs: queue.Queue[tuple[Goal, int] | None] = queue.Queue()
+        self._jobs: queue.Queue[tuple[Goal, int, np.ndarray] | None] = queue.Queue()
+        self._planning = False  # a job is queued or being planned
+        self._deferred: deque[tuple[int, np.ndarray]] = deque()  # lockstep ticks that came meanwhile
         self._worker: threading.Thread | None = None
 
     # ------------------------------------------------------------------ setup
@@ -369,9 +383,19 @@ class PlannerService(Service):
 
     def on_tick(self, t: int) -> None:
         """A decision step (see the module docstring)."""
+        assert self.q is not None
+        if self.lockstep and self._planning:
+            # Physics runs up to lockstep_lag steps past a tick being planned, so a later tick can
+            # come before that plan is out: it waits, with its own step's state, and is decided
+            # (and acknowledged) after it, in order, exactly as if physics had stopped at the first
+            self._deferred.append((t, self.q.copy()))
+            return
+        self._decide(t, self.q.copy())
+
+    def _decide(self, t: int, q: np.ndarray) -> None:
         self.sim_ns = max(self.sim_ns, t)
         self.task_runner.on_tick()
-        if self.active is None and self.pending and self.q is not None:
+        if self.active is None and self.pending:
             goal = self.pending.pop(0)
             if goal.invalid is not None:
                 self._finish(goal, False, *goal.invalid)
@@ -379,7 +403,8 @@ class PlannerService(Service):
                 self.active = goal
                 goal.state = "planning"
                 self._feedback(goal, 0.0, t)
-                self._jobs.put((goal, t))
+                self._planning = True
+                self._jobs.put((goal, t, q))  # planned from q, the state of this tick's step
                 return  # the worker acknowledges t once the trajectory is out
         if self.lockstep:
             self.ack(t)
@@ -390,22 +415,25 @@ class PlannerService(Service):
             job = self._jobs.get()
             if job is None:
                 return
-            goal, t = job
+            goal, t, q = job
             try:
-                self._plan(goal, t)
+                self._plan(goal, t, q)
             except Exception as e:  # a planner bug must fail the goal, not the service
                 with self.lock:
                     self.fault(f"planning {goal.goal_id} failed: {type(e).__name__}: {e}", exc=e)
                     if goal.state == "planning":
                         self._finish(goal, False, msgs.PLANNING_FAILED, f"{type(e).__name__}: {e}")
             finally:
-                if self.lockstep:
-                    self.ack(t)
+                with self.lock:
+                    if self.lockstep:
+                        self.ack(t)
+                    self._planning = False
+                    # the ticks that came while planning, in order (one may start the next plan)
+                    while self._deferred and not self._planning:
+                        self._decide(*self._deferred.popleft())
 
-    def _plan(self, goal: Goal, t: int) -> None:
-        with self.lock:
-            start = self.q.copy()  # type: ignore[union-attr]
-        start = np.clip(start, self.arm.lower, self.arm.upper)
+    def _plan(self, goal: Goal, t: int, q: np.ndarray) -> None:
+        start = np.clip(q, self.arm.lower, self.arm.upper)
         measured = start
         with self.lock:
             anchor = self.last_target

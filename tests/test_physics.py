@@ -44,8 +44,8 @@ def test_lockstep_waits_for_every_participant(scenario: Any, session: zenoh.Sess
     def put(pub: Any, msg: Any, gid: bytes) -> None:
         pub.put(msgs.encode(msg), attachment=transport.attachment_bytes(next(seq), gid))
 
-    tokens = [session.liveliness().declare_token(keys.lockstep("planner", 1, "sync", gid_sync.hex())),
-              session.liveliness().declare_token(keys.lockstep("controller", 1, "joint_commands", gid_cmd.hex()))]
+    tokens = [session.liveliness().declare_token(keys.lockstep("planner", 1, 0, "sync", gid_sync.hex())),
+              session.liveliness().declare_token(keys.lockstep("controller", 1, 0, "joint_commands", gid_cmd.hex()))]
     tokens += [session.liveliness().declare_token(keys.alive(n)) for n in ("planner", "controller", "sensors")]
     svc = PhysicsService(sc)
     with run_service(svc):
@@ -94,6 +94,58 @@ def test_lockstep_waits_for_every_participant(scenario: Any, session: zenoh.Sess
         # a silent participant is reported as a fault, not a hang
         time.sleep(1.5)
         assert svc.errors >= 1 and "no lockstep acknowledgement" in svc.last_error
+    sub.undeclare()
+    for t in tokens:
+        t.undeclare()
+
+
+def test_a_lagging_participant_is_waited_for_lag_steps_later(scenario: Any, session: zenoh.Session,
+                                                             run_service: Any) -> None:
+    """A participant announced with a lag (the planner: its trajectories act later, at a stamp of
+    their own) is waited for ``lag`` steps after the step it owes, not at it; physics stops
+    there until the acknowledgement comes, and never runs further ahead."""
+    sc = scenario("arm", {"services": ["physics", "sensors", "controller", "planner"], "clock.ack_timeout": 5.0})
+    keys = Keys(sc.prefix, sc.robot)
+    names = [f"joint_{i}" for i in range(1, 7)]
+    gid_sync, gid_cmd = transport.new_gid(), transport.new_gid()
+    sync = transport.publisher(session, keys.sync("planner"))
+    cmd = transport.publisher(session, keys.topic("joint_commands"))
+    seq = iter(range(1, 100000))
+    clocks: list[int] = []
+    lock = threading.Lock()
+
+    def on_clock(s: zenoh.Sample) -> None:
+        t = msgs.ns_of(msgs.decode(msgs.Clock, s.payload.to_bytes()).clock)
+        with lock:
+            clocks.append(t)
+            # the controller answers every step at once: only the planner holds physics back
+            cmd.put(msgs.encode(msgs.JointState(header=msgs.header(t), name=names, effort=[0.0] * 6)),
+                    attachment=transport.attachment_bytes(next(seq), gid_cmd))
+
+    sub = session.declare_subscriber(keys.clock, on_clock)
+    # the planner: every 4th step, waited for 3 steps later
+    tokens = [session.liveliness().declare_token(keys.lockstep("planner", 4, 3, "sync", gid_sync.hex())),
+              session.liveliness().declare_token(keys.lockstep("controller", 1, 0, "joint_commands", gid_cmd.hex()))]
+    tokens += [session.liveliness().declare_token(keys.alive(n)) for n in ("planner", "controller", "sensors")]
+
+    def steps_after(wait: float) -> list[int]:
+        time.sleep(wait)
+        with lock:
+            return [t // sc.dt_ns for t in clocks]
+
+    def ack(step: int) -> None:
+        sync.put(msgs.encode(msgs.Clock(clock=msgs.stamp(step * sc.dt_ns))),
+                 attachment=transport.attachment_bytes(next(seq), gid_sync))
+
+    with run_service(PhysicsService(sc)):
+        # tick 0 unanswered: steps 1, 2, 3 still come (the planner may be busy with tick 0), not 4
+        assert steps_after(1.0) == [0, 1, 2, 3]
+        ack(0)
+        # ticks 4 owed from step 7 on
+        assert steps_after(0.5) == list(range(8))
+        ack(4)
+        ack(8)  # early: an acknowledgement of a later tick covers the earlier ones too
+        assert steps_after(0.5) == list(range(16))
     sub.undeclare()
     for t in tokens:
         t.undeclare()

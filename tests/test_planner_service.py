@@ -7,6 +7,7 @@ The test publishes ``joint_states`` (and the clock) for each step, waits for the
 from __future__ import annotations
 
 import threading
+import time
 from typing import Any
 
 import numpy as np
@@ -258,5 +259,36 @@ def test_scenario_task_runs_targets_in_order(rig: Any) -> None:
         assert np.allclose(sim.q, OVER, atol=1e-9)
         # the task's outcome also comes on the generic task/result, the same message
         assert wait_until(lambda: len(on_task) == 1) and on_task[0] == task
+    finally:
+        sub.undeclare()
+
+
+def test_a_tick_that_comes_while_planning_waits_for_the_plan(rig: Any) -> None:
+    """Physics runs ahead of a tick being planned (the planner's lockstep lag), so the next tick's
+    joint state can reach the planner mid-plan: that tick is acknowledged only after the planned
+    one, and the plan starts from its own tick's state, not the newer one."""
+    svc, sim, client = rig
+    sim.step(2)
+    plan = svc._plan
+
+    def slow_plan(*args: Any) -> None:  # a plan that takes a while: the next tick surely comes meanwhile
+        time.sleep(0.3)
+        plan(*args)
+
+    svc._plan = slow_plan
+    acks: list[int] = []
+    sub = sim.s.declare_subscriber(sim.keys.sync("planner"), lambda s: acks.append(
+        msgs.ns_of(msgs.decode(msgs.Clock, s.payload.to_bytes()).clock)))
+    try:
+        assert client.send(msgs.MoveGoal(goal_id="g1", joint_positions=LEFT)).accepted
+        t0, t1 = sim.k * DT_NS, (sim.k + 1) * DT_NS
+        q1 = [0.05] * 6  # the arm has moved by the next tick
+        for t, q in ((t0, [0.0] * 6), (t1, q1)):
+            sim.pub_js.put(msgs.encode(msgs.JointState(header=msgs.header(t), name=NAMES, position=q)))
+        assert wait_until(lambda: t1 in acks, 30), acks
+        assert acks[-2:] == [t0, t1], acks  # in order: the newer tick waited for the plan
+        assert wait_until(lambda: bool(sim.trajs), 10), "no trajectory"  # another subscriber: may come later
+        assert np.allclose(sim.trajs[-1].points[0].positions, [0.0] * 6)  # planned from t0's state
+        assert msgs.ns_of(sim.trajs[-1].header.stamp) == t0 + 20_000_000
     finally:
         sub.undeclare()

@@ -117,7 +117,7 @@ def test_lockstep_steps_through_steps_nobody_is_due_at(scenario: Any, session: z
         msgs.ns_of(msgs.decode(msgs.Clock, s.payload.to_bytes()).clock)))
     gid = transport.new_gid()
     cmd = transport.publisher(session, keys.topic("joint_commands"))
-    tokens = [session.liveliness().declare_token(keys.lockstep("controller", 5, "joint_commands", gid.hex())),
+    tokens = [session.liveliness().declare_token(keys.lockstep("controller", 5, 0, "joint_commands", gid.hex())),
               session.liveliness().declare_token(keys.alive("controller"))]
     with run_service(PhysicsService(sc)) as svc:
         deadline = time.monotonic() + 10
