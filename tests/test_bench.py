@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import psutil
 
@@ -29,3 +30,18 @@ def test_the_recording_floor_measures_both_sides_and_its_publisher_exits() -> No
     left = [p for p in psutil.Process().children(recursive=True) if p.pid not in before and p.is_running()
             and p.status() != psutil.STATUS_ZOMBIE]
     assert not left, left
+
+
+def test_the_distributed_run_counts_the_cpu_of_every_process(tmp_path: Path) -> None:
+    """The CPU floor `hilsim bench loop` prints: every service's CPU from "ready" to the end of
+    the run, read before the processes exit (a process already gone would read 0)."""
+    from hilsim.bench import bench_distributed
+
+    cpu: dict[str, float] = {}
+    rtf = bench_distributed(0.5, tmp_path, cpu)
+    assert set(cpu) == {"physics", "sensors", "controller", "planner", "logger", "router+launcher"}, cpu
+    services = {n: s for n, s in cpu.items() if n != "router+launcher"}
+    # 500 lockstep steps cost each service real CPU; together no more than the cores had in that time
+    assert all(s > 0.005 for s in services.values()), cpu
+    wall = 0.5 / rtf
+    assert sum(cpu.values()) < (psutil.cpu_count() or 1) * (wall + 2.0), (cpu, wall)
