@@ -14,7 +14,8 @@ Ratios are distributed / in_process and distributed / bare: compare ratios, not 
 of one distributed step; the distributed step time is reported against ring round + in-process
 step time. The CPU floor: the CPU every process of the distributed run spends per step (psutil,
 from "ready" to the end of the run), divided by the machine's cores: on a small machine the
-distributed pipeline is CPU-bound, and no step can take less wall time than that.
+distributed pipeline is CPU-bound, and no step can take less wall time than that. Likewise the
+composed run's CPU per step, as the cores it would need at 10x real time.
 
 Then ``realtime``: the same pipeline with ``--clock realtime`` for ``--realtime-seconds``;
 physics reports its tick jitter (p50, p99) and the share of missed deadlines.
@@ -134,11 +135,12 @@ def bench_distributed(sim_seconds: float, tmp: Path, cpu: dict[str, float] | Non
     return float(h["real_time_factor"])
 
 
-def bench_composed(sim_seconds: float, tmp: Path, with_recorder: bool = False) -> float:
+def bench_composed(sim_seconds: float, tmp: Path, with_recorder: bool = False,
+                   cpu: dict[str, float] | None = None) -> float:
     """Physics, sensors and controller in one process (hilsim.compose), the planner separate, recording
     everything; ``with_recorder``: the recorder in that process too (its samples never cross Zenoh)."""
     group = ["physics", "sensors", "controller", *(["logger"] if with_recorder else [])]
-    h = _launch(_scenario(sim_seconds, compose=[group]), tmp / "+".join(group))
+    h = _launch(_scenario(sim_seconds, compose=[group]), tmp / "+".join(group), cpu)
     return float(h["real_time_factor"])
 
 
@@ -187,7 +189,9 @@ def cmd_loop(args: argparse.Namespace) -> int:
         res["distributed_cpu_us_per_step"] = {n: 1e6 * s / steps for n, s in cpu.items()}
         say(f"    {res['distributed_rtf']:.2f}x real time")
         say("  composed (physics, sensors, controller in one process; planner and logger apart) …")
-        res["composed_rtf"] = bench_composed(sim, Path(d))
+        cpu = {}
+        res["composed_rtf"] = bench_composed(sim, Path(d), cpu=cpu)
+        res["composed_cpu_us_per_step"] = {n: 1e6 * s / steps for n, s in cpu.items()}
         say(f"    {res['composed_rtf']:.2f}x real time")
         say("  composed with the recorder (physics, sensors, controller, logger in one process) …")
         res["composed_recorder_rtf"] = bench_composed(sim, Path(d), with_recorder=True)
@@ -224,6 +228,13 @@ def cmd_loop(args: argparse.Namespace) -> int:
     each = ", ".join(f"{n} {v:.0f}" for n, v in sorted(per.items(), key=lambda x: -x[1]))
     print(f"distributed CPU per step, all processes: {total:.0f} µs = {total / cores:.0f} µs of wall time on "
           f"{cores} cores at the least ({each})")
+    # and what the composed run would need at 10x: the CPU of one step, 10 000 steps a second
+    per = res["composed_cpu_us_per_step"]
+    total = sum(per.values())
+    res["composed_cores_at_10x"] = total * 10_000 / 1e6
+    each = ", ".join(f"{n} {v:.0f}" for n, v in sorted(per.items(), key=lambda x: -x[1]))
+    print(f"composed CPU per step, all processes: {total:.0f} µs: at 10x real time that is "
+          f"{res['composed_cores_at_10x']:.2f} cores of this machine's {cores} ({each})")
     c = res["sample_cost_us"]
     per_s = KEYS_PER_STEP * 1000 * 10 * (min(c["callback"], c["channel"]) + c["put"]) / 1e6
     print(f"recording floor: a recorder in its own process costs {min(c['callback'], c['channel']):.1f} + "
