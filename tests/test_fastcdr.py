@@ -1,4 +1,5 @@
-"""The fast codec of the per-step message types gives exactly pycdr2's bytes and messages."""
+"""The fast codec of the per-step message types (the arm's and the rover's) gives exactly pycdr2's bytes
+and messages."""
 
 from __future__ import annotations
 
@@ -36,6 +37,25 @@ def _random_messages(rng: random.Random) -> list[msgs.IdlStruct]:
             linear_acceleration_covariance=v[28:37],
         ))
         out.append(msgs.Clock(clock=h.stamp))
+        # the rover's: odometry, transforms (any number, frame ids of every length), body velocity
+        w = [rng.uniform(-10, 10) for _ in range(85)]
+        out.append(msgs.Odometry(
+            header=h, child_frame_id=rng.choice(NAMES)[: rng.randrange(0, 12)],
+            pose=msgs.PoseWithCovariance(pose=msgs.Pose(position=msgs.Point(*w[0:3]),
+                                                        orientation=msgs.Quaternion(*w[3:7])),
+                                         covariance=w[7:43]),
+            twist=msgs.TwistWithCovariance(twist=msgs.Twist(linear=msgs.Vector3(*w[43:46]),
+                                                            angular=msgs.Vector3(*w[46:49])),
+                                           covariance=w[49:85]),
+        ))
+        out.append(msgs.TFMessage(transforms=[
+            msgs.TransformStamped(
+                header=msgs.Header(stamp=msgs.Time(sec=rng.randrange(10**6), nanosec=rng.randrange(10**9)),
+                                   frame_id=rng.choice(NAMES)[: rng.randrange(0, 12)]),
+                child_frame_id=rng.choice(NAMES)[: rng.randrange(0, 12)],
+                transform=msgs.Transform(translation=msgs.Vector3(*w[0:3]), rotation=msgs.Quaternion(*w[3:7])))
+            for _ in range(rng.randrange(0, 6))]))
+        out.append(msgs.Twist(linear=msgs.Vector3(*w[10:13]), angular=msgs.Vector3(*w[13:16])))
     return out
 
 
@@ -47,7 +67,7 @@ def test_same_bytes_and_messages_as_pycdr2() -> None:
         assert type(m).deserialize(msgs.encode(m)) == m
 
 
-@pytest.mark.parametrize("cls", [msgs.JointState, msgs.Imu, msgs.Clock])
+@pytest.mark.parametrize("cls", [msgs.JointState, msgs.Imu, msgs.Clock, msgs.Odometry, msgs.TFMessage, msgs.Twist])
 def test_every_truncation_and_trailing_garbage_is_rejected(cls: type) -> None:
     m = next(x for x in _random_messages(random.Random(2)) if isinstance(x, cls) and len(msgs.encode(x)) > 11)
     data = msgs.encode(m)
@@ -64,6 +84,10 @@ def test_lying_lengths_are_rejected() -> None:
     struct.pack_into("<I", data, 20, 10**9)  # now it claims a billion strings
     with pytest.raises(msgs.BadMessage):
         msgs.decode(msgs.JointState, bytes(data))
+    tf = bytearray(msgs.encode(msgs.TFMessage(transforms=[msgs.TransformStamped(child_frame_id="a")])))
+    struct.pack_into("<I", tf, 4, 10**9)  # a billion transforms
+    with pytest.raises(msgs.BadMessage):
+        msgs.decode(msgs.TFMessage, bytes(tf))
 
 
 @pytest.mark.parametrize("names", [["joint_1", "joint_2", "joint_3"], [], ["ä-joint", ""]])

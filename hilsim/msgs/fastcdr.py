@@ -3,8 +3,9 @@
 pycdr2 stays the definition of every type and the codec for everything else; it is pure
 Python and walks a type tree per message, which made encoding and decoding the largest share
 of the lockstep loop's CPU time (see docs/performance.md). For ``rosgraph_msgs/Clock``,
-``sensor_msgs/JointState`` and ``sensor_msgs/Imu`` these functions produce and accept exactly
-the bytes pycdr2 does (XCDR1, little-endian, 4-byte encapsulation header; alignment counted
+``sensor_msgs/JointState`` and ``sensor_msgs/Imu`` (the arm's steps) and ``nav_msgs/Odometry``,
+``tf2_msgs/TFMessage`` and ``geometry_msgs/Twist`` (the rover's) these functions produce and
+accept exactly the bytes pycdr2 does (XCDR1, little-endian, 4-byte encapsulation header; alignment counted
 from the end of the header) — ``tests/test_fastcdr.py`` holds them to that, byte for byte.
 
 Decoders return ``(message, bytes consumed)`` and raise ``ValueError`` (or ``struct.error``)
@@ -18,7 +19,19 @@ from collections.abc import Callable
 from typing import Any
 
 from hilsim.msgs.builtin import Clock, Header, Time
-from hilsim.msgs.geometry import Quaternion, Vector3
+from hilsim.msgs.geometry import (
+    Odometry,
+    Point,
+    Pose,
+    PoseWithCovariance,
+    Quaternion,
+    TFMessage,
+    Transform,
+    TransformStamped,
+    Twist,
+    TwistWithCovariance,
+    Vector3,
+)
 from hilsim.msgs.sensor import Imu, JointState
 
 HEADER_LE = b"\x00\x01\x00\x00"
@@ -27,6 +40,11 @@ _TIME = struct.Struct("<iI")
 _D4 = struct.Struct("<4d")
 _D3 = struct.Struct("<3d")
 _D9 = struct.Struct("<9d")
+_D6 = struct.Struct("<6d")
+_D7 = struct.Struct("<7d")
+# Odometry after its strings: pose (position, orientation, 36 covariances), twist (linear,
+# angular, 36 covariances): 85 doubles in a row, every one 8-aligned
+_D85 = struct.Struct("<85d")
 
 
 # ---------------------------------------------------------------- writing
@@ -213,6 +231,68 @@ def build() -> tuple[dict[type, Callable[[Any], bytes]], dict[type, Callable[[by
         )
         return msg, r.pos
 
-    encoders = {Clock: enc_clock, JointState: enc_joint_state, Imu: enc_imu}
-    decoders = {Clock: dec_clock, JointState: dec_joint_state, Imu: dec_imu}
+    def enc_odometry(msg: Any) -> bytes:
+        buf = bytearray(HEADER_LE)
+        _w_header(buf, msg.header)
+        _w_str(buf, msg.child_frame_id)
+        p, o = msg.pose.pose.position, msg.pose.pose.orientation
+        lin, ang = msg.twist.twist.linear, msg.twist.twist.angular
+        _w_darr(buf, (p.x, p.y, p.z, o.x, o.y, o.z, o.w, *msg.pose.covariance,
+                      lin.x, lin.y, lin.z, ang.x, ang.y, ang.z, *msg.twist.covariance), _D85)
+        return bytes(buf)
+
+    def dec_odometry(data: bytes) -> tuple[Any, int]:
+        r = _Reader(data)
+        h = header(r)
+        child = r.string()
+        v = r.darr(_D85)
+        msg = Odometry(
+            header=h, child_frame_id=child,
+            pose=PoseWithCovariance(pose=Pose(position=Point(x=v[0], y=v[1], z=v[2]),
+                                              orientation=Quaternion(x=v[3], y=v[4], z=v[5], w=v[6])),
+                                    covariance=list(v[7:43])),
+            twist=TwistWithCovariance(twist=Twist(linear=Vector3(x=v[43], y=v[44], z=v[45]),
+                                                  angular=Vector3(x=v[46], y=v[47], z=v[48])),
+                                      covariance=list(v[49:85])),
+        )
+        return msg, r.pos
+
+    def enc_tf(msg: Any) -> bytes:
+        buf = bytearray(HEADER_LE)
+        _w_u32(buf, len(msg.transforms))
+        for t in msg.transforms:  # each starts 4-aligned: after the count, or after 8-aligned doubles
+            _w_header(buf, t.header)
+            _w_str(buf, t.child_frame_id)
+            tr, q = t.transform.translation, t.transform.rotation
+            _w_darr(buf, (tr.x, tr.y, tr.z, q.x, q.y, q.z, q.w), _D7)
+        return bytes(buf)
+
+    def dec_tf(data: bytes) -> tuple[Any, int]:
+        r = _Reader(data)
+        n = r.u32()
+        if n > len(data) // 24:  # a transform takes 24 bytes at the least: refuse a lying count early
+            raise ValueError(f"sequence of {n} transforms in {len(data)} bytes")
+        out = []
+        for _ in range(n):
+            r.align(4)
+            h = header(r)
+            child = r.string()
+            v = r.darr(_D7)
+            out.append(TransformStamped(header=h, child_frame_id=child, transform=Transform(
+                translation=Vector3(x=v[0], y=v[1], z=v[2]), rotation=Quaternion(x=v[3], y=v[4], z=v[5], w=v[6]))))
+        return TFMessage(transforms=out), r.pos
+
+    def enc_twist(msg: Any) -> bytes:
+        lin, ang = msg.linear, msg.angular
+        return HEADER_LE + _D6.pack(lin.x, lin.y, lin.z, ang.x, ang.y, ang.z)
+
+    def dec_twist(data: bytes) -> tuple[Any, int]:
+        r = _Reader(data)
+        v = r.darr(_D6)
+        return Twist(linear=Vector3(x=v[0], y=v[1], z=v[2]), angular=Vector3(x=v[3], y=v[4], z=v[5])), r.pos
+
+    encoders = {Clock: enc_clock, JointState: enc_joint_state, Imu: enc_imu,
+                Odometry: enc_odometry, TFMessage: enc_tf, Twist: enc_twist}
+    decoders = {Clock: dec_clock, JointState: dec_joint_state, Imu: dec_imu,
+                Odometry: dec_odometry, TFMessage: dec_tf, Twist: dec_twist}
     return encoders, decoders
