@@ -206,6 +206,13 @@ def cmd_loop(args: argparse.Namespace) -> int:
     res["step_us"] = step_us
     res["ratio_distributed_vs_floor"] = step_us["distributed"] / (res["ring_round_us"] + step_us["in_process"])
     res["ratio_distributed_vs_bare"] = res["distributed_rtf"] / res["bare_rtf"]
+    # the distributed pipeline is CPU-bound on a small machine: the CPU all its processes spend per
+    # step, spread over every core, is a floor of its own besides the ring's latency; and what the
+    # composed run would need at 10x: the CPU of one step, 10 000 steps a second
+    cores = psutil.cpu_count() or 1
+    res["cores"] = cores
+    res["distributed_cpu_floor_us"] = sum(res["distributed_cpu_us_per_step"].values()) / cores
+    res["composed_cores_at_10x"] = sum(res["composed_cpu_us_per_step"].values()) * 10_000 / 1e6
     if args.json:
         print(json.dumps(res, indent=2))
         return 0
@@ -219,22 +226,16 @@ def cmd_loop(args: argparse.Namespace) -> int:
     print(f"\nper step: distributed {step_us['distributed']:.0f} µs, floor {fl:.0f} µs (ring round "
           f"{res['ring_round_us']:.0f} + in-process {step_us['in_process']:.0f}): ratio "
           f"{res['ratio_distributed_vs_floor']:.2f} (goal <= 1.5); composed {step_us['composed']:.0f} µs")
-    # the distributed pipeline is CPU-bound on a small machine: the CPU all its processes spend per
-    # step, spread over every core, is a floor of its own besides the ring's latency
-    cores = psutil.cpu_count() or 1
-    per = res["distributed_cpu_us_per_step"]
-    total = sum(per.values())
-    res["distributed_cpu_floor_us"] = total / cores
-    each = ", ".join(f"{n} {v:.0f}" for n, v in sorted(per.items(), key=lambda x: -x[1]))
-    print(f"distributed CPU per step, all processes: {total:.0f} µs = {total / cores:.0f} µs of wall time on "
-          f"{cores} cores at the least ({each})")
-    # and what the composed run would need at 10x: the CPU of one step, 10 000 steps a second
-    per = res["composed_cpu_us_per_step"]
-    total = sum(per.values())
-    res["composed_cores_at_10x"] = total * 10_000 / 1e6
-    each = ", ".join(f"{n} {v:.0f}" for n, v in sorted(per.items(), key=lambda x: -x[1]))
-    print(f"composed CPU per step, all processes: {total:.0f} µs: at 10x real time that is "
-          f"{res['composed_cores_at_10x']:.2f} cores of this machine's {cores} ({each})")
+    for run in ("distributed", "composed"):
+        per = res[f"{run}_cpu_us_per_step"]
+        each = ", ".join(f"{n} {v:.0f}" for n, v in sorted(per.items(), key=lambda x: -x[1]))
+        total = sum(per.values())
+        if run == "distributed":
+            print(f"distributed CPU per step, all processes: {total:.0f} µs = "
+                  f"{res['distributed_cpu_floor_us']:.0f} µs of wall time on {cores} cores at the least ({each})")
+        else:
+            print(f"composed CPU per step, all processes: {total:.0f} µs: at 10x real time that is "
+                  f"{res['composed_cores_at_10x']:.2f} cores of this machine's {cores} ({each})")
     c = res["sample_cost_us"]
     per_s = KEYS_PER_STEP * 1000 * 10 * (min(c["callback"], c["channel"]) + c["put"]) / 1e6
     print(f"recording floor: a recorder in its own process costs {min(c['callback'], c['channel']):.1f} + "
