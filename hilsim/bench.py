@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 import time
 from pathlib import Path
 from tempfile import TemporaryDirectory
@@ -91,15 +92,13 @@ def bench_in_process(sim_seconds: float) -> float:
     return sim_seconds / wall
 
 
-def _cpu_seconds(procs: dict[str, psutil.Process]) -> dict[str, float]:
-    out = {}
-    for name, p in procs.items():
-        try:
-            t = p.cpu_times()
-            out[name] = t.user + t.system
-        except psutil.Error:  # gone: counted as nothing rather than failing the benchmark
-            out[name] = 0.0
-    return out
+def cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) of a process and its threads so far; 0 if it is gone."""
+    try:
+        t = psutil.Process(pid).cpu_times()
+        return float(t.user + t.system)
+    except psutil.Error:
+        return 0.0
 
 
 def _launch(sc: Scenario, run_dir: Path, cpu: dict[str, float] | None = None) -> dict[str, str]:
@@ -114,12 +113,12 @@ def _launch(sc: Scenario, run_dir: Path, cpu: dict[str, float] | None = None) ->
         la.start()
         if not la.wait_ready():
             raise RuntimeError(f"services did not start; see {run_dir}")
-        procs = {c.name: psutil.Process(c.proc.pid) for c in la.children.values()}
-        procs["router+launcher"] = psutil.Process()
-        c0 = _cpu_seconds(procs)
+        pids = {c.name: c.proc.pid for c in la.children.values()}
+        pids["router+launcher"] = os.getpid()
+        c0 = {n: cpu_s(p) for n, p in pids.items()}
         la.follow(wall_timeout=600)
         if cpu is not None:  # before stop: a process that has exited has no CPU times to read
-            cpu.update({n: s - c0[n] for n, s in _cpu_seconds(procs).items()})
+            cpu.update({n: cpu_s(p) - c0[n] for n, p in pids.items()})
     finally:
         la.stop()
         router.close()
@@ -152,6 +151,11 @@ def bench_realtime(seconds: float, tmp: Path) -> dict[str, float]:
         "missed_pct": 100.0 * float(h["overruns"]) / max(float(h["steps"]), 1.0),
         "steps": float(h["steps"]),
     }
+
+
+def _each(us_per_step: dict[str, float]) -> str:
+    """``name µs, …``, costliest first."""
+    return ", ".join(f"{n} {v:.0f}" for n, v in sorted(us_per_step.items(), key=lambda x: -x[1]))
 
 
 def cmd_loop(args: argparse.Namespace) -> int:
@@ -226,16 +230,11 @@ def cmd_loop(args: argparse.Namespace) -> int:
     print(f"\nper step: distributed {step_us['distributed']:.0f} µs, floor {fl:.0f} µs (ring round "
           f"{res['ring_round_us']:.0f} + in-process {step_us['in_process']:.0f}): ratio "
           f"{res['ratio_distributed_vs_floor']:.2f} (goal <= 1.5); composed {step_us['composed']:.0f} µs")
-    for run in ("distributed", "composed"):
-        per = res[f"{run}_cpu_us_per_step"]
-        each = ", ".join(f"{n} {v:.0f}" for n, v in sorted(per.items(), key=lambda x: -x[1]))
-        total = sum(per.values())
-        if run == "distributed":
-            print(f"distributed CPU per step, all processes: {total:.0f} µs = "
-                  f"{res['distributed_cpu_floor_us']:.0f} µs of wall time on {cores} cores at the least ({each})")
-        else:
-            print(f"composed CPU per step, all processes: {total:.0f} µs: at 10x real time that is "
-                  f"{res['composed_cores_at_10x']:.2f} cores of this machine's {cores} ({each})")
+    dist, comp = res["distributed_cpu_us_per_step"], res["composed_cpu_us_per_step"]
+    print(f"distributed CPU per step, all processes: {sum(dist.values()):.0f} µs = "
+          f"{res['distributed_cpu_floor_us']:.0f} µs of wall time on {cores} cores at the least ({_each(dist)})")
+    print(f"composed CPU per step, all processes: {sum(comp.values()):.0f} µs: at 10x real time that is "
+          f"{res['composed_cores_at_10x']:.2f} cores of this machine's {cores} ({_each(comp)})")
     c = res["sample_cost_us"]
     per_s = KEYS_PER_STEP * 1000 * 10 * (min(c["callback"], c["channel"]) + c["put"]) / 1e6
     print(f"recording floor: a recorder in its own process costs {min(c['callback'], c['channel']):.1f} + "

@@ -38,9 +38,7 @@ from pathlib import Path
 from tempfile import TemporaryDirectory
 from typing import Any
 
-import psutil
-
-from hilsim.bench import _scenario
+from hilsim.bench import _scenario, cpu_s
 
 SERVICES = ["physics", "sensors", "controller", "planner", "logger"]
 
@@ -53,15 +51,6 @@ def _ints(text: str) -> list[int]:
     if not out or any(n < 0 for n in out):
         raise argparse.ArgumentTypeError(f"expected comma-separated whole numbers >= 0, got {text!r}")
     return out
-
-
-def _cpu_s(pid: int) -> float:
-    """CPU seconds (user + system) of a process and its threads so far; 0 if it is gone."""
-    try:
-        t = psutil.Process(pid).cpu_times()
-        return float(t.user + t.system)
-    except psutil.Error:
-        return 0.0
 
 
 class Subscribers:
@@ -147,11 +136,11 @@ def run_one(robots: int, subscribers: int, sim_seconds: float, tmp: Path, compos
         if not la.wait_ready():
             raise RuntimeError(f"services did not start; see {run_dir}")
         pids = {n: c.proc.pid for n, c in la.children.items()}
-        cpu0 = {n: _cpu_s(p) for n, p in pids.items()}
+        cpu0 = {n: cpu_s(p) for n, p in pids.items()}
         t0 = time.monotonic()
         la.follow(wall_timeout=900)
         wall = time.monotonic() - t0
-        cpu = {n: _cpu_s(p) - cpu0[n] for n, p in pids.items()}
+        cpu = {n: cpu_s(p) - cpu0[n] for n, p in pids.items()}
     finally:
         la.stop()
         received = subs.close() if subs is not None else 0

@@ -45,6 +45,7 @@ HOST_NETWORK = {"hil-can"}  # can0 is an interface of the host, not of a contain
 # services that may ask for a real-time scheduling class: their containers are allowed to
 REALTIME_CAPABLE = {"physics", "bridge-can", "drive-emulator"}
 
+
 def _rel(path: Path) -> str:
     """A scenario path as the image sees it (its WORKDIR holds the repository's config/)."""
     p = path.resolve()

@@ -383,14 +383,15 @@ class PlannerService(Service):
 
     def on_tick(self, t: int) -> None:
         """A decision step (see the module docstring)."""
+        # self.q is replaced by every joint state, never changed in place: this tick keeps its own
         assert self.q is not None
         if self.lockstep and self._planning:
             # Physics runs up to lockstep_lag steps past a tick being planned, so a later tick can
             # come before that plan is out: it waits, with its own step's state, and is decided
             # (and acknowledged) after it, in order, exactly as if physics had stopped at the first
-            self._deferred.append((t, self.q.copy()))
+            self._deferred.append((t, self.q))
             return
-        self._decide(t, self.q.copy())
+        self._decide(t, self.q)
 
     def _decide(self, t: int, q: np.ndarray) -> None:
         self.sim_ns = max(self.sim_ns, t)
