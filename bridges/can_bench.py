@@ -47,11 +47,12 @@ from typing import Any
 import can
 import numpy as np
 
-from hilsim import msgs, transport
 from hilsim.bridges.can_bus import UDP_GROUP_IPV6
 from hilsim.bridges.can_profiles import DriveCommand, Estimate, FrameError, Heartbeat, make_profile
-from hilsim.config import CONFIG_DIR, ZenohConfig, load_scenario, write_scenario
-from hilsim.keys import Keys
+from hilsim.core import msgs, transport
+from hilsim.core.config import CONFIG_DIR, ZenohConfig
+from hilsim.core.keys import Keys
+from hilsim.core.scenario import load_scenario, write_scenario
 
 PACE = 0.005  # s between latency probes (200 Hz)
 STEP = 1e-4  # rad per probe number in joint_commands, and per frame number in encoder estimates

@@ -49,11 +49,11 @@ from typing import Any, Literal
 import can
 from pydantic import BaseModel, ConfigDict, Field
 
-from hilsim import msgs
 from hilsim.bridges.can_bus import BusConfig, CanLink, JointMap, finite, raise_priority
 from hilsim.bridges.can_profiles import DriveCommand, Estimate, FrameError, Heartbeat, make_profile
-from hilsim.config import ConfigError, Scenario
-from hilsim.service import Service
+from hilsim.core import msgs
+from hilsim.core.config import ConfigError, Scenario
+from hilsim.core.service import Service
 
 WAITING, STARTING, OK, FAULT = "waiting", "starting", "ok", "fault"
 

@@ -34,7 +34,7 @@ from typing import Any, ClassVar
 import can
 import cantools
 
-from hilsim.config import CONFIG_DIR, ConfigError
+from hilsim.core.config import CONFIG_DIR, ConfigError
 
 TAU = 2.0 * math.pi
 GROUP = "hilsim.can_profiles"

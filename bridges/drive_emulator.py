@@ -44,11 +44,11 @@ from typing import Any, Literal
 import can
 from pydantic import BaseModel, ConfigDict, Field
 
-from hilsim import msgs
 from hilsim.bridges.can_bus import BusConfig, CanLink, JointMap, raise_priority
 from hilsim.bridges.can_profiles import DriveCommand, DriveProfile, Estimate, FrameError, Heartbeat, make_profile
-from hilsim.config import SIM, ConfigError, Scenario
-from hilsim.service import Service
+from hilsim.core import msgs
+from hilsim.core.config import SIM, ConfigError, Scenario
+from hilsim.core.service import Service
 
 # ODrive-like axis errors the emulator can report
 ERROR_INVALID_STATE = 0x1

@@ -6,7 +6,7 @@ On the wall clock, every ``1 / rate_hz`` s (default: the simulated GPS's rate) i
 GPS_RAW_INT with the rover's **true** position from ``truth/odom``: the antenna site of the
 scenario's simulated GPS (``sensor``; its ``frame``) put where the truth says the chassis is, and
 converted to latitude, longitude and altitude by that sensor's own code (its datum, UTM, X north
-and Y east: :class:`hilsim.sensors_mobile.Gps`), plus Gaussian error if asked
+and Y east: :class:`hilsim.sim.sensors_mobile.Gps`), plus Gaussian error if asked
 (``horizontal_std``, ``vertical_std``; none by default). The message is what a receiver sends:
 fix type ``fix_type`` (3D), ``satellites``, velocity and course from the truth, ``h_acc`` /
 ``v_acc`` (the reported 1σ: the error's σ, at least 1 cm), DOPs 1.0, ``alt`` and ``alt_ellipsoid``
@@ -31,11 +31,11 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 from pymavlink.dialects.v20 import common as mavlink
 
-from hilsim import msgs
 from hilsim.bridges import mavlink_gps as mg
 from hilsim.bridges.mavlink_link import LinkConfig, MavLink
-from hilsim.config import ConfigError, Scenario
-from hilsim.service import Service
+from hilsim.core import msgs
+from hilsim.core.config import ConfigError, Scenario
+from hilsim.core.service import Service
 
 
 class GpsEmulatorConfig(BaseModel):

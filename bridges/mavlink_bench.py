@@ -34,9 +34,10 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from hilsim import msgs, transport
-from hilsim.config import CONFIG_DIR, ZenohConfig, load_scenario, write_scenario
-from hilsim.keys import Keys
+from hilsim.core import msgs, transport
+from hilsim.core.config import CONFIG_DIR, ZenohConfig
+from hilsim.core.keys import Keys
+from hilsim.core.scenario import load_scenario, write_scenario
 
 PACE = 0.005  # s between latency probes (200 Hz)
 LAT0, LON0 = 411778800, -85977900  # degE7: the outdoor world's datum

@@ -54,12 +54,12 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 from pymavlink.dialects.v20 import common as mavlink
 
-from hilsim import msgs
 from hilsim.bridges import mavlink_gps as mg
 from hilsim.bridges.mavlink_link import LinkConfig, MavLink
-from hilsim.config import ConfigError, Scenario
-from hilsim.sensing import sensor_class
-from hilsim.service import Service
+from hilsim.core import msgs
+from hilsim.core.config import ConfigError, Scenario
+from hilsim.core.service import Service
+from hilsim.sim.sensing import sensor_class
 
 
 class GpsInConfig(BaseModel):

@@ -18,7 +18,7 @@ Fix type (MAVLink GPS_FIX_TYPE) -> NavSatStatus.status: NO_GPS, NO_FIX -> ``STAT
 
 **Out** (the simulation -> an autopilot): the simulated fix (``gps/fix``) and the simulated IMU
 (``imu``) as HIL_GPS, GPS_INPUT and HIL_SENSOR. Body and world axes: hilsim's world is X north,
-Y east, Z up (the thesis' GPS convention, :mod:`hilsim.sensors_mobile`). That map of MuJoCo's
+Y east, Z up (the thesis' GPS convention, :mod:`hilsim.sim.sensors_mobile`). That map of MuJoCo's
 right-handed world onto north, east, up is a mirror image, so a body axis that is "left" in
 MuJoCo points to the vehicle's right in the geographic world. MAVLink wants FRD (forward,
 right, down) body axes and NED velocities, consistent with the GPS track; so, from the ROS/MuJoCo
@@ -36,8 +36,8 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
-from hilsim import msgs
-from hilsim.config import ConfigError, Scenario
+from hilsim.core import msgs
+from hilsim.core.config import ConfigError, Scenario
 
 UINT16_MAX = 65535
 EARTH_RADIUS = 6_371_008.8  # m, mean radius: for distances between fixes (gates), not for positions
@@ -136,11 +136,11 @@ def deg_e7(x: float) -> int:
 
 # ---------------------------------------------------------------------- the scenario's GPS
 def scenario_gps(sc: Scenario, name: str | None = None, where: str = "") -> Any:
-    """The scenario's simulated GPS (:class:`hilsim.sensors_mobile.Gps`, bound to the world: datum,
+    """The scenario's simulated GPS (:class:`hilsim.sim.sensors_mobile.Gps`, bound to the world: datum,
     antenna site), enabled or not: whoever stands in for it uses its datum and antenna. ``name``
     picks one sensor; by default the only sensor of type ``gps``. One-line ConfigError if none."""
-    from hilsim.sensing import make_sensor, sensor_class
-    from hilsim.sensors_mobile import Gps
+    from hilsim.sim.sensing import make_sensor, sensor_class
+    from hilsim.sim.sensors_mobile import Gps
 
     found = [n for n, c in sc.sensors.items() if _is_gps(sensor_class, c.type, Gps)]
     if name is None:
@@ -167,7 +167,7 @@ def _is_gps(sensor_class: Any, type_name: str, gps: type) -> bool:
 def ned_velocity(odom: msgs.Odometry, antenna: np.ndarray | None = None) -> tuple[float, float, float]:
     """North, east, down velocity [m/s] of the antenna (its offset in the chassis frame; the chassis
     origin if None), from the chassis twist of ``truth/odom`` (in the chassis frame)."""
-    from hilsim.sensors_mobile import quat_matrix
+    from hilsim.sim.sensors_mobile import quat_matrix
 
     r = quat_matrix(odom.pose.pose.orientation)
     t = odom.twist.twist
@@ -267,7 +267,7 @@ def frd_rate(w: msgs.Vector3) -> tuple[float, float, float]:
 def body_field(imu: msgs.Imu, field_ned: tuple[float, float, float]) -> msgs.Vector3:
     """The Earth's magnetic field ``field_ned`` [gauss] in the IMU's body axes (ROS/MuJoCo x, y, z),
     from the IMU's orientation (body -> world)."""
-    from hilsim.sensors_mobile import quat_matrix
+    from hilsim.sim.sensors_mobile import quat_matrix
 
     n, e, d = field_ned
     b = quat_matrix(imu.orientation).T @ np.array([n, e, -d])

@@ -24,15 +24,16 @@ import logging
 import sys
 from collections.abc import Callable, Sequence
 
-from hilsim.config import ConfigError, load_scenario, parse_overrides
+from hilsim.core.config import ConfigError
+from hilsim.core.scenario import load_scenario, parse_overrides
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from hilsim.registry import UnknownService, service_class
-    from hilsim.service import setup_logging
+    from hilsim.core.registry import UnknownService, service_class
+    from hilsim.core.service import setup_logging
 
     setup_logging(args.service, logging.DEBUG if args.verbose else logging.INFO)
-    names = args.service.split("+")  # a+b+c: composed in one process (hilsim.compose)
+    names = args.service.split("+")  # a+b+c: composed in one process (hilsim.run.compose)
     try:
         for n in names:
             service_class(n.split("@")[0])  # an unknown name is said before the scenario is read
@@ -40,12 +41,12 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(f"hilsim run: {e}", file=sys.stderr)
         return 2
     sc = load_scenario(args.config, parse_overrides(args.set))
-    from hilsim import fleet
+    from hilsim.core import fleet
 
-    # robots > 1: controller@arm3 is one robot's controller, controller@* every robot's (hilsim.fleet)
+    # robots > 1: controller@arm3 is one robot's controller, controller@* every robot's (hilsim.core.fleet)
     names = fleet.members(sc, args.service)
     if len(names) > 1:
-        from hilsim import compose
+        from hilsim.run import compose
 
         return compose.run(names, sc)
     return int(fleet.instantiate(names[0], sc).run())
@@ -61,13 +62,13 @@ def _lazy(module: str, func: str) -> Callable[[argparse.Namespace], int]:
 
 
 def _lazy_ints(text: str) -> list[int]:
-    from hilsim.bench_scale import _ints
+    from hilsim.tools.bench_scale import _ints
 
     return _ints(text)
 
 
 def _endpoint_args(p: argparse.ArgumentParser) -> None:
-    """--connect / --prefix of the tools that join a running simulation (hilsim.transport.tool_*)."""
+    """--connect / --prefix of the tools that join a running simulation (hilsim.core.transport.tool_*)."""
     p.add_argument("--connect", help="Zenoh endpoint(s), comma-separated "
                    "(default: HILSIM_ZENOH_CONNECT, else tcp/127.0.0.1:7447)")
     p.add_argument("--prefix", default=None, help="key prefix (default: HILSIM_PREFIX, else hilsim)")
@@ -75,7 +76,7 @@ def _endpoint_args(p: argparse.ArgumentParser) -> None:
 
 def _up(args: argparse.Namespace) -> int:
     """``hilsim up``; with ``--ui`` the panel starts the run and stays (hilsim.ui.server)."""
-    return _lazy("hilsim.ui.server", "cmd_up_ui")(args) if args.ui else _lazy("hilsim.launcher", "cmd_up")(args)
+    return _lazy("hilsim.ui.server", "cmd_up_ui")(args) if args.ui else _lazy("hilsim.run.launcher", "cmd_up")(args)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -129,12 +130,12 @@ def build_parser() -> argparse.ArgumentParser:
             t.add_argument("--window", type=int, default=1000)
             t.add_argument("--any-writer", action="store_true",
                            help="count every sample, not only those of the key's announced writer")
-        t.set_defaults(func=_lazy("hilsim.topic", f"cmd_{name}"))
+        t.set_defaults(func=_lazy("hilsim.tools.topic", f"cmd_{name}"))
 
     view = sub.add_parser("view", help="open the Rerun viewer on a recording (latest by default)")
     view.add_argument("rrd", nargs="?")
     view.add_argument("--runs", default="runs")
-    view.set_defaults(func=_lazy("hilsim.recording", "cmd_view"))
+    view.set_defaults(func=_lazy("hilsim.core.recording", "cmd_view"))
 
     goal = sub.add_parser("goal", help="send a move goal to a running planner and print feedback")
     goal.add_argument("robot")
@@ -152,7 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
     gains.add_argument("robot")
     gains.add_argument("assignments", nargs="+", metavar="JOINT.GAIN=VALUE", help="e.g. joint_2.kp=80 joint_2.kd=4")
     _endpoint_args(gains)
-    gains.set_defaults(func=_lazy("hilsim.params", "cmd_gains"))
+    gains.set_defaults(func=_lazy("hilsim.tools.params", "cmd_gains"))
 
     plan = sub.add_parser("plan", help="planning tools")
     psub = plan.add_subparsers(dest="plan_cmd", required=True)
@@ -163,7 +164,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--csv", help="CSV path; the recording goes next to it (default: OUT/plan_evaluate.csv)")
     ev.add_argument("--out", help="output directory (default runs/<timestamp>-plan-evaluate)")
     ev.add_argument("--execute", action="store_true")
-    ev.set_defaults(func=_lazy("hilsim.planning.evaluate", "cmd_evaluate"))
+    ev.set_defaults(func=_lazy("hilsim.tools.evaluate_arm", "cmd_evaluate"))
 
     bench = sub.add_parser("bench", help="benchmarks (figures and ratios against an in-run baseline)")
     bsub = bench.add_subparsers(dest="bench_cmd", required=True)
@@ -171,7 +172,7 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--json", action="store_true")
     bl.add_argument("--sim-seconds", type=float, default=5.0)
     bl.add_argument("--realtime-seconds", type=float, default=60.0)
-    bl.set_defaults(func=_lazy("hilsim.bench", "cmd_loop"))
+    bl.set_defaults(func=_lazy("hilsim.tools.bench", "cmd_loop"))
     bsc = bsub.add_parser("scale", help="many robots: real-time factor, step latency, recorder load vs one robot")
     bsc.add_argument("--json", action="store_true")
     bsc.add_argument("--robots", type=_lazy_ints, default=[1, 2, 4, 8], metavar="N,…",
@@ -181,7 +182,7 @@ def build_parser() -> argparse.ArgumentParser:
     bsc.add_argument("--sim-seconds", type=float, default=2.0, help="sim seconds per run")
     bsc.add_argument("--compose", action="store_true", help="physics, sensors and controller in one process")
     bsc.add_argument("--repeat", type=int, default=1, help="runs of each configuration, interleaved; the best is kept")
-    bsc.set_defaults(func=_lazy("hilsim.bench_scale", "cmd_scale"))
+    bsc.set_defaults(func=_lazy("hilsim.tools.bench_scale", "cmd_scale"))
     bc = bsub.add_parser("can", help="CAN bridge: frames per second and added latency vs python-can alone")
     bc.add_argument("--json", action="store_true")
     bc.add_argument("--samples", type=int, default=1000, help="paced latency probes per path")
@@ -206,7 +207,7 @@ def build_parser() -> argparse.ArgumentParser:
     br.add_argument("--sim-seconds", type=float, default=20.0)
     br.add_argument("--world", default="indoor", help="indoor or outdoor")
     br.add_argument("--repeat", type=int, default=3, help="runs with the laser on and off each (the best is kept)")
-    br.set_defaults(func=_lazy("hilsim.bench", "cmd_rover"))
+    br.set_defaults(func=_lazy("hilsim.tools.bench", "cmd_rover"))
 
     inertia = sub.add_parser("inertia", help="a link's mass, centre of mass and inertia tensor from primitives")
     inertia.add_argument("file", help="YAML: links and their parts (box, cylinder, hollow_cylinder, "
@@ -255,14 +256,14 @@ def build_parser() -> argparse.ArgumentParser:
     comp.add_argument("--hil", action="append", default=[], metavar="FILE",
                       help="a HIL scenario (e.g. config/hil/arm-can.yaml): its bridges become a profile; repeatable")
     comp.add_argument("--out", help="write here (default: standard output)")
-    comp.set_defaults(func=_lazy("hilsim.deploy", "cmd_compose"))
+    comp.set_defaults(func=_lazy("hilsim.run.deploy", "cmd_compose"))
 
     router = sub.add_parser("router", help="run a standalone Zenoh router (loopback unless told otherwise)")
     router.add_argument("--listen", help="endpoint to listen on (default tcp/127.0.0.1:7447; with --config, "
                         "replaces the file's)")
     router.add_argument("--config", help="a Zenoh router config file (JSON5: listen endpoints, TLS, access "
                         "control), e.g. config/security/router.json5")
-    router.set_defaults(func=_lazy("hilsim.launcher", "cmd_router"))
+    router.set_defaults(func=_lazy("hilsim.run.launcher", "cmd_router"))
 
     ui = sub.add_parser("ui", help="the browser control panel: choose, start, command and watch a run")
     ui.add_argument("--host", default="127.0.0.1", help="address to listen on (default loopback; the panel has "

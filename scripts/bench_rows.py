@@ -3,7 +3,7 @@
 A synthetic message mix per physics step, as the real services publish it (the rover at 500 Hz
 physics: truth/imu, truth/odom, tf, truth/joint_states, clock every step; joint_states, imu,
 joint_commands, odom at 100 Hz; scan at 10 Hz; gps/fix at 5 Hz; the arm: its 1 kHz mix), is
-encoded first, then decoded and written by ``hilsim.rerun_rows.RowWriter`` to a file, batched as
+encoded first, then decoded and written by ``hilsim.record.rows.RowWriter`` to a file, batched as
 the logger does. No Zenoh: this measures what the worker thread costs per message, in its own CPU
 time (records per CPU second of that thread).
 
@@ -28,10 +28,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, os.environ.get("HILSIM_SRC", str(REPO)))
 
-from hilsim import msgs  # noqa: E402
-from hilsim.keys import message_type  # noqa: E402
-from hilsim.kinematics import RobotModel  # noqa: E402
-from hilsim.rerun_rows import RowWriter, rr  # noqa: E402
+from hilsim.core import msgs  # noqa: E402
+from hilsim.core.keys import message_type  # noqa: E402
+from hilsim.sim.kinematics import RobotModel  # noqa: E402
+from hilsim.record.rows import RowWriter, rr  # noqa: E402
 
 FLUSH_ROWS = 20_000  # as services/logger.py
 
@@ -108,8 +108,8 @@ def main() -> None:
     rec.save(Path(tempfile.mkdtemp()) / "bench.rrd")
     model = RobotModel.load(urdf)
     extra: dict[str, Any] = {}
-    if "scene" in inspect.signature(RowWriter.__init__).parameters:  # a checkout with hilsim.scene
-        from hilsim.scene import Scene
+    if "scene" in inspect.signature(RowWriter.__init__).parameters:  # a checkout with hilsim.sim.scene
+        from hilsim.sim.scene import Scene
 
         extra["scene"] = Scene.load(world, model.links, model.root)
     rows = RowWriter(rec, robot, model, lambda text, exc=None: print("fault:", text), **extra)

@@ -29,15 +29,16 @@ from typing import Any
 
 import numpy as np
 
-from hilsim import control, msgs, registry
-from hilsim.config import ConfigError, Scenario
-from hilsim.restart import keep, kept
-from hilsim.service import Publisher, Service
+from hilsim.core import msgs, registry
+from hilsim.core.config import ConfigError, Scenario
+from hilsim.core.restart import keep, kept
+from hilsim.core.service import Publisher, Service
+from hilsim.sim import control
 
 
 class ControllerService(Service):
     """The ``joint_trajectory`` control law (``controller.type``); other types are other
-    :class:`~hilsim.service.Service` subclasses named ``controller``, found in the registry."""
+    :class:`~hilsim.core.service.Service` subclasses named ``controller``, found in the registry."""
 
     name = "controller"
     stop_rank = 20
@@ -95,7 +96,7 @@ class ControllerService(Service):
         self.max_tracking_error = 0.0
         self.gaps = 0
         self.steps = 0
-        # live gain changes, kept for a restarted controller (hilsim.restart): scenario + these
+        # live gain changes, kept for a restarted controller (hilsim.core.restart): scenario + these
         self.live_gains: dict[str, float] = dict(kept(scenario, self.name).get("gains", {}))
         if self.live_gains:
             control.set_parameters(self.pids, self.names,

@@ -1,13 +1,13 @@
 """The logger service: records every message of the simulation into a Rerun ``.rrd`` file.
 
 Reads: everything under ``<prefix>/`` (``logger.record`` key expressions, ``**`` by default),
-including each sample's attachment (sequence number and writer id, ``hilsim.transport``).
+including each sample's attachment (sequence number and writer id, ``hilsim.core.transport``).
 Writes: only its own health and log keys (``<prefix>/<robot>/health/logger``,
 ``<prefix>/<robot>/log/logger``), and files in the run directory (``logger.run_dir``, or
 ``<logger.out_dir>/<YYYYmmdd-HHMMSS>``):
 
 - ``recording.rrd``       the Rerun recording, timeline ``sim_time`` (message stamps), with a
-  default viewer layout (``hilsim.viewer``);
+  default viewer layout (``hilsim.record.viewer``);
 - ``scenario.yaml``       the scenario of the run (written unless already there);
 - ``record_summary.json`` ``{key: {received, recorded, rejected, lost, dropped, before_first,
   unannounced}}`` (``unannounced``: samples from a writer that did not announce itself for the key,
@@ -16,15 +16,15 @@ Writes: only its own health and log keys (``<prefix>/<robot>/health/logger``,
 
 This module is the service's wiring: subscriptions, the queue, the worker thread, loss
 accounting, health and lifecycle. What is written for each kind of message (and the entity
-layout) is ``hilsim.rerun_rows``; the robot model and tool kinematics ``hilsim.kinematics``.
+layout) is ``hilsim.record.rows``; the robot model and tool kinematics ``hilsim.sim.kinematics``.
 
-Composed with other services (``--compose physics,sensors,controller,logger``, hilsim.compose),
+Composed with other services (``--compose physics,sensors,controller,logger``, hilsim.run.compose),
 it takes their samples as message objects in the process (none of them crosses Zenoh) and the
 rest over Zenoh; the worker encodes a message object once, so both are recorded from the same
 bytes, the same way.
 
 The Zenoh callback only appends ``(key, payload)`` to a queue; a worker thread decodes
-(``hilsim.msgs.decode``), turns messages into rows (``RowWriter``) and sends them with
+(``hilsim.core.msgs.decode``), turns messages into rows (``RowWriter``) and sends them with
 ``send_columns`` every 0.5 s or every 20,000 rows. The per-step keys (clock, joint states, IMU)
 take a fast path once one of their messages decoded: a payload laid out like it (same size, same
 bytes but stamp and values) is kept as bytes and read into columns with numpy at the batch, its
@@ -50,7 +50,7 @@ most ``DRAIN_LIMIT_S``), then the subscriber is undeclared, the queue drained, t
 and one line per key ``recorded <key>: received N recorded M[ lost L]`` plus a total line are
 printed. ``HILSIM_LOGGER_DELAY_US`` (fault injection, for tests) slows the receive callback
 by that many microseconds per sample while the simulation runs. Rerun analytics are off
-(``hilsim.recording.disable_analytics``) and nothing is sent over the network: the recording
+(``hilsim.core.recording.disable_analytics``) and nothing is sent over the network: the recording
 stream only saves to the file.
 """
 
@@ -66,20 +66,21 @@ from typing import Any
 
 import zenoh
 
-from hilsim import msgs, transport
-from hilsim.config import Scenario, write_scenario
-from hilsim.keys import UnknownKey, message_type
-from hilsim.recording import RECORDING_NAME, SUMMARY_NAME, disable_analytics, part_name
-from hilsim.restart import restarted
-from hilsim.service import LEVEL_WARN, Service
+from hilsim.core import msgs, transport
+from hilsim.core.config import Scenario
+from hilsim.core.keys import UnknownKey, message_type
+from hilsim.core.recording import RECORDING_NAME, SUMMARY_NAME, disable_analytics, part_name
+from hilsim.core.restart import restarted
+from hilsim.core.scenario import write_scenario
+from hilsim.core.service import LEVEL_WARN, Service
 
 disable_analytics()  # before rerun is imported: its SDK reads the analytics config at start-up
 import rerun as rr  # noqa: E402
 
-from hilsim.kinematics import RobotModel  # noqa: E402
-from hilsim.rerun_rows import RowWriter  # noqa: E402
-from hilsim.scene import Scene  # noqa: E402
-from hilsim.viewer import default_blueprint  # noqa: E402
+from hilsim.record.rows import RowWriter  # noqa: E402
+from hilsim.record.viewer import default_blueprint  # noqa: E402
+from hilsim.sim.kinematics import RobotModel  # noqa: E402
+from hilsim.sim.scene import Scene  # noqa: E402
 
 FLUSH_PERIOD_S = 0.5  # wall seconds between send_columns batches
 FLUSH_ROWS = 20_000  # …or earlier when this many rows are buffered
@@ -181,7 +182,7 @@ class LoggerService(Service):
         self._worker.start()
         if self.delay_s:
             self.warn(f"{DELAY_ENV}: every received sample is delayed by {self.delay_s * 1e6:.0f} µs (fault injection)")
-        # composed: samples of this process's own services never cross Zenoh (hilsim.compose)
+        # composed: samples of this process's own services never cross Zenoh (hilsim.run.compose)
         local = getattr(self.session, "local_subscriber", None)
         for expr in self.sc.logger.record:
             subs = [self.session.declare_subscriber(self.keys.scoped(expr), self._on_sample)]
@@ -208,7 +209,7 @@ class LoggerService(Service):
             self.warn(f"robot model {urdf} not recorded: {type(e).__name__}: {e}")
 
     def _load_scene(self) -> Scene | None:
-        """The world's static geometry and datum (``hilsim.scene``), or None if it cannot be read."""
+        """The world's static geometry and datum (``hilsim.sim.scene``), or None if it cannot be read."""
         m = self.model
         try:
             return Scene.for_scenario(self.sc, m.links if m else (), m.root if m else None)
@@ -222,7 +223,7 @@ class LoggerService(Service):
         self._take(str(sample.key_expr), transport.read_attachment(sample), sample.payload.to_bytes())
 
     def _on_local(self, key: str, msg: Any, att: transport.Attachment) -> None:
-        # composed (hilsim.compose): a message object from a service of this process; encoded by
+        # composed (hilsim.run.compose): a message object from a service of this process; encoded by
         # the worker, so it is recorded from the same bytes (and rows) as one that came over Zenoh
         self._take(key, att, msg)
 
@@ -292,7 +293,7 @@ class LoggerService(Service):
         assert rows is not None
         if not isinstance(payload, bytes):  # a message object of this process (_on_local)
             try:
-                payload = msgs.encode(payload)  # pycdr2's buffer is per thread (hilsim.msgs.codec)
+                payload = msgs.encode(payload)  # pycdr2's buffer is per thread (hilsim.core.msgs.codec)
             except Exception as e:  # not encodable: still recorded, as the error and the message's text
                 self.fault(f"cannot encode {key} from this process: {type(e).__name__}: {e}", exc=e)
                 rows.error(key, e, payload)
@@ -331,7 +332,7 @@ class LoggerService(Service):
         """Send every buffered row and push it through Rerun's batcher into the file, then count
         the samples they came from as recorded. A recorder killed with SIGKILL (no footer
         written) thus leaves a file that holds everything up to its last flush, FLUSH_PERIOD_S
-        ago at most; ``hilsim.recording.recover_rrd`` makes it a complete .rrd again."""
+        ago at most; ``hilsim.core.recording.recover_rrd`` makes it a complete .rrd again."""
         assert self.rows is not None and self.rec is not None
         ok = self.rows.flush()
         for key, e in self.rows.rejections:  # found while the fast path's batches were turned into rows

@@ -29,9 +29,9 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from hilsim import msgs
-from hilsim.config import ConfigError, Scenario
-from hilsim.service import Service
+from hilsim.core import msgs
+from hilsim.core.config import ConfigError, Scenario
+from hilsim.core.service import Service
 
 
 class MotorModelConfig(BaseModel):

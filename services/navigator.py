@@ -44,7 +44,7 @@ Serves:
   or stopped outside ``goal_tolerance``, is planned again from where it is (``max_replans``).
 
 The scenario task (``task.targets``: ``[x, y]`` or ``[x, y, yaw]`` each) runs as goals
-``task-1`` … ``task-N`` through :class:`hilsim.tasks.TaskRunner`, like the arm planner's.
+``task-1`` … ``task-N`` through :class:`hilsim.sim.tasks.TaskRunner`, like the arm planner's.
 Planning runs in the tick's handler, under the service lock: a goal or cancel query waits for a
 plan in progress (at most ``navigator.planning_time`` wall seconds).
 """
@@ -58,14 +58,14 @@ from typing import Any, ClassVar
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from hilsim import msgs
-from hilsim.config import ConfigError, Scenario
-from hilsim.geometry import heading, yaw_of
+from hilsim.core import msgs
+from hilsim.core.config import ConfigError, Scenario
+from hilsim.core.geometry import heading, yaw_of
+from hilsim.core.service import Service
 from hilsim.navigation import grid as gridmod
 from hilsim.navigation.follower import Follower, FollowerParams, wrap
 from hilsim.navigation.planner import Footprint, SE2Planner, path_length
-from hilsim.service import Service
-from hilsim.tasks import TaskGoal, TaskRunner, is_reserved
+from hilsim.sim.tasks import TaskGoal, TaskRunner, is_reserved
 
 FEEDBACK_PERIOD_NS = 500_000_000  # 2 Hz sim
 SETTLE_MAX_NS = 1_000_000_000  # a goal is judged at rest, or at most 1 s (sim) after the follower ended

@@ -19,7 +19,7 @@ Writes (every step, stamped with the step's sim time):
   ``<prefix>/<robot>/truth/contacts``     hilsim_msgs/Contacts: every contact, published at step 0
                                           and whenever the set of touching geom pairs changes
 
-Many robots (``robots: N``, :mod:`hilsim.fleet`): one MuJoCo world holding N copies of the
+Many robots (``robots: N``, :mod:`hilsim.core.fleet`): one MuJoCo world holding N copies of the
 world model; every key above that is under ``<prefix>/<robot>/`` is then read and written once per
 robot ``<robot><k>`` (its joints by their single-robot names), the clock stays one, and a
 participant is ``<service>@<robot>`` (its tokens and acknowledgements under that robot's keys).
@@ -44,11 +44,11 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from hilsim import fleet, msgs
-from hilsim.keys import Keys
-from hilsim.service import LEVEL_ERROR, Publisher, Service
-from hilsim.transport import Attachment
-from hilsim.world import World
+from hilsim.core import fleet, msgs
+from hilsim.core.keys import Keys
+from hilsim.core.service import LEVEL_ERROR, Publisher, Service
+from hilsim.core.transport import Attachment
+from hilsim.sim.world import World
 
 SPIN_NS = 80_000  # realtime: busy-wait at most this long before a deadline
 REALTIME_PRIORITY = 10

@@ -19,7 +19,7 @@ Writes:
 Serves ``planner/goal`` (MoveGoal → GoalResponse, accepted or rejected with the reason) and
 ``planner/cancel`` (CancelRequest → GoalResponse). A new goal preempts the active one.
 
-The scenario task (``task.targets``) is a :class:`hilsim.tasks.TaskRunner` hosted here: goals
+The scenario task (``task.targets``) is a :class:`hilsim.sim.tasks.TaskRunner` hosted here: goals
 ``task-1`` … ``task-N`` in order, each starting on the tick after the previous result, then a
 MoveResult ``task`` saying how many targets were reached, on ``planner/result`` and on
 ``task/result`` (``hilsim up`` ends the run on the latter).
@@ -40,8 +40,10 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from hilsim import msgs
-from hilsim.config import Scenario
+from hilsim.core import msgs
+from hilsim.core.config import Scenario
+from hilsim.core.restart import keep, kept
+from hilsim.core.service import Service
 from hilsim.planning import quiet_ompl_at_exit
 from hilsim.planning.collision import ArmModel
 from hilsim.planning.ik import IKError, solve_ik
@@ -54,9 +56,7 @@ from hilsim.planning.trajectory import (
     time_parameterize,
     to_msg,
 )
-from hilsim.restart import keep, kept
-from hilsim.service import Service
-from hilsim.tasks import TaskGoal, TaskRunner, is_reserved
+from hilsim.sim.tasks import TaskGoal, TaskRunner, is_reserved
 
 START_DELAY_NS = 20_000_000  # trajectory starts 20 ms (sim) after the tick it was planned on
 FEEDBACK_PERIOD_NS = 100_000_000  # 10 Hz sim
@@ -118,7 +118,7 @@ class PlannerService(Service):
         self.pending: list[Goal] = []
         self.task_runner = TaskRunner(scenario.task.targets, self._submit_task_goal, self._report_task,
                                       planner=self.default_planner)
-        # restarted (hilsim.restart): the task goes on at the target the dead planner was on
+        # restarted (hilsim.core.restart): the task goes on at the target the dead planner was on
         task = kept(scenario, self.name).get("task")
         if isinstance(task, dict) and 0 <= task.get("index", -1) < len(self.task_runner.targets):
             self.task_runner.next_index, self.task_runner.reached = task["index"], task.get("reached", 0)
@@ -292,7 +292,7 @@ class PlannerService(Service):
         if goal.task:
             self.task_runner.on_goal_result(success, self.sim_ns, err)
 
-    # ------------------------------------------------------------------ the scenario task (hilsim.tasks)
+    # ------------------------------------------------------------------ the scenario task (hilsim.sim.tasks)
     def _on_controller(self, sample: Any) -> None:
         """A controller (re)appeared: a restarted one knows no trajectory, so the one being
         executed is sent again (its start stamp unchanged: it picks up where the arm should be),

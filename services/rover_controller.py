@@ -1,7 +1,7 @@
 """The ``four_wheel_steer`` controller: the rover's intermediate layer, from body twist to wheel torques.
 
 As in the thesis: a kinematic layer turns a body velocity (geometry_msgs/Twist on ``cmd_vel``) into
-each wheel's steering angle and traction speed (:mod:`hilsim.steering`: Ackermann-like with both
+each wheel's steering angle and traction speed (:mod:`hilsim.sim.steering`: Ackermann-like with both
 axles in opposite phase, crab, turn in place; a wheel is reversed rather than steered past its
 limit), and one PID per wheel and motor closes the steering-angle and the traction-speed loop
 (gains ``controller.gains.steering`` / ``.traction``, or per joint name, falling back to ``default``).
@@ -42,10 +42,11 @@ from typing import Any, ClassVar
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from hilsim import control, msgs, steering
-from hilsim.config import ConfigError, PidGains, Scenario, format_error
-from hilsim.service import Publisher, Service
-from hilsim.world import urdf_limits
+from hilsim.core import msgs
+from hilsim.core.config import ConfigError, PidGains, Scenario, format_error
+from hilsim.core.service import Publisher, Service
+from hilsim.sim import control, steering
+from hilsim.sim.world import urdf_limits
 
 
 class FourWheelSteerParams(BaseModel):
@@ -154,7 +155,7 @@ class FourWheelSteerController(Service):
         # step early or late depending on the network (the same reason as the imu's)
         self.cmd_every = 0
         if scenario.clock.mode == "lockstep" and "navigator" in scenario.services:
-            from hilsim.registry import service_class
+            from hilsim.core.registry import service_class
 
             self.cmd_every = int(service_class("navigator", scenario).lockstep_period(scenario) or 0)
         self.cmds = 0  # cmd_vel samples received

@@ -3,7 +3,7 @@
 Reads (``<prefix>/<robot>/…``):
   ``truth/joint_states`` (sensor_msgs/JointState), ``truth/imu`` (sensor_msgs/Imu), ``truth/odom``
   (nav_msgs/Odometry; laser and GPS of a mobile robot) — the truth topics of the configured
-  sensors (:mod:`hilsim.sensing`, :mod:`hilsim.sensors_mobile`);
+  sensors (:mod:`hilsim.sim.sensing`, :mod:`hilsim.sim.sensors_mobile`);
   ``hw/<server>/joint_states`` (sensor_msgs/JointState) — joints served by external servers.
 Writes:
   ``joint_states`` (encoders), ``imu``, ``scan`` (sensor_msgs/LaserScan), ``gps/fix``
@@ -25,10 +25,10 @@ from __future__ import annotations
 from collections import defaultdict
 from typing import Any
 
-from hilsim import msgs
-from hilsim.config import ConfigError, Scenario
-from hilsim.sensing import Sensor, make_sensor
-from hilsim.service import Publisher, Service
+from hilsim.core import msgs
+from hilsim.core.config import ConfigError, Scenario
+from hilsim.core.service import Publisher, Service
+from hilsim.sim.sensing import Sensor, make_sensor
 
 # Physics publishes this truth last before the clock: handling it completes the step.
 ACK_TRUTH = "joint_states"

@@ -14,8 +14,9 @@ import psutil
 import pytest
 import zenoh
 
-from hilsim import transport
-from hilsim.config import ZenohConfig, load_scenario
+from hilsim.core import transport
+from hilsim.core.config import ZenohConfig
+from hilsim.core.scenario import load_scenario
 
 REPO = Path(__file__).resolve().parent.parent
 

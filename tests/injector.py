@@ -23,9 +23,9 @@ from collections import Counter
 
 import zenoh
 
-from hilsim import msgs, transport
-from hilsim.config import ZenohConfig
-from hilsim.keys import UnknownKey, message_type
+from hilsim.core import msgs, transport
+from hilsim.core.config import ZenohConfig
+from hilsim.core.keys import UnknownKey, message_type
 
 KINDS = ("empty", "random", "truncated", "bitflip", "huge", "nan", "copy_no_attachment", "copy_foreign_writer")
 

@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 from util import REPO, Observer, finish, up, wait_until
 
-from hilsim import msgs, transport
-from hilsim.config import ZenohConfig
-from hilsim.keys import Keys
+from hilsim.core import msgs, transport
+from hilsim.core.config import ZenohConfig
+from hilsim.core.keys import Keys
 from hilsim.planning.client import MoveClient
 
 LEFT = [0.866, -0.789, -0.399, 0.0, -0.382, 0.0]

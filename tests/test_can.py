@@ -20,14 +20,15 @@ import can
 import pytest
 import zenoh
 
-from hilsim import msgs, transport
 from hilsim.bridges import can_bus
 from hilsim.bridges.can_bridge import CanBridgeService
 from hilsim.bridges.can_bus import BusConfig, JointMap
 from hilsim.bridges.can_profiles import DriveCommand, Estimate, FrameError, Heartbeat, make_profile, struct_layout
 from hilsim.bridges.drive_emulator import DriveEmulatorService
-from hilsim.config import ConfigError, ZenohConfig, load_scenario
-from hilsim.keys import Keys
+from hilsim.core import msgs, transport
+from hilsim.core.config import ConfigError, ZenohConfig
+from hilsim.core.keys import Keys
+from hilsim.core.scenario import load_scenario
 
 REPO = Path(__file__).resolve().parent.parent
 CAN_HIL = REPO / "config" / "hil" / "can.yaml"

@@ -24,10 +24,11 @@ import pytest
 import zenoh
 from util import LEAN, finish, up
 
-from hilsim import msgs, transport
 from hilsim.bridges.can_profiles import Estimate, FrameError, Heartbeat, make_profile
-from hilsim.config import ZenohConfig, load_scenario
-from hilsim.keys import Keys
+from hilsim.core import msgs, transport
+from hilsim.core.config import ZenohConfig
+from hilsim.core.keys import Keys
+from hilsim.core.scenario import load_scenario
 
 pytestmark = pytest.mark.e2e
 REPO = Path(__file__).resolve().parent.parent

@@ -1,4 +1,4 @@
-"""The docker compose files and the scenarios cannot drift apart (hilsim/deploy.py).
+"""The docker compose files and the scenarios cannot drift apart (hilsim/run/deploy.py).
 
 No docker engine runs here: the shipped files must be exactly what ``hilsim compose`` makes of the
 scenarios today, their profiles must hold the right bridges, and every container's command, run
@@ -20,9 +20,10 @@ import pytest
 import yaml
 from util import REPO, Observer, wait_until
 
-from hilsim import transport
-from hilsim.config import ConfigError, load_scenario
-from hilsim.deploy import compose, render
+from hilsim.core import transport
+from hilsim.core.config import ConfigError
+from hilsim.core.scenario import load_scenario
+from hilsim.run.deploy import compose, render
 
 SHIPPED = [REPO / "docker" / "compose.yaml", REPO / "docker" / "compose-rover.yaml"]
 TARGET = [0.5, -0.4, 0.2, 0.0, -0.5, 0.0]

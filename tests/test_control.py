@@ -8,8 +8,10 @@ import mujoco
 import numpy as np
 import pytest
 
-from hilsim import control, msgs
-from hilsim.config import ConfigError, PidGains, load_scenario
+from hilsim.core import msgs
+from hilsim.core.config import ConfigError, PidGains
+from hilsim.core.scenario import load_scenario
+from hilsim.sim import control
 
 JOINTS = ["joint_1", "joint_2", "joint_3"]
 DT = 0.001

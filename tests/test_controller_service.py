@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from util import wait_until
 
-from hilsim import msgs, transport
-from hilsim.config import ConfigError
-from hilsim.keys import Keys
+from hilsim.core import msgs, transport
+from hilsim.core.config import ConfigError
+from hilsim.core.keys import Keys
 from hilsim.services.controller import ControllerService
 from hilsim.services.sensors import SensorService
 

@@ -7,9 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from hilsim import msgs, registry
-from hilsim.config import ConfigError, load_scenario
-from hilsim.keys import Keys, UnknownKey, message_type
+from hilsim.core import msgs, registry
+from hilsim.core.config import ConfigError
+from hilsim.core.keys import Keys, UnknownKey, message_type
+from hilsim.core.scenario import load_scenario
 
 REPO = Path(__file__).resolve().parent.parent
 

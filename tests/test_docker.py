@@ -9,7 +9,7 @@ import pytest
 import yaml
 
 from hilsim.cli import build_parser
-from hilsim.config import load_scenario
+from hilsim.core.scenario import load_scenario
 
 REPO = Path(__file__).resolve().parent.parent
 DOCKER = REPO / "docker"

@@ -17,9 +17,9 @@ import pytest
 import zenoh
 from util import Observer, sim_rate, wait_until
 
-from hilsim import msgs, transport
-from hilsim.config import load_scenario
-from hilsim.keys import Keys
+from hilsim.core import msgs, transport
+from hilsim.core.keys import Keys
+from hilsim.core.scenario import load_scenario
 from hilsim.planning.client import MoveClient
 
 pytestmark = pytest.mark.e2e
@@ -98,7 +98,7 @@ def test_arm_scenario_end_to_end(tmp_path: Path) -> None:
     assert counts and all(v["received"] == v["recorded"] for v in counts.values()), counts
     assert counts["hilsim/arm/truth/joint_states"]["received"] > 1000
     # the recording verifies and holds every joint and the robot model
-    from hilsim.recording import entity_paths, verify_rrd
+    from hilsim.core.recording import entity_paths, verify_rrd
 
     rrd = out / "recording.rrd"
     verify_rrd(rrd)
@@ -115,7 +115,7 @@ def _capture(endpoint: str, key: str, sink: list[bytes]) -> tuple[zenoh.Session,
 
 def test_lockstep_runs_are_bit_identical(tmp_path: Path) -> None:
     """Same seed, lockstep: the joint-state streams of two runs are equal byte for byte, the
-    second with physics, sensors and the controller composed in one process (hilsim.compose):
+    second with physics, sensors and the controller composed in one process (hilsim.run.compose):
     composition changes how samples travel, never what happens."""
     streams: list[list[bytes]] = []
     keys = Keys()

@@ -89,7 +89,7 @@ def test_physics_gives_up_after_the_start_timeout(tmp_path: Path) -> None:
     """A physics process started on its own (docker compose, another host) whose services never
     come waits `clock.start_timeout` (`hilsim up --wait`), not a fixed two minutes, and says who
     is missing."""
-    from hilsim import transport
+    from hilsim.core import transport
 
     ep = f"tcp/127.0.0.1:{transport.free_port()}"
     router = transport.open_router(ep)  # a private router: no other test's services answer
@@ -109,7 +109,7 @@ def test_physics_gives_up_after_the_start_timeout(tmp_path: Path) -> None:
 
 _SIGNAL_WHILE_LOCKED = """
 import os, signal, sys, threading, time
-from hilsim.service import on_stop_signals
+from hilsim.core.service import on_stop_signals
 ev = threading.Event()
 if sys.argv[1] == "handler":  # what services did before: set the Event in the signal handler
     signal.signal(signal.SIGTERM, lambda *_: ev.set())

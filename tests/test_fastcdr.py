@@ -8,7 +8,7 @@ import struct
 
 import pytest
 
-from hilsim import msgs
+from hilsim.core import msgs
 
 NAMES = ["joint_1", "j", "", "ä-joint", "x" * 37]
 

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from util import LEAN, Observer, finish, up
 
-from hilsim import transport
-from hilsim.config import load_scenario
+from hilsim.core import transport
+from hilsim.core.scenario import load_scenario
 
 pytestmark = pytest.mark.e2e
 REPO = Path(__file__).resolve().parent.parent

@@ -13,7 +13,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from hilsim.config import ConfigError
+from hilsim.core.config import ConfigError
 from hilsim.tools import inertia as ti
 
 REPO = Path(__file__).resolve().parent.parent

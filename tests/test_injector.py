@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 from util import Observer
 
-from hilsim import recording, transport
-from hilsim.config import load_scenario
+from hilsim.core import recording, transport
+from hilsim.core.scenario import load_scenario
 
 pytestmark = pytest.mark.e2e
 REPO = Path(__file__).resolve().parent.parent

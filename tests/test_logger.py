@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from hilsim import msgs, recording, transport
-from hilsim.keys import Keys
+from hilsim.core import msgs, recording, transport
+from hilsim.core.keys import Keys
 
 N_STEPS = 300
 JOINTS = [f"joint_{i}" for i in range(1, 7)]
@@ -157,8 +157,8 @@ def test_tool_kinematics_matches_mujoco() -> None:
     """Tool path forward kinematics from the URDF agrees with MuJoCo loading the same URDF."""
     import mujoco
 
-    from hilsim.config import MODELS_DIR
-    from hilsim.kinematics import ToolKinematics, UrdfTree
+    from hilsim.core.config import MODELS_DIR
+    from hilsim.sim.kinematics import ToolKinematics, UrdfTree
 
     urdf = MODELS_DIR / "arm" / "arm.urdf"
     kin = ToolKinematics(UrdfTree.from_file_path(urdf))
@@ -319,7 +319,7 @@ def test_a_strangers_gaps_are_not_the_recorders_losses(
 @pytest.mark.parametrize("mode", ["realtime", "lockstep"])
 def test_launcher_summary_reports_losses(scenario: Any, tmp_path: Path, capsys: Any, mode: str) -> None:
     """`hilsim up` shows what the recorder lost; a loss fails a lockstep run, not a realtime one."""
-    from hilsim.launcher import Launcher, summarise
+    from hilsim.run.launcher import Launcher, summarise
 
     sc = scenario("arm", {"clock.mode": mode, "duration": 1.0, "task.targets": []})
     la = Launcher(sc, tmp_path)

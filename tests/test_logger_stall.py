@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from hilsim import transport
+from hilsim.core import transport
 
 pytestmark = pytest.mark.e2e
 REPO = Path(__file__).resolve().parent.parent

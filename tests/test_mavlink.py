@@ -24,12 +24,13 @@ from pymavlink.dialects.v10 import common as mavlink1
 from pymavlink.dialects.v20 import common as mavlink
 from util import wait_until
 
-from hilsim import msgs, transport
 from hilsim.bridges import mavlink_gps as mg
 from hilsim.bridges.gps_emulator import GpsEmulatorService
 from hilsim.bridges.mavlink_bridge import MavlinkBridgeService
-from hilsim.config import ConfigError, ZenohConfig, load_scenario
-from hilsim.keys import Keys
+from hilsim.core import msgs, transport
+from hilsim.core.config import ConfigError, ZenohConfig
+from hilsim.core.keys import Keys
+from hilsim.core.scenario import load_scenario
 
 REPO = Path(__file__).resolve().parent.parent
 OUTDOOR = REPO / "config" / "rover-outdoor.yaml"

@@ -24,10 +24,11 @@ from pymavlink.dialects.v20 import common as mavlink
 from test_mavlink import LAT0, LON0, Peer, Watch, gps_raw, udp_port
 from util import finish, up, wait_until
 
-from hilsim import msgs, transport
 from hilsim.bridges import mavlink_gps as mg
-from hilsim.config import ZenohConfig, load_scenario, write_scenario
-from hilsim.keys import Keys
+from hilsim.core import msgs, transport
+from hilsim.core.config import ZenohConfig
+from hilsim.core.keys import Keys
+from hilsim.core.scenario import load_scenario, write_scenario
 
 pytestmark = pytest.mark.e2e
 REPO = Path(__file__).resolve().parent.parent

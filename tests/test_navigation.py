@@ -11,8 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hilsim import msgs
-from hilsim.config import ConfigError, load_scenario
+from hilsim.core import msgs
+from hilsim.core.config import ConfigError
+from hilsim.core.scenario import load_scenario
 from hilsim.navigation import grid as gridmod
 from hilsim.navigation.follower import Follower, FollowerParams, split_at_cusps
 from hilsim.navigation.planner import Footprint, SE2Planner, directions, path_length, smoothness
@@ -259,7 +260,7 @@ def test_navigator_checks_goals_against_the_map() -> None:
 
 
 def test_navigator_is_a_lockstep_participant_at_its_rate() -> None:
-    from hilsim import registry
+    from hilsim.core import registry
 
     sc = load_scenario("rover")
     assert registry.lockstep_participants(sc) == {"controller": 5, "navigator": 25}
@@ -268,7 +269,7 @@ def test_navigator_is_a_lockstep_participant_at_its_rate() -> None:
 
 
 def test_world_flag_picks_the_scenario_variant() -> None:
-    from hilsim.launcher import world_scenario
+    from hilsim.run.launcher import world_scenario
 
     assert world_scenario("rover", "indoor").endswith("config/rover.yaml")
     assert world_scenario("rover", "outdoor").endswith("config/rover-outdoor.yaml")
@@ -299,7 +300,7 @@ def test_plan_evaluate_rover_goals(tmp_path: Path) -> None:
 
 def test_bench_rover_laser_alone_counts_rays() -> None:
     """``hilsim bench rover``'s laser figure: the scenario's own sensor, 541 rays per scan."""
-    from hilsim.bench import bench_laser
+    from hilsim.tools.bench import bench_laser
 
     r = bench_laser("indoor", scans=20)
     assert r["rays_per_scan"] == 541 and r["rays_per_s"] == pytest.approx(541 * r["scans_per_s"])

@@ -27,8 +27,9 @@ import numpy as np
 import pytest
 from util import LEAN, REPO, Observer, sim_rate
 
-from hilsim import transport
-from hilsim.config import ZenohConfig, load_scenario
+from hilsim.core import transport
+from hilsim.core.config import ZenohConfig
+from hilsim.core.scenario import load_scenario
 
 pytestmark = pytest.mark.e2e
 TARGET = [0.5, -0.4, 0.2, 0.0, -0.5, 0.0]
@@ -259,8 +260,8 @@ def test_arm_across_three_hosts_in_realtime(hosts: Hosts, tmp_path: Path) -> Non
 
 
 def test_only_names_services_of_the_scenario() -> None:
-    from hilsim.config import ConfigError
-    from hilsim.launcher import local_units
+    from hilsim.core.config import ConfigError
+    from hilsim.run.launcher import local_units
 
     sc = load_scenario("arm")
     assert local_units(sc, ["logger", "physics"]) == ["physics", "logger"]

@@ -31,7 +31,7 @@ import pytest
 import zenoh
 from util import LEAN, REPO, Observer, finish, up, wait_until
 
-from hilsim import msgs, transport
+from hilsim.core import msgs, transport
 
 pytestmark = pytest.mark.e2e
 
@@ -408,7 +408,7 @@ def test_a_many_robot_run_shows_its_first_robot_with_every_service() -> None:
     """`robots: N`: the page shows the first robot (arm0) and lists each service once by its
     name (controller@arm0 is the controller under hilsim/arm0/), physics and the recorder beside
     them; one robot's run is unchanged."""
-    from hilsim.config import load_scenario
+    from hilsim.core.scenario import load_scenario
     from hilsim.ui.server import shown_robot
 
     one = load_scenario(REPO / "config" / "arm.yaml")

@@ -8,10 +8,10 @@ from typing import Any
 
 import zenoh
 
-from hilsim import msgs, transport
-from hilsim.keys import Keys
+from hilsim.core import msgs, transport
+from hilsim.core.keys import Keys
 from hilsim.services.physics import PhysicsService
-from hilsim.world import World
+from hilsim.sim.world import World
 
 
 def test_world_holds_still_with_gravity_compensation(scenario: Any) -> None:
@@ -207,7 +207,7 @@ def test_a_touch_is_published_on_truth_contacts(scenario: Any) -> None:
     link and the obstacle's geom, penetration > 0), and the contact ending is published too."""
     import mujoco
 
-    from hilsim.inproc import Bus
+    from hilsim.core.inproc import Bus
 
     sc = scenario("arm", {"clock.mode": "lockstep", "task.targets": []})
     bus = Bus()

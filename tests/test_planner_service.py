@@ -15,8 +15,8 @@ import pytest
 import zenoh
 from util import wait_until
 
-from hilsim import msgs
-from hilsim.keys import Keys
+from hilsim.core import msgs
+from hilsim.core.keys import Keys
 from hilsim.planning.client import MoveClient
 from hilsim.planning.collision import ArmModel
 

@@ -10,8 +10,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from hilsim.config import load_scenario
-from hilsim.planning import evaluate as ev
+from hilsim.core.scenario import load_scenario
+from hilsim.tools import evaluate_arm as ev
 from hilsim.planning.collision import ArmModel
 from hilsim.planning.ik import IKError, rpy_to_matrix, solve_ik
 from hilsim.planning.library import PlannerConfigError, PlannerLibrary, PlanOutcome, Problem, UnknownPlanner

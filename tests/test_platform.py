@@ -11,10 +11,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from hilsim import msgs, registry
-from hilsim.config import ConfigError, load_scenario
-from hilsim.launcher import stop_order
-from hilsim.world import World
+from hilsim.core import msgs, registry
+from hilsim.core.config import ConfigError
+from hilsim.core.scenario import load_scenario
+from hilsim.run.launcher import stop_order
+from hilsim.sim.world import World
 
 REPO = Path(__file__).resolve().parent.parent
 NAMES = [f"joint_{i}" for i in range(1, 7)]
@@ -149,7 +150,7 @@ def test_controller_type_picks_the_control_law() -> None:
 def test_in_process_pipeline_finds_its_lockstep_participants() -> None:
     """The services announce their lockstep role at run time; the in-process bus (bench loop's
     no-transport baseline) carries those announcements like Zenoh does, so physics steps."""
-    from hilsim.bench import bench_in_process
+    from hilsim.tools.bench import bench_in_process
 
     assert bench_in_process(0.05) > 0.0  # raises if the pipeline stalls
 

@@ -27,10 +27,11 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from hilsim import keys as hilsim_keys
-from hilsim import msgs, registry, transport
-from hilsim.config import ZenohConfig, load_scenario
-from hilsim.keys import Keys
+from hilsim.core import keys as hilsim_keys
+from hilsim.core import msgs, registry, transport
+from hilsim.core.config import ZenohConfig
+from hilsim.core.keys import Keys
+from hilsim.core.scenario import load_scenario
 
 REPO = Path(__file__).resolve().parent.parent
 HILSIM = [sys.executable, "-m", "hilsim.cli"]
@@ -49,9 +50,9 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from hilsim import msgs
-from hilsim.sensing import Sensor, SensorParams
-from hilsim.service import Service
+from hilsim.core import msgs
+from hilsim.sim.sensing import Sensor, SensorParams
+from hilsim.core.service import Service
 
 
 class DemoImuParams(SensorParams):
@@ -127,7 +128,7 @@ ENTRY_POINTS = f"""\
 {SERVICE} = {MODULE}:ImuCounter
 
 [hilsim.topics]
-{TOPIC} = hilsim.msgs:Imu
+{TOPIC} = hilsim.core.msgs:Imu
 """
 
 
@@ -231,8 +232,8 @@ def test_the_installed_plugin_is_found_by_entry_point(plugin_on_path: Path, tmp_
     builtin = list(registry.BUILTIN["services"])
     assert registry.names("services")[: len(builtin)] == builtin and builtin[:2] == ["physics", "sensors"]
 
-    from hilsim.sensing import Sensor, sensor_class
-    from hilsim.service import Service
+    from hilsim.core.service import Service
+    from hilsim.sim.sensing import Sensor, sensor_class
 
     assert issubclass(sensor_class(SENSOR), Sensor)
     counter_cls = registry.service_class(SERVICE)

@@ -8,11 +8,11 @@ from typing import Any
 import zenoh
 from util import wait_until
 
-from hilsim import msgs, transport
-from hilsim.keys import Keys
-from hilsim.provenance import Provenance, parse_writer_token
+from hilsim.core import msgs, transport
+from hilsim.core.keys import Keys
+from hilsim.core.provenance import Provenance, parse_writer_token
+from hilsim.core.transport import Attachment
 from hilsim.services.controller import ControllerService
-from hilsim.transport import Attachment
 
 KEY = "hilsim/arm/joint_commands"
 A, B = b"A" * 16, b"B" * 16

@@ -1,5 +1,5 @@
 """The recording survives a recorder killed with SIGKILL: what it had flushed (twice a second)
-is in the file, ``hilsim.recording.recover_rrd`` makes the footerless file one that
+is in the file, ``hilsim.core.recording.recover_rrd`` makes the footerless file one that
 ``rerun rrd verify`` accepts without losing a row, and ``hilsim up`` does so and reports what
 the recording holds; under the restart policy the recorder goes on in a part of its own."""
 
@@ -18,14 +18,14 @@ import pytest
 from test_restart import LEFT, Output, ended, sim_now
 from util import Observer, up, wait_until
 
-from hilsim import transport
-from hilsim.recording import RecordingError, contents, part_name, recover_rrd, verify_rrd
+from hilsim.core import transport
+from hilsim.core.recording import RecordingError, contents, part_name, recover_rrd, verify_rrd
 
 # a process that records 20 batches of 100 rows (sim_time 0…1.999 s), flushing each to the file
 # as the logger does, then is killed with SIGKILL: no footer is ever written
 WRITER = """
 import os, signal, sys
-from hilsim.recording import disable_analytics
+from hilsim.core.recording import disable_analytics
 disable_analytics()
 import numpy as np
 import rerun as rr

@@ -10,8 +10,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from hilsim import msgs, registry
-from hilsim.config import ConfigError, load_scenario
+from hilsim.core import msgs, registry
+from hilsim.core.config import ConfigError
+from hilsim.core.scenario import load_scenario
 from hilsim.services.rover_controller import FourWheelSteerController
 
 WHEELS = ("fl", "fr", "rl", "rr")

@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 from util import Capture, finish, up, yaw_of
 
-from hilsim import msgs, transport
-from hilsim.keys import Keys
+from hilsim.core import msgs, transport
+from hilsim.core.keys import Keys
 
 pytestmark = pytest.mark.e2e
 REPO = Path(__file__).resolve().parent.parent

@@ -1,6 +1,6 @@
 """The rover model: the committed files are what generate.py derives; the worlds load with the rover
 in them; and on the ground it drives straight, turns in place and climbs the outdoor slope
-(MuJoCo alone, a plain per-wheel PID, the four-wheel-steer kinematics of hilsim.steering)."""
+(MuJoCo alone, a plain per-wheel PID, the four-wheel-steer kinematics of hilsim.sim.steering)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import mujoco
 import numpy as np
 import pytest
 
-from hilsim import steering
+from hilsim.sim import steering
 
 MODELS = Path(__file__).resolve().parent.parent / "models"
 ROVER = MODELS / "rover"

@@ -16,9 +16,9 @@ from pathlib import Path
 import pytest
 from util import REPO, Capture, finish, up, yaw_of
 
-from hilsim import msgs, transport
-from hilsim.config import load_scenario
-from hilsim.keys import Keys
+from hilsim.core import msgs, transport
+from hilsim.core.keys import Keys
+from hilsim.core.scenario import load_scenario
 from hilsim.planning.client import MoveClient
 
 pytestmark = pytest.mark.e2e

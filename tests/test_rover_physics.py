@@ -11,10 +11,10 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from hilsim import msgs
-from hilsim.keys import Keys
+from hilsim.core import msgs
+from hilsim.core.keys import Keys
 from hilsim.services.physics import PhysicsService
-from hilsim.world import World
+from hilsim.sim.world import World
 
 
 def test_truth_odom_pose_and_body_twist(scenario: Any) -> None:
@@ -108,7 +108,7 @@ def test_lockstep_steps_through_steps_nobody_is_due_at(scenario: Any, session: z
                                                       run_service: Any) -> None:
     """A 100 Hz controller over 500 Hz physics acknowledges every 5th step: physics takes the four
     steps between on its own and waits again at the next control step."""
-    from hilsim import transport
+    from hilsim.core import transport
 
     sc = scenario("rover", {"services": ["physics", "controller"]})
     keys = Keys(sc.prefix, sc.robot)

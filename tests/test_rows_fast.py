@@ -8,9 +8,9 @@ import random
 from pathlib import Path
 from typing import Any
 
-from hilsim import msgs
-from hilsim.kinematics import RobotModel
-from hilsim.rerun_rows import RowWriter
+from hilsim.core import msgs
+from hilsim.record.rows import RowWriter
+from hilsim.sim.kinematics import RobotModel
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,4 +1,4 @@
-"""Many robots (``robots: N``, hilsim.fleet): the multiplied world, two arms end to end, ``hilsim bench scale``."""
+"""Many robots (``robots: N``, hilsim.core.fleet): the multiplied world, two arms end to end, ``hilsim bench scale``."""
 
 from __future__ import annotations
 
@@ -14,10 +14,11 @@ import numpy as np
 import zenoh
 from util import REPO, finish, up
 
-from hilsim import fleet, msgs, transport
-from hilsim.config import ZenohConfig, load_scenario
-from hilsim.keys import Keys
-from hilsim.world import World
+from hilsim.core import fleet, msgs, transport
+from hilsim.core.config import ZenohConfig
+from hilsim.core.keys import Keys
+from hilsim.core.scenario import load_scenario
+from hilsim.sim.world import World
 
 LEFT = [0.866, -0.789, -0.399, 0.0, -0.382, 0.0]  # config/arm.yaml's first target
 OVER = [0.0, -0.167, 0.031, 0.0, -1.435, 0.0]  # …and its third
@@ -135,7 +136,7 @@ def test_bench_scale_reports_each_robot_count_against_one_robot_measured_in_the_
 
 
 def test_a_bad_fleet_field_is_one_line() -> None:
-    from hilsim.config import ConfigError
+    from hilsim.core.config import ConfigError
 
     for over, want in (({"robots": 0}, "robots"),
                        ({"robots": 2, "robot_overrides": {"arm7": {"task.targets": []}}}, "robot_overrides.arm7"),
@@ -150,8 +151,8 @@ def test_a_bad_fleet_field_is_one_line() -> None:
 
 def test_each_robot_keeps_its_own_restart_state(tmp_path: Path) -> None:
     """Planners of several robots share one process: each keeps its own state file, written
-    without racing the others (hilsim.restart)."""
-    from hilsim import restart
+    without racing the others (hilsim.core.restart)."""
+    from hilsim.core import restart
 
     sc = load_scenario("arm", {"robots": 2, "logger.run_dir": str(tmp_path)})
     one = load_scenario("arm", {"logger.run_dir": str(tmp_path)})

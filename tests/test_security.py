@@ -21,9 +21,9 @@ import pytest
 import zenoh
 from util import REPO, finish, wait_until
 
-from hilsim import msgs, transport
-from hilsim.config import TlsConfig, ZenohConfig
-from hilsim.keys import Keys
+from hilsim.core import msgs, transport
+from hilsim.core.config import TlsConfig, ZenohConfig
+from hilsim.core.keys import Keys
 
 pytestmark = pytest.mark.e2e
 HILSIM = [sys.executable, "-m", "hilsim.cli"]

@@ -1,4 +1,4 @@
-"""Emulated sensors (hilsim.sensing) and the sensor service against a test router."""
+"""Emulated sensors (hilsim.sim.sensing) and the sensor service against a test router."""
 
 from __future__ import annotations
 
@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 from util import wait_until
 
-from hilsim import msgs, sensing, transport
-from hilsim.config import ConfigError, SensorConfig
-from hilsim.keys import Keys
+from hilsim.core import msgs, transport
+from hilsim.core.config import ConfigError, SensorConfig
+from hilsim.core.keys import Keys
 from hilsim.services.sensors import SensorService
+from hilsim.sim import sensing
 
 DT_NS = 1_000_000
 NAMES = [f"joint_{i}" for i in range(1, 7)]

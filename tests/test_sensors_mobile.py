@@ -13,9 +13,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-from hilsim import msgs
-from hilsim.config import ConfigError, SensorConfig, load_scenario
-from hilsim.sensing import make_sensor
+from hilsim.core import msgs
+from hilsim.core.config import ConfigError, SensorConfig
+from hilsim.core.scenario import load_scenario
+from hilsim.sim.sensing import make_sensor
 
 REPO = Path(__file__).resolve().parent.parent
 

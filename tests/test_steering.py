@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from hilsim import steering
+from hilsim.sim import steering
 
 # the rover's wheels (models/rover/generate.py): steering axes at x ±0.35, y ±0.40; radius 0.15
 G = steering.Geometry(((0.35, 0.4), (0.35, -0.4), (-0.35, 0.4), (-0.35, -0.4)), 0.15)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from hilsim import msgs
-from hilsim.tasks import TaskGoal, TaskRunner, is_reserved
+from hilsim.core import msgs
+from hilsim.sim.tasks import TaskGoal, TaskRunner, is_reserved
 
 
 def test_goals_in_order_then_one_result() -> None:

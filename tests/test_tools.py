@@ -1,11 +1,11 @@
-"""How the command-line tools find a running simulation (hilsim.transport.tool_*)."""
+"""How the command-line tools find a running simulation (hilsim.core.transport.tool_*)."""
 
 from __future__ import annotations
 
 import pytest
 
-from hilsim import transport
-from hilsim.keys import Keys
+from hilsim.core import transport
+from hilsim.core.keys import Keys
 
 
 def test_tool_endpoints_and_prefix(monkeypatch: pytest.MonkeyPatch) -> None:

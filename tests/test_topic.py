@@ -15,7 +15,7 @@ import sys
 import pytest
 from util import LEAN, REPO, finish, up
 
-from hilsim import transport
+from hilsim.core import transport
 
 pytestmark = pytest.mark.e2e
 HZ = re.compile(r"average rate: ([\d.]+) Hz \(wall\).*?\|  ([\d.]+) Hz \(sim time\)(?:  \|  ignored (\d+) samples)?")

@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hilsim.config import ConfigError, load_scenario
+from hilsim.core.config import ConfigError
+from hilsim.core.scenario import load_scenario
 from hilsim.tools import tuning
 from hilsim.tools.rig import Experiment, Response, loop_scenario
 from hilsim.tools.step_report import measure

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from util import finish, up
 
-from hilsim import msgs, recording
+from hilsim.core import msgs, recording
 
 REPO = Path(__file__).resolve().parent.parent
 WORLDS = REPO / "models" / "worlds"
@@ -38,8 +38,8 @@ def _xml_geoms(path: Path) -> dict[str, dict[str, Any]]:
 
 
 def _scene(world: Path, urdf: Path) -> Any:
-    from hilsim.kinematics import RobotModel
-    from hilsim.scene import Scene
+    from hilsim.sim.kinematics import RobotModel
+    from hilsim.sim.scene import Scene
 
     m = RobotModel.load(urdf)
     return Scene.load(world, m.links, m.root)
@@ -95,9 +95,9 @@ def test_the_arms_table_and_obstacle_and_the_rovers_base() -> None:
 
 # ---------------------------------------------------------------- rows of messages, read back
 def _writer(tmp_path: Path, world: Path = WORLDS / "outdoor.xml") -> tuple[Any, Any, Path]:
-    from hilsim.kinematics import RobotModel
-    from hilsim.rerun_rows import RowWriter, rr
-    from hilsim.scene import Scene
+    from hilsim.record.rows import RowWriter, rr
+    from hilsim.sim.kinematics import RobotModel
+    from hilsim.sim.scene import Scene
 
     rrd = tmp_path / "rows.rrd"
     rec = rr.RecordingStream("test_views")
@@ -133,7 +133,7 @@ def _close(rows: Any, rrd: Path) -> dict[str, list[dict[str, Any]]]:
 
 def test_a_scan_becomes_points_in_the_laser_frame(tmp_path: Path) -> None:
     """Rays counter-clockwise from angle_min; ±inf (no return, too close) and NaN are no point."""
-    from hilsim.rerun_rows import scan_points
+    from hilsim.record.rows import scan_points
 
     ranges = [1.0, 2.0, math.inf, -math.inf, 3.0, math.nan]
     scan = msgs.LaserScan(header=msgs.header(100_000_000, "laser"), angle_min=-math.pi / 2,
@@ -157,7 +157,7 @@ def test_a_scan_becomes_points_in_the_laser_frame(tmp_path: Path) -> None:
 def test_gps_fixes_become_geopoints_and_world_points(tmp_path: Path) -> None:
     """A fix made by the GPS sensor of a known world point: the same lat/lon on the map, and back at
     that point in the world (X north, Y east)."""
-    from hilsim.sensors_mobile import Gps
+    from hilsim.sim.sensors_mobile import Gps
 
     gps = Gps.__new__(Gps)  # only its geodetic conversion, the sensor's own (no sampling)
     gps.p = Gps.Params(horizontal_std=0.0, vertical_std=0.0)
@@ -222,7 +222,7 @@ def test_odometry_is_drawn_against_the_truth(tmp_path: Path) -> None:
 def test_odometry_without_a_scene_starts_at_the_first_truth(tmp_path: Path) -> None:
     """No world model: the odom frame is the first truth's pose (here (1, 2) facing +y), so 'x = 1.1 m'
     in the odometry is drawn 1.1 m along the world's +y from there."""
-    from hilsim.rerun_rows import RowWriter, rr
+    from hilsim.record.rows import RowWriter, rr
 
     rrd = tmp_path / "rows.rrd"
     rec = rr.RecordingStream("test_views")
@@ -315,9 +315,9 @@ def _views(container: Any) -> list[Any]:
 def test_default_layout(world: Path, urdf: Path, expected: set[str]) -> None:
     """A 3D view of the world for every robot; the odometry tab for a mobile one; the map where the
     world has a datum (only there can a GPS track be placed on it)."""
-    from hilsim.kinematics import RobotModel
-    from hilsim.scene import Scene
-    from hilsim.viewer import default_blueprint
+    from hilsim.record.viewer import default_blueprint
+    from hilsim.sim.kinematics import RobotModel
+    from hilsim.sim.scene import Scene
 
     model = RobotModel.load(urdf)
     bp = default_blueprint(model, Scene.load(world, model.links, model.root))
@@ -351,8 +351,8 @@ def test_every_geom_kind_is_drawn(tmp_path: Path) -> None:
     <body name="door" pos="0 0 3"><joint type="hinge"/><geom name="door" type="box" size="0.1 0.1 0.1"/></body>
   </worldbody>
 </mujoco>""")
-    from hilsim.rerun_rows import rr
-    from hilsim.scene import Scene
+    from hilsim.record.rows import rr
+    from hilsim.sim.scene import Scene
 
     scene = Scene.load(xml)
     got = {g.name: g for g in scene.geoms}

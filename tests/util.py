@@ -15,9 +15,9 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from hilsim import geometry, msgs, transport
-from hilsim.config import ZenohConfig
-from hilsim.keys import Keys
+from hilsim.core import geometry, msgs, transport
+from hilsim.core.config import ZenohConfig
+from hilsim.core.keys import Keys
 
 # The arm at half its rates (config/arm-lean.yaml): realtime end-to-end tests run on it, so a slow
 # or busy 2-core CI machine still keeps the wall clock (at 1 kHz the pipeline needs most of 2 cores)

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from hilsim import msgs
+from hilsim.core import msgs
 
 FREE, OCCUPIED = 0, 100
 

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from hilsim.config import CONFIG_DIR, ConfigError
+from hilsim.core.config import CONFIG_DIR, ConfigError
 from hilsim.planning.collision import ArmModel
 from hilsim.planning.library import PlannerLibrary, Problem
 from hilsim.planning.objectives import path_length, summed_turning_angle

@@ -29,8 +29,8 @@ from typing import Any
 
 import zenoh
 
-from hilsim import msgs, transport
-from hilsim.keys import Keys
+from hilsim.core import msgs, transport
+from hilsim.core.keys import Keys
 
 
 class MoveClient:

@@ -12,7 +12,7 @@ from __future__ import annotations
 import mujoco
 import numpy as np
 
-from hilsim.geometry import rpy_to_matrix
+from hilsim.core.geometry import rpy_to_matrix
 from hilsim.planning.collision import ArmModel
 
 __all__ = ["IKError", "rpy_to_matrix", "solve_ik"]

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from hilsim.config import CONFIG_DIR
+from hilsim.core.config import CONFIG_DIR
 from hilsim.planning.improved import ImprovedRRTStar
 from hilsim.planning.problem import Budget, Planner, PlannerConfigError, PlanOutcome, Problem
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 from ruckig import ControlInterface, InputParameter, Result, Ruckig, Trajectory
 
-from hilsim import msgs
+from hilsim.core import msgs
 
 
 class TrajectoryError(ValueError):

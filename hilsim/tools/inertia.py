@@ -49,7 +49,7 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, PositiveFloat, ValidationError, model_validator
 
-from hilsim.config import ConfigError, format_error
+from hilsim.core.config import ConfigError, format_error
 
 Vec3 = tuple[float, float, float]
 THIN = 1e-4  # wall of a "thin" column in MuJoCo's cross-check, as a fraction of its side

@@ -1,7 +1,7 @@
 """Step experiments on the real services: physics, sensors and controller as separate processes, in lockstep.
 
 The tools (``hilsim report step``, ``hilsim tune``) start the scenario's physics, sensors and
-controller with :class:`hilsim.launcher.Launcher` (no planner: the rig writes
+controller with :class:`hilsim.run.launcher.Launcher` (no planner: the rig writes
 ``joint_trajectory`` itself, and a key with an announced writer accepts no other) and join the run
 as one more lockstep participant, :class:`StepRig`, acknowledging on ``sync/step-rig`` every
 ``PERIOD`` control steps. Because physics waits for its acknowledgement, the rig acts at exact
@@ -25,7 +25,7 @@ The response measured is the joint's TRUE position, not the encoders'.
 
 **The rover** (``controller.type: four_wheel_steer``) has no per-joint reference input: its
 controller turns a body twist into each wheel's steering angle and traction speed (its
-kinematic layer, :mod:`hilsim.steering`) and closes one PID per loop on them. Its loops are
+kinematic layer, :mod:`hilsim.sim.steering`) and closes one PID per loop on them. Its loops are
 stepped through that layer, at exact sim times, by the controller's own ``script``
 (``controller.params.script``: the twist from a sim time on), which the rig writes into the
 scenario before the run; the rig itself only sets the gains at its steps, as for the arm:
@@ -61,9 +61,11 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from hilsim import control, msgs, transport
-from hilsim.config import ConfigError, PidGains, Scenario, load_scenario
-from hilsim.service import Service
+from hilsim.core import msgs, transport
+from hilsim.core.config import ConfigError, PidGains, Scenario
+from hilsim.core.scenario import load_scenario
+from hilsim.core.service import Service
+from hilsim.sim import control
 
 RIG = "step-rig"
 LOOP_SERVICES = ["physics", "sensors", "controller"]
@@ -154,7 +156,7 @@ class StepRig(Service):
         self.home = _home(sc, self.names)
         self.rover = sc.controller.type == "four_wheel_steer"
         if self.rover:
-            from hilsim.registry import service_class
+            from hilsim.core.registry import service_class
 
             # the rover controller's own geometry, loops and gains (the class that runs it; nothing is opened)
             ctl = service_class("controller", sc)(sc)
@@ -307,7 +309,7 @@ class StepRig(Service):
     def _act(self, a: _Action) -> None:
         if a.gains:
             if a.fresh:
-                # a trial starts like a fresh controller: ki = 0 empties the integral (hilsim.control.Pid)
+                # a trial starts like a fresh controller: ki = 0 empties the integral (hilsim.sim.control.Pid)
                 self._set_gains({f"{n}.ki": 0.0 for n in a.joints})
             self._set_gains(a.gains)
         if a.position is None or self.traj_pub is None:
@@ -361,7 +363,7 @@ class StepRig(Service):
             for n, target in zip(lp.joints, lp.targets, strict=True):
                 j = self.names.index(n)
                 # the rover's speed reference is the twist's scaled by cos(steering error)
-                # (hilsim.steering.traction_scale): a wheel's angle that has not quite come home (a few
+                # (hilsim.sim.steering.traction_scale): a wheel's angle that has not quite come home (a few
                 # 0.01 rad) makes it a few 1e-4 smaller; a step is a step within 0.1 % of its size
                 tol = 1e-3 * abs(e.step) if self.rover else 1e-12
                 if not at.size or not before.size or abs(refs[at[0], j] - target) > tol \
@@ -438,7 +440,7 @@ def _run_once(sc: Scenario, experiments: Sequence[Experiment], run_dir: Path | N
 
 def _run_services(sc: Scenario, experiments: Sequence[Experiment], run_dir: Path | None,
                   progress: Callable[[int, int], None] | None, wall_timeout: float) -> list[Response]:
-    from hilsim.launcher import Launcher
+    from hilsim.run.launcher import Launcher
 
     if not experiments:
         return []

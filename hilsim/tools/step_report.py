@@ -29,7 +29,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from hilsim.config import ConfigError, Scenario
+from hilsim.core.config import ConfigError, Scenario
 from hilsim.tools.metrics import ZERO_OVERSHOOT, ZERO_TOL, Figures, step_figures
 from hilsim.tools.rig import Experiment, Response, RigError, loop_scenario, run_experiments
 
@@ -248,7 +248,7 @@ def write_png(path: Path, robot: str, rows: Sequence[Row]) -> None:
 
 def log_rerun(path: Path, robot: str, rows: Sequence[Row]) -> None:
     """The responses and their figures as a Rerun recording (analytics off)."""
-    from hilsim.recording import disable_analytics
+    from hilsim.core.recording import disable_analytics
 
     disable_analytics()
     import rerun as rr
@@ -280,7 +280,7 @@ def cmd_report_step(args: argparse.Namespace) -> int:
 
 
 def _cmd_report_step(args: argparse.Namespace) -> int:
-    from hilsim.runs import new_run_dir
+    from hilsim.run.runs import new_run_dir
 
     joints = [j.strip() for j in args.joints.split(",") if j.strip()] if args.joints else default_joints(args.robot)
     if not joints:

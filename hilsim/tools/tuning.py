@@ -69,8 +69,9 @@ from pathlib import Path
 
 import numpy as np
 
-from hilsim import control
-from hilsim.config import ConfigError, Scenario, load_scenario, scenario_path
+from hilsim.core.config import ConfigError, Scenario
+from hilsim.core.scenario import load_scenario, scenario_path
+from hilsim.sim import control
 from hilsim.tools.metrics import ZERO_OVERSHOOT_PCT, ZERO_TOL, Figures, step_figures
 from hilsim.tools.rig import Experiment, Response, RigError, loop_scenario, run_experiments
 from hilsim.tools.step_report import DEFAULT_SPEED, ROVER_ZERO

@@ -11,10 +11,10 @@ Reads (``<prefix>/<robot>/…``, any robot): ``alive/*`` (liveliness), ``health/
 (faults: level ERROR and above), ``<prefix>/clock``, ``truth/joint_states`` (positions; the latest
 about 20 times a second, for the plot), ``controller/reference`` (setpoints), ``truth/odom`` (a rover's pose),
 ``planner/feedback``, ``planner/result``, ``navigator/feedback``, ``navigator/result``.
-Samples are believed as every service believes them (:mod:`hilsim.provenance`: on a key with an
+Samples are believed as every service believes them (:mod:`hilsim.core.provenance`: on a key with an
 announced writer, only that writer's), and whatever is shown is text, never markup.
 Queries: ``planner/goal``, ``planner/cancel``, ``navigator/goal``, ``navigator/cancel`` (through
-:class:`hilsim.planning.client.MoveClient`), ``controller/set_parameters`` (:mod:`hilsim.params`);
+:class:`hilsim.planning.client.MoveClient`), ``controller/set_parameters`` (:mod:`hilsim.tools.params`);
 the gains in force are read back from the controller's health (``gains:<joint>``).
 
 HTTP (JSON; bad input is a 4xx with ``{"error", "field"}``, never a server error):
@@ -55,12 +55,13 @@ from starlette.responses import FileResponse, JSONResponse, Response, StreamingR
 from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 
-from hilsim import msgs, transport
-from hilsim.config import CONFIG_DIR, ConfigError, Scenario, load_scenario, parse_overrides
-from hilsim.control import GAIN_FIELDS
-from hilsim.geometry import yaw_of
-from hilsim.keys import Keys
-from hilsim.provenance import Provenance
+from hilsim.core import msgs, transport
+from hilsim.core.config import CONFIG_DIR, ConfigError, Scenario
+from hilsim.core.geometry import yaw_of
+from hilsim.core.keys import Keys
+from hilsim.core.provenance import Provenance
+from hilsim.core.scenario import load_scenario, parse_overrides
+from hilsim.sim.control import GAIN_FIELDS
 
 log = logging.getLogger("hilsim.ui")
 
@@ -134,7 +135,7 @@ def scenario_options(config_dir: Path = CONFIG_DIR) -> dict[str, ScenarioOption]
 
 def option_of(sc: Scenario, name: str, worlds: list[str] | None = None) -> ScenarioOption:
     """What the panel needs of a scenario: its robot, services, joints and their limits."""
-    from hilsim.control import joint_table
+    from hilsim.sim.control import joint_table
 
     opt = ScenarioOption(
         name=name, robot=sc.robot, prefix=sc.prefix, mobile="navigator" in sc.services,
@@ -170,10 +171,10 @@ def _robot_of(key: str, prefix: str) -> str:
 
 
 def shown_robot(sc: Scenario) -> tuple[str, list[str]]:
-    """The robot a run's page shows and the services it lists. With ``robots: N`` (hilsim.fleet)
+    """The robot a run's page shows and the services it lists. With ``robots: N`` (hilsim.core.fleet)
     that is the first robot, ``arm0``: its own services by their names (``controller@arm0`` is
     ``controller`` under ``<prefix>/arm0/``) beside the ones every robot shares (physics, logger)."""
-    from hilsim import fleet
+    from hilsim.core import fleet
 
     robots = fleet.robot_names(sc)
     if len(robots) <= 1:
@@ -259,7 +260,7 @@ class Monitor:
 
     def _decode(self, sample: zenoh.Sample, cls: type) -> Any:
         """The message, if it comes from the key's announced writer (as every service judges it:
-        :mod:`hilsim.provenance`) and decodes; else None, counted in ``ignored``."""
+        :mod:`hilsim.core.provenance`) and decodes; else None, counted in ``ignored``."""
         with self._prov_lock:
             why, _ = self.prov.check(str(sample.key_expr), transport.read_attachment(sample))
             if why is not None:
@@ -606,7 +607,7 @@ class Panel:
         if connect:
             self.endpoint = connect
         else:
-            from hilsim.launcher import open_default_router
+            from hilsim.run.launcher import open_default_router
 
             self.endpoint, self.router = open_default_router()
         self.session = transport.open_tool_session(self.endpoint)
@@ -707,7 +708,7 @@ class Panel:
         return self.start_request(RunRequest(name, world, planner, clock, mode))
 
     def start_request(self, req: RunRequest) -> dict[str, Any]:
-        from hilsim.launcher import world_scenario
+        from hilsim.run.launcher import world_scenario
 
         if self.run.busy():
             raise BadInput("run", f"a run is already {self.run.state} ({self.run.info.get('scenario')}): "
@@ -845,7 +846,7 @@ class Panel:
         return {"goal_id": gid, "cancelled": True, "reason": resp.reason}
 
     def gains(self, body: dict[str, Any]) -> dict[str, Any]:
-        from hilsim.params import set_parameters
+        from hilsim.tools.params import set_parameters
 
         opt = self._live_option("gains")
         joint = body.get("joint")
@@ -873,7 +874,7 @@ class Panel:
     def open_viewer(self) -> dict[str, Any]:
         """Rerun's own web viewer (bundled with rerun-sdk) on the recording, served on loopback:
         ``rerun --serve-web``; analytics off as everywhere in hilsim."""
-        from hilsim.recording import rerun_config_home, rerun_env, rerun_executable
+        from hilsim.core.recording import rerun_config_home, rerun_env, rerun_executable
 
         rec = str(self.run.info.get("recording") or "")
         if not rec or not Path(rec).is_file():

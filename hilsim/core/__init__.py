@@ -1,0 +1,1 @@
+"""The transport core: keys, messages, config, sessions and services (imports nothing above it)."""

@@ -1,0 +1,456 @@
+"""The scenario schema: what a scenario file may say, validated with pydantic.
+
+Only the schema lives here (and :class:`ConfigError`, :func:`format_error`, the one-line error of
+a bad field). Reading files, ``extends:``, overrides and the environment is
+:mod:`hilsim.core.scenario`; which robots a scenario has and what its services are called,
+:mod:`hilsim.core.fleet` (below this module). Checks that need the registry of services get its
+names through pydantic's validation context, which the loader supplies.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
+
+from hilsim.core import fleet
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+CONFIG_DIR = REPO_ROOT / "config"
+MODELS_DIR = REPO_ROOT / "models"
+
+DEFAULT_SERVICES = ("physics", "sensors", "controller", "planner", "logger")
+SIM = "sim"  # the server of a joint simulated by physics
+
+
+def known_services(info: ValidationInfo) -> list[str] | None:
+    """The service names the registry knows, as the loader (:mod:`hilsim.core.scenario`) passes them in the
+    validation context (the schema does not import the registry, which sits above it); None: not checked."""
+    ctx = info.context
+    return ctx.get("services") if isinstance(ctx, dict) else None
+
+
+class ConfigError(Exception):
+    """A scenario that cannot be used; the message is one line for the user."""
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class TlsConfig(_Model):
+    """This process's TLS identity (docs/security.md): the CA that signed the router's
+    certificate, and this process's own certificate and key, which the router checks (mTLS) and
+    whose common name its access control knows. Paths are absolute or relative to the current
+    directory."""
+
+    root_ca: Path = Field(description="PEM of the certificate authority")
+    certificate: Path = Field(description="PEM of this process's certificate (signed by root_ca)")
+    private_key: Path = Field(description="PEM of its private key")
+
+    @model_validator(mode="after")
+    def _files_exist(self) -> TlsConfig:
+        for name in ("root_ca", "certificate", "private_key"):
+            f = getattr(self, name)
+            if not f.is_file():
+                raise ValueError(f"{name}: file {f} does not exist (scripts/make-certs.sh makes a throw-away set)")
+        return self
+
+
+class ZenohConfig(_Model):
+    mode: Literal["peer", "client"] = "peer"
+    # Where the services meet. `hilsim up` runs a router on loopback and fills this in.
+    connect: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    listen: list[str] = Field(default_factory=lambda: ["tcp/127.0.0.1:0"])
+    multicast_scouting: bool = False
+    # None: plain TCP (the loopback default). Set: TLS to the router with this identity; the
+    # process is then a client of the router (no listener of its own, so nothing reaches it
+    # without passing the router's certificate check and access control)
+    tls: TlsConfig | None = None
+
+
+class ClockConfig(_Model):
+    mode: Literal["lockstep", "realtime"] = "lockstep"
+    dt: float = Field(0.001, gt=0, le=0.1, description="physics step [s]")
+    ack_timeout: float = Field(
+        30.0, gt=0, description="wall seconds physics waits for a lockstep ack before the run is stalled "
+        "(longer than the planner's wall-clock cap on one plan, which a lockstep step may include)",
+    )
+    max_age: float = Field(
+        0.05, ge=0, description="realtime: a received sample older than this (wall seconds since it was sent) is "
+        "dropped as stale and counted, so a service that fell behind catches up (streams only: a trajectory, "
+        "given once, is never dropped); 0 = keep every sample",
+    )
+    start_delay: float = Field(
+        0.5, ge=0, description="wall seconds between every service being live and step 0 (peers finish connecting)"
+    )
+    start_timeout: float = Field(
+        120.0, gt=0, description="wall seconds hilsim up and physics wait for every service to announce itself "
+        "before the run fails (hilsim up --wait sets it)",
+    )
+
+
+class WorldConfig(_Model):
+    model: Path = Field(description="MJCF world file (robot included)")
+    urdf: Path | None = None
+
+
+Interface = Literal["effort", "position", "velocity"]
+
+
+class JointConfig(_Model):
+    """How one joint is commanded and who serves it (like a ros2_control hardware interface)."""
+
+    interface: Interface = Field("effort", description="command interface: effort, position or velocity")
+    server: str = Field(SIM, description="'sim' (physics) or the name of an external server (e.g. motor-model)")
+    servo_kp: float | None = Field(None, gt=0, description="simulated drive: position [N·m/rad] or velocity "
+                                   "[N·m·s/rad] servo gain (default 100 / 10)")
+    servo_kv: float | None = Field(None, ge=0, description="simulated position drive: damping [N·m·s/rad] (default 5)")
+
+
+class PhysicsConfig(_Model):
+    truth_imu_site: str | None = "imu"
+    gravity_compensation: list[str] = Field(
+        default_factory=list, description="bodies whose gravity is compensated (names or glob patterns, e.g. 'link_*')"
+    )
+    follow_extrapolation: float = Field(
+        0.0, ge=0, le=0.1, description="external joints: carry a server's last report forward at its velocity for "
+        "at most this many seconds (e.g. one report period of a drive that reports every 10 ms); 0 = hold it",
+    )
+    server_timeout: float = Field(
+        0.25, gt=0, description="wall seconds without state from an external joint server before it is a fault"
+    )
+
+
+class SensorConfig(BaseModel):
+    """One emulated sensor; ``type`` picks the class, the other fields are its parameters."""
+
+    model_config = ConfigDict(extra="allow")
+    type: str
+    rate_hz: float = Field(100.0, gt=0)
+    enabled: bool = True
+
+
+class PidGains(_Model):
+    kp: float = Field(ge=0)
+    ki: float = Field(0.0, ge=0)
+    kd: float = Field(0.0, ge=0)
+    i_limit: float = Field(math.inf, gt=0, description="anti-windup: limit on |ki * integral|")
+    output_limit: float | None = Field(None, gt=0)
+    feedforward: float = Field(0.0, ge=0, description="velocity feed-forward gain")
+
+
+class ControllerConfig(_Model):
+    type: str = Field("joint_trajectory", description="control law, by name (built-in or hilsim.controllers plug-in)")
+    rate_hz: float = Field(1000.0, gt=0)
+    velocity_gain: float = Field(
+        10.0, ge=0, description="velocity-interface joints: command = v_ref + velocity_gain·(p_ref − p) [1/s]"
+    )
+    gains: dict[str, PidGains] = Field(default_factory=dict, description="per joint name, or 'default'")
+    hold_timeout: float = Field(0.05, gt=0, description="sim seconds without joint_states before holding")
+    params: dict[str, Any] = Field(
+        default_factory=dict, description="settings of the control law named by `type`, validated by its class "
+        "(e.g. four_wheel_steer: max_speed, cmd_timeout, script)",
+    )
+
+
+class PlannerConfig(_Model):
+    planner: str = Field("rrtstar", description="default planner, by name in the planner library")
+    planning_time: float = Field(1.0, gt=0, description="wall seconds per plan (realtime)")
+    clearance: float = Field(0.005, ge=0, description="minimum distance to obstacles [m]")
+    rate_hz: float = Field(100.0, gt=0, description="how often the planner decides (starts goals, monitors)")
+    library: Path | None = Field(None, description="planner library YAML (default config/planners.yaml)")
+    iterations: int | None = Field(
+        None, gt=0, description="iteration budget per plan: lockstep default the library's; in realtime "
+        "only when set, and planning_time still caps it"
+    )
+
+
+class TaskConfig(_Model):
+    targets: list[list[float]] = Field(default_factory=list)
+    tolerance: float = Field(0.01, gt=0)
+    settle_time: float = Field(0.3, ge=0)
+    target_timeout: float = Field(30.0, gt=0, description="sim seconds per target")
+
+
+class LoggerConfig(_Model):
+    enabled: bool = True
+    out_dir: Path = Path("runs")
+    run_dir: Path | None = Field(None, description="write here instead of <out_dir>/<timestamp> (set by `hilsim up`)")
+    record: list[str] = Field(default_factory=lambda: ["**"], description="key expressions under <prefix>/")
+
+
+RestartPolicy = Literal["no", "on-failure"]
+
+
+class RestartConfig(_Model):
+    """What ``hilsim up`` does when a service dies (like compose's ``restart:``): ``no`` (report
+    and stop the run) or ``on-failure`` (start it again, at most ``max_attempts`` times per
+    service, after ``backoff`` seconds, doubled at each attempt). Physics is never restarted: it
+    holds sim time and the robot's true state, which a new process would not have."""
+
+    services: dict[str, RestartPolicy] = Field(
+        default_factory=dict, description="per service name, or 'default' for the others: no | on-failure"
+    )
+    max_attempts: int = Field(3, ge=1, le=100, description="restarts per service and run")
+    backoff: float = Field(0.5, ge=0, le=60, description="wall seconds before the first restart (doubled each time)")
+
+    @field_validator("services", mode="before")
+    @classmethod
+    def _no_is_not_false(cls, v: Any) -> Any:
+        # YAML reads a bare `no` as False (compose has the same trap): take it as the policy "no"
+        if isinstance(v, dict):
+            return {k: "no" if p is False else p for k, p in v.items()}
+        return v
+
+    @field_validator("services")
+    @classmethod
+    def _known(cls, v: dict[str, str], info: ValidationInfo) -> dict[str, str]:
+        known = known_services(info)
+        for name, policy in v.items():
+            if known is not None and name != "default" and name not in known:
+                raise ValueError(f"unknown service {name!r}; expected 'default' or one of {', '.join(known)}")
+            if name == "physics" and policy != "no":
+                raise ValueError("physics cannot be restarted: sim time and the robot's true state would be lost")
+        return v
+
+    def policy(self, service: str) -> str:
+        """The policy of ``service`` (its own entry, else ``default``, else no); physics: no. A
+        composed process ``a+b`` (:mod:`hilsim.run.compose`) is restarted only if each of its members is."""
+        if "+" in service:
+            return "on-failure" if all(self.policy(s) == "on-failure" for s in service.split("+")) else "no"
+        service = service.split("@")[0]  # robots > 1: controller@arm3, controller@* (hilsim.core.fleet)
+        if service == "physics":
+            return "no"
+        return self.services.get(service, self.services.get("default", "no"))
+
+
+class Scenario(_Model):
+    """A scenario. Besides the fields below, a top-level section named after a service (e.g.
+    ``motor-model:``) holds that service's own settings; its class validates them."""
+
+    model_config = ConfigDict(extra="allow", validate_assignment=True)
+    name: str
+    robot: str = "arm"
+    robots: int = Field(1, ge=1, le=64, description="copies of the robot, side by side in one world: "
+                        "robots <robot>0 … <robot>N-1, each under its own key namespace (hilsim.core.fleet)")
+    robot_spacing: list[float] = Field(
+        default_factory=lambda: [0.0, 1.5, 0.0], min_length=3, max_length=3,
+        description="robots > 1: offset [m] of each copy of the world model from the previous one",
+    )
+    robot_overrides: dict[str, dict[str, Any]] = Field(
+        default_factory=dict,
+        description="robots > 1: per robot (arm0, …), its own settings as dotted fields under "
+                    "task, controller, planner or sensors, e.g. {arm1: {task.targets: [[…]]}}",
+    )
+    prefix: str = "hilsim"
+    seed: int = 0
+    duration: float | None = Field(None, gt=0, description="sim seconds; None = until the task ends")
+    services: list[str] = Field(default_factory=lambda: list(DEFAULT_SERVICES))
+    compose: list[list[str]] = Field(
+        default_factory=list,
+        description="groups of services run in one process each, e.g. [[physics, sensors, controller]]",
+    )
+    zenoh: ZenohConfig = Field(default_factory=ZenohConfig)
+    clock: ClockConfig = Field(default_factory=ClockConfig)
+    world: WorldConfig
+    physics: PhysicsConfig = Field(default_factory=PhysicsConfig)
+    joints: dict[str, JointConfig] = Field(
+        default_factory=dict, description="per joint name, or 'default' for the others: interface and server"
+    )
+    sensors: dict[str, SensorConfig] = Field(default_factory=dict)
+    controller: ControllerConfig = Field(default_factory=ControllerConfig)
+    planner: PlannerConfig = Field(default_factory=PlannerConfig)
+    task: TaskConfig = Field(default_factory=TaskConfig)
+    logger: LoggerConfig = Field(default_factory=LoggerConfig)
+    restart: RestartConfig = Field(default_factory=RestartConfig)
+    source: Path | None = Field(None, exclude=True, description="file this came from")
+    fleet_member: bool = Field(False, exclude=True, description="set by hilsim.core.fleet: one robot's view of a "
+                               "scenario with robots > 1 (its files in the run directory carry its name)")
+
+    @field_validator("prefix", "robot")
+    @classmethod
+    def _key_safe(cls, v: str) -> str:
+        if not v or any(c in v for c in "/*?#$ "):
+            raise ValueError("must be a non-empty name without '/', '*', '?', '#', '$' or spaces")
+        return v
+
+    @field_validator("services")
+    @classmethod
+    def _known_services(cls, v: list[str], info: ValidationInfo) -> list[str]:
+        known = known_services(info)
+        for s in v:
+            if known is not None and s not in known:
+                raise ValueError(f"unknown service {s!r}; available: {', '.join(known)}")
+        if len(set(v)) != len(v):
+            raise ValueError("a service is listed twice")
+        return v
+
+    @model_validator(mode="after")
+    def _fleet(self) -> Scenario:
+        if self.robots > 1 and self.external_servers():
+            raise ValueError(f"robots: {self.robots} robots need every joint served by sim "
+                             f"(external servers: {', '.join(self.external_servers())})")
+        names = fleet.robot_names(self)
+        for robot, over in self.robot_overrides.items():
+            if self.robots == 1 or robot not in names:
+                raise ValueError(f"robot_overrides.{robot}: no such robot (robots: {', '.join(names)}; "
+                                 f"overrides need robots > 1)")
+            for field in over:
+                if field.split(".")[0] not in fleet.OVERRIDABLE:
+                    raise ValueError(f"robot_overrides.{robot}.{field}: a robot may change only fields under "
+                                     f"{', '.join(fleet.OVERRIDABLE)} (the world and clock are shared)")
+        # a bad value in an override is said by the loader (hilsim.core.scenario), which builds each robot's view
+        return self
+
+    @model_validator(mode="after")
+    def _compose_groups(self) -> Scenario:
+        seen: set[str] = set()
+        base = self._base_processes()
+        for i, g in enumerate(self.compose):
+            for s in g:
+                if s not in base:
+                    raise ValueError(f"compose[{i}]: {s!r} is not one of this scenario's services "
+                                     f"({', '.join(base)})")
+                if s in seen:
+                    raise ValueError(f"compose[{i}]: {s!r} is in two groups")
+                seen.add(s)
+            if len(g) < 2:
+                raise ValueError(f"compose[{i}]: a group needs at least two services, got {g}")
+        return self
+
+    @model_validator(mode="after")
+    def _service_sections(self, info: ValidationInfo) -> Scenario:
+        known = known_services(info)
+        if known is None:
+            return self
+        for k in self.model_extra or {}:
+            if k not in known:
+                raise ValueError(f"unknown field {k!r} (not a scenario field, nor a service's section; "
+                                 f"services: {', '.join(known)})")
+        return self
+
+    def joint(self, name: str) -> JointConfig:
+        """The interface and server of a joint: the fields its own entry sets, over ``default``'s,
+        over effort/sim."""
+        base = self.joints.get("default") or JointConfig()
+        own = self.joints.get(name)
+        if own is None:
+            return base
+        return base.model_copy(update={f: getattr(own, f) for f in own.model_fields_set})
+
+    def served_by(self, server: str) -> list[str]:
+        """The joints ``server`` serves, named one by one in ``joints`` (one-line ConfigError if
+        it serves none, or is the server of ``default``: it must know its joints by name)."""
+        where = self.source or "scenario"
+        if self.joint("default").server == server:
+            raise ConfigError(f"{where}: joints.default.server: name the joints {server} serves one by one")
+        mine = [n for n in self.joints if n != "default" and self.joint(n).server == server]
+        if not mine:
+            raise ConfigError(f"{where}: joints: no joint has server: {server}, so {server} has nothing to serve")
+        return mine
+
+    def external_servers(self) -> list[str]:
+        """External joint servers named in ``joints`` (in order of first mention)."""
+        out: list[str] = []
+        for j in self.joints.values():
+            if j.server != SIM and j.server not in out:
+                out.append(j.server)
+        return out
+
+    def _base_processes(self) -> list[str]:
+        return [*self.services, *(s for s in self.external_servers() if s not in self.services)]
+
+    def processes(self) -> list[str]:
+        """Every service this scenario runs: ``services`` plus the external joint servers. With
+        ``robots`` > 1, a per-robot service once per robot, as ``<service>@<robot>`` (hilsim.core.fleet)."""
+        return fleet.expand_processes(self, self._base_processes())
+
+    def launch_units(self) -> list[str]:
+        """The OS processes ``hilsim up`` starts: one per service, except the services of a
+        ``compose`` group, which share one named ``a+b+c`` (:mod:`hilsim.run.compose`). With
+        ``robots`` > 1, a per-robot service's unit is ``<service>@*``: one process serving every robot."""
+        procs = self._base_processes()
+        grouped = {s: "+".join(m for m in g if m in procs) for g in self.compose for s in g}
+        if self.robots > 1:
+            return [fleet.fleet_unit(u) for u in self._units(procs, grouped)]
+        return self._units(procs, grouped)
+
+    def _units(self, procs: list[str], grouped: dict[str, str]) -> list[str]:
+        out: list[str] = []
+        for s in procs:
+            unit = grouped.get(s, s)
+            if unit not in out:
+                out.append(unit)
+        return out
+
+    def section(self, name: str) -> dict[str, Any]:
+        """Raw settings of a plug-in or server section (validated by the service that owns it)."""
+        v = (self.model_extra or {}).get(name, {})
+        return v if isinstance(v, dict) else {}
+
+    @model_validator(mode="after")
+    def _control_rate(self) -> Scenario:
+        steps = 1.0 / (self.controller.rate_hz * self.clock.dt)
+        if abs(steps - round(steps)) > 1e-6 or round(steps) < 1:
+            raise ValueError(
+                f"controller.rate_hz ({self.controller.rate_hz}) must divide "
+                f"the physics rate ({1 / self.clock.dt:g} Hz)"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _planner_rate(self) -> Scenario:
+        ratio = self.controller.rate_hz / self.planner.rate_hz
+        if abs(ratio - round(ratio)) > 1e-6 or round(ratio) < 1:
+            raise ValueError(
+                f"planner.rate_hz ({self.planner.rate_hz:g}) must divide controller.rate_hz "
+                f"({self.controller.rate_hz:g}): the planner decides on joint_states of its own steps"
+            )
+        return self
+
+    @property
+    def planner_decimation(self) -> int:
+        """Physics steps per planner decision (the planner acknowledges only those steps)."""
+        return round(1.0 / (self.planner.rate_hz * self.clock.dt))
+
+    @property
+    def dt_ns(self) -> int:
+        return round(self.clock.dt * 1e9)
+
+    @property
+    def control_decimation(self) -> int:
+        return round(1.0 / (self.controller.rate_hz * self.clock.dt))
+
+    def dump(self) -> dict[str, Any]:
+        return self.model_dump(mode="json", exclude={"source"})
+
+
+def format_error(path: Path | str, err: ValidationError, prefix: str = "") -> str:
+    """One line: file, dotted field (under ``prefix``), what was expected, what was given."""
+    e = err.errors()[0]
+    loc = ".".join([prefix, *(str(p) for p in e["loc"])] if prefix else [str(p) for p in e["loc"]]) or "(top level)"
+    got = e.get("input")
+    shown = got is not None and not isinstance(got, dict | list) and e["type"] != "missing"
+    extra = f" (got {got!r})" if shown else ""
+    more = f" [+{len(err.errors()) - 1} more]" if len(err.errors()) > 1 else ""
+    return f"{path}: {loc}: {e['msg']}{extra}{more}"
+
+
+TLS_ENV = {"root_ca": "HILSIM_TLS_ROOT_CA", "certificate": "HILSIM_TLS_CERTIFICATE",
+           "private_key": "HILSIM_TLS_PRIVATE_KEY"}
+
+
+def tls_from_env() -> dict[str, str] | None:
+    """``zenoh.tls`` from ``HILSIM_TLS_ROOT_CA``, ``HILSIM_TLS_CERTIFICATE`` and
+    ``HILSIM_TLS_PRIVATE_KEY`` (all three, or None when none is set)."""
+    got = {k: os.environ.get(v, "") for k, v in TLS_ENV.items()}
+    if not any(got.values()):
+        return None
+    missing = [TLS_ENV[k] for k, v in got.items() if not v]
+    if missing:
+        raise ConfigError(f"TLS from the environment: {', '.join(missing)} not set (set all three, or none)")
+    return got

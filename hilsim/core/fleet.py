@@ -1,0 +1,91 @@
+"""Many robots in one scenario: ``robots: N`` puts N copies of the world model side by side.
+
+A scenario with ``robots: 8`` (and ``robot: arm``) runs robots ``arm0`` … ``arm7``:
+
+- physics loads the world model (``world.model``: the arm *and* its table and obstacle, one work
+  cell) N times into one MuJoCo world, copy k moved by k × ``robot_spacing`` and its names
+  prefixed ``arm<k>/`` (MuJoCo's ``MjSpec.attach``); one clock, one ``mj_step`` for all;
+- each robot's keys are its own namespace, ``<prefix>/arm<k>/…`` (``truth/joint_states``,
+  ``joint_commands``, ``joint_states``, ``task/result``, …), with the joint names of the single
+  robot (``joint_1`` …), so its sensors, controller and planner are the single robot's code, run
+  with a copy of the scenario whose ``robot`` is ``arm<k>`` (:func:`robot_scenario`); every robot
+  gets the scenario's task (the same joint targets: each stands in its own copy of the cell),
+  unless ``robot_overrides: {arm1: {task.targets: […]}}`` gives it its own; robot k's sensors
+  are seeded ``seed + k``;
+- physics and the recorder serve the whole fleet under the scenario's own namespace
+  (``<prefix>/arm/health/physics``); sim time stays ``<prefix>/clock``.
+
+Services are named per robot ``<service>@<robot>`` (``controller@arm3``: its keys are under
+``<prefix>/arm3/``); ``hilsim up`` starts one process per service *kind*, ``controller@*``,
+serving every robot in threads that hand each other messages as a composed process does
+(:mod:`hilsim.run.compose`), so 8 arms take as many processes as one. ``hilsim run controller@arm3``
+runs one robot's controller alone (e.g. on another machine).
+
+With ``robots: 1`` (the default) nothing of this applies: the robot is ``<robot>`` itself and
+every key, process and result is what it always was.
+"""
+
+from __future__ import annotations
+
+from typing import Protocol
+
+
+class _Fleet(Protocol):
+    """What the naming rules read of a scenario (:class:`hilsim.core.config.Scenario` has it)."""
+
+    robot: str
+    robots: int
+
+
+# the sections a robot may have its own values of (robot_overrides); the world and clock are shared
+OVERRIDABLE = ("task", "controller", "planner", "sensors")
+FLEET_WIDE = ("physics", "logger")  # one for the whole fleet; every other service runs per robot
+ALL = "*"  # <service>@*: the service of every robot, in one process
+
+
+def robot_names(sc: _Fleet) -> list[str]:
+    """The robots of a scenario: its ``robot`` alone, or ``<robot>0`` … ``<robot>N-1``."""
+    return [sc.robot] if sc.robots == 1 else [f"{sc.robot}{k}" for k in range(sc.robots)]
+
+
+def per_robot(service: str) -> bool:
+    return service not in FLEET_WIDE
+
+
+def expand_processes(sc: _Fleet, base: list[str]) -> list[str]:
+    """``processes()`` of a scenario: base names, per-robot ones once per robot when robots > 1."""
+    if sc.robots == 1:
+        return list(base)
+    out: list[str] = []
+    for s in base:
+        out.extend([f"{s}@{r}" for r in robot_names(sc)] if per_robot(s) else [s])
+    return out
+
+
+def fleet_unit(unit: str) -> str:
+    """A launch unit of a fleet: its per-robot members as ``<service>@*``."""
+    return "+".join(f"{m}@{ALL}" if per_robot(m) and "@" not in m else m for m in unit.split("+"))
+
+
+def members(sc: _Fleet, unit: str) -> list[str]:
+    """The service instances of a launch unit (``a+b@*`` -> ``a, b@arm0, b@arm1, …``)."""
+    out: list[str] = []
+    for m in unit.split("+"):
+        svc, robot = split_id(m)
+        out.extend([f"{svc}@{r}" for r in robot_names(sc)] if robot == ALL else [m])
+    return out
+
+
+def split_id(name: str) -> tuple[str, str | None]:
+    """``controller@arm3`` -> (``controller``, ``arm3``); ``physics`` -> (``physics``, None)."""
+    svc, _, robot = name.partition("@")
+    return svc, robot or None
+
+
+def service_id(sc: _Fleet, key: str, kind: str) -> str:
+    """Who a key ``<prefix>/<ns>/<kind>/<service>[/…]`` belongs to: ``<service>`` in the
+    scenario's own namespace, ``<service>@<ns>`` in a robot's."""
+    parts = key.split("/")
+    i = parts.index(kind, 2)
+    ns, svc = parts[1], parts[i + 1]
+    return svc if ns == sc.robot else f"{svc}@{ns}"

@@ -1,0 +1,224 @@
+"""Loading a scenario: files, ``extends:``, overlays, ``--set`` overrides, the environment, one robot's view.
+
+A bad file never produces a traceback: :func:`load_scenario` raises :class:`~hilsim.core.config.ConfigError`
+whose message is one line naming the file, the field and what was expected, e.g.
+``config/arm.yaml: controller.gains.joint_2.kp: Input should be a valid number (got 'fast')``.
+
+Relative paths inside a scenario are resolved against the directory of the file.
+Environment overrides (applied after the file): ``HILSIM_PREFIX``, ``HILSIM_ZENOH_CONNECT``
+(comma-separated endpoints), ``HILSIM_ZENOH_MODE``, and ``zenoh.tls`` from ``HILSIM_TLS_ROOT_CA``,
+``HILSIM_TLS_CERTIFICATE``, ``HILSIM_TLS_PRIVATE_KEY``.
+
+The schema itself is :mod:`hilsim.core.config`; this module sits above it and the registry,
+so it may ask the registry which services exist.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import ValidationError
+
+from hilsim.core import fleet, registry
+from hilsim.core.config import CONFIG_DIR, SIM, ConfigError, Scenario, format_error, tls_from_env
+
+
+def _context() -> dict[str, Any]:
+    """What the schema's validators check against: the services the registry knows."""
+    return {"services": registry.names("services")}
+
+
+def _resolve_paths(data: dict[str, Any], base: Path) -> None:
+    for section, keys in (("world", ("model", "urdf")), ("planner", ("library",))):
+        d = data.get(section)
+        if isinstance(d, dict):
+            for k in keys:
+                if isinstance(d.get(k), str) and not os.path.isabs(d[k]):
+                    d[k] = str((base / d[k]).resolve())
+
+
+def set_dotted(data: dict[str, Any], dotted: str, value: Any) -> None:
+    """Apply an override such as ``clock.mode=realtime`` to raw scenario data."""
+    parts = dotted.split(".")
+    d = data
+    for p in parts[:-1]:
+        d = d.setdefault(p, {})
+        if not isinstance(d, dict):
+            raise ConfigError(f"override {dotted}: {p} is not a section")
+    d[parts[-1]] = value
+
+
+def parse_overrides(items: Sequence[str]) -> dict[str, Any]:
+    """``--set FIELD=VALUE`` arguments -> overrides for :func:`load_scenario` (values are YAML,
+    so ``seed=3`` is a number and ``clock.mode=realtime`` a string)."""
+    out: dict[str, Any] = {}
+    for it in items:
+        k, sep, v = it.partition("=")
+        if not sep:
+            raise ConfigError(f"--set {it}: expected FIELD=VALUE, e.g. clock.mode=realtime")
+        out[k.strip()] = yaml.safe_load(v)
+    return out
+
+
+def scenario_path(name_or_path: str | Path) -> Path:
+    """``arm`` -> ``config/arm.yaml``; a path is taken as it is."""
+    p = Path(name_or_path)
+    if p.suffix in (".yaml", ".yml") or p.exists():
+        return p
+    return CONFIG_DIR / f"{name_or_path}.yaml"
+
+
+def _read(path: Path, chain: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """Raw data of a scenario file, its ``extends:`` base merged under it (paths resolved)."""
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        avail = ", ".join(sorted(p.stem for p in CONFIG_DIR.glob("*.yaml") if _is_scenario(p)))
+        where = f"{chain[-1]}: extends: " if chain else ""
+        raise ConfigError(f"{where}{path}: no such scenario file (available in config/: {avail})") from None
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read: {e.strerror}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f"line {mark.line + 1}" if mark else "?"
+        raise ConfigError(f"{path}: {where}: not valid YAML ({getattr(e, 'problem', e)})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: (top level): expected a mapping of scenario fields, got {type(data).__name__}")
+    _resolve_paths(data, path.resolve().parent)
+    bases = data.pop("extends", None)
+    if bases is None:
+        return data
+    if isinstance(bases, str):
+        bases = [bases]
+    if not isinstance(bases, list) or not bases or not all(isinstance(b, str) for b in bases):
+        raise ConfigError(f"{path}: extends: expected a scenario file path, or a list of them (got {bases!r})")
+    merged: dict[str, Any] = {}
+    for base in bases:  # merged in order, this file last
+        base_path = (path.resolve().parent / base).resolve()
+        if base_path in chain or base_path == path.resolve():
+            raise ConfigError(f"{path}: extends: {base} extends itself (through {', '.join(map(str, chain))})")
+        merged = _merge(merged, _read(base_path, (*chain, path.resolve())))
+    return _merge(merged, data)
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """``over`` on top of ``base``: sections merge key by key, anything else is replaced."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def load_scenario(
+    name_or_path: str | Path, overrides: dict[str, Any] | None = None, overlays: Sequence[str | Path] = ()
+) -> Scenario:
+    """Load, merge, override, validate. A scenario file may start from another with
+    ``extends: <path relative to this file>`` and change only some fields; ``overlays`` (e.g. a
+    HIL file given to ``hilsim up --hil``) are merged on top in order, then ``overrides``."""
+    path = scenario_path(name_or_path)
+    data = _read(path)
+    for o in overlays:
+        op = Path(o)
+        if not op.exists():
+            raise ConfigError(f"{op}: no such overlay file")
+        data = _merge(data, _read(op))
+    for k, v in (overrides or {}).items():
+        set_dotted(data, k, v)
+    _apply_env(data)
+    _resolve_paths(data, path.resolve().parent)
+    try:
+        sc = Scenario.model_validate(data, context=_context())
+    except ValidationError as e:
+        raise ConfigError(format_error(path, e)) from None
+    for robot in sc.robot_overrides:  # a bad value is said when the file is read, not when that robot starts
+        try:
+            robot_scenario(sc, robot)
+        except ConfigError as e:
+            raise ConfigError(f"{path}: {str(e).split(': ', 1)[-1]}") from None
+    if not sc.world.model.exists():
+        raise ConfigError(f"{path}: world.model: file {sc.world.model} does not exist")
+    if sc.world.urdf is not None and not sc.world.urdf.exists():
+        raise ConfigError(f"{path}: world.urdf: file {sc.world.urdf} does not exist")
+    check_joint_servers(sc, path)
+    sc.source = path
+    return sc
+
+
+def check_joint_servers(sc: Scenario, path: Path | str) -> None:
+    """External joint servers exist and the clock suits them (one-line :class:`ConfigError`)."""
+    from hilsim.core import registry
+
+    known = registry.names("services")
+    for jname, j in sc.joints.items():
+        if j.server == SIM:
+            continue
+        if j.server not in known:
+            raise ConfigError(f"{path}: joints.{jname}.server: unknown server {j.server!r}; "
+                              f"expected 'sim' or one of {', '.join(known)}")
+        if sc.clock.mode != "realtime":
+            # hardware lives on the wall clock: it cannot wait for a lockstep step
+            raise ConfigError(f"{path}: joints.{jname}.server: {j.server!r} is an external server, which runs on "
+                              f"the wall clock, so the scenario needs clock.mode: realtime (got "
+                              f"{sc.clock.mode!r}; pass --clock realtime)")
+
+
+def _is_scenario(p: Path) -> bool:
+    try:
+        d = yaml.safe_load(p.read_text())
+    except (OSError, yaml.YAMLError):
+        return False
+    return isinstance(d, dict) and "world" in d
+
+
+def _apply_env(data: dict[str, Any]) -> None:
+    if v := os.environ.get("HILSIM_PREFIX"):
+        data["prefix"] = v
+    z = data.setdefault("zenoh", {}) if isinstance(data.get("zenoh", {}), dict) else None
+    if z is None:
+        return
+    if v := os.environ.get("HILSIM_ZENOH_CONNECT"):
+        z["connect"] = [e.strip() for e in v.split(",") if e.strip()]
+    if v := os.environ.get("HILSIM_ZENOH_MODE"):
+        z["mode"] = v
+    if tls := tls_from_env():
+        z["tls"] = tls
+
+
+
+def write_scenario(sc: Scenario, path: Path) -> None:
+    path.write_text(yaml.safe_dump(sc.dump(), sort_keys=False))
+
+
+def robot_scenario(sc: Scenario, robot: str) -> Scenario:
+    """The scenario as one robot of the fleet sees it: ``robot`` is its name, a single robot,
+    seed ``seed + k`` for robot k (its sensors' noise is its own), its ``robot_overrides`` applied."""
+    from hilsim.core.config import ConfigError, Scenario, format_error
+    from hilsim.core.scenario import _merge, set_dotted
+
+    names = fleet.robot_names(sc)
+    if robot not in names:
+        raise ConfigError(f"{sc.source or 'scenario'}: robots: no robot {robot!r} (robots: {', '.join(names)})")
+    if sc.robots == 1:
+        return sc
+    own = {"robot": robot, "robots": 1, "seed": sc.seed + names.index(robot), "robot_overrides": {},
+           "fleet_member": True}
+    over = sc.robot_overrides.get(robot)
+    if not over:
+        return sc.model_copy(update=own, deep=True)  # nothing shared: a robot may change its own (live gains)
+    layer: dict[str, object] = {}
+    for field, value in over.items():  # dotted (task.targets) or nested (task: {targets: …}) alike
+        set_dotted(layer, field, value)
+    data = _merge(sc.dump(), layer)
+    data.update(own)
+    try:
+        out = Scenario.model_validate(data, context=_context())
+    except ValidationError as e:
+        raise ConfigError(format_error(sc.source or "scenario", e, prefix=f"robot_overrides.{robot}")) from None
+    out.source, out.fleet_member = sc.source, True  # neither is in the dump
+    return out

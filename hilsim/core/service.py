@@ -1,0 +1,510 @@
+"""Base of every hilsim service process: session, liveliness, health, checked I/O, lifecycle.
+
+A service subclasses :class:`Service`, declares its inputs and outputs in :meth:`setup`
+through :meth:`subscribe`, :meth:`publisher` and :meth:`queryable`, and either reacts to
+messages (the default :meth:`loop` just waits) or overrides :meth:`loop`.
+
+What the base does once for all:
+- every payload is decoded and validated (:func:`hilsim.core.msgs.decode`); a bad one is
+  rejected, counted per key, logged with its key, and the service keeps running;
+- an exception in a handler is counted as an error and logged, never silently dropped;
+- handlers run under one lock, so a service's state needs no further locking;
+- health (``<prefix>/<robot>/health/<service>``, diagnostic_msgs/DiagnosticArray) is published
+  once a second and at exit; warnings and errors also go to ``<prefix>/<robot>/log/<service>``;
+- a liveliness token ``<prefix>/<robot>/alive/<service>`` is declared once inputs exist,
+  which is how ``hilsim up`` knows the service is ready;
+- SIGINT / SIGTERM end :meth:`loop`; everything declared is undeclared and the session closed.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from collections import Counter
+from collections.abc import Callable
+from typing import Any, ClassVar, TypeVar
+
+import zenoh
+from pydantic import BaseModel, ValidationError
+
+from hilsim.core import msgs, transport
+from hilsim.core.config import ConfigError, Scenario, format_error
+from hilsim.core.fleet import split_id
+from hilsim.core.keys import Keys
+from hilsim.core.provenance import Provenance
+from hilsim.core.registry import service_class
+from hilsim.core.scenario import robot_scenario
+
+T = TypeVar("T")
+LEVEL_OK, LEVEL_WARN, LEVEL_ERROR = 0, 1, 2
+
+
+class Publisher:
+    """Encodes, sends and counts messages on one key."""
+
+    def __init__(self, service: Service, key: str) -> None:
+        self.key = key
+        self._svc = service
+        # realtime: a subscriber that cannot keep up loses samples rather than delaying us
+        self._pub = transport.publisher(service.session, key, drop_when_congested=service.sc.clock.mode == "realtime")
+        self.gid = transport.new_gid()
+        self.seq = 0
+        self._lock = threading.Lock()
+        # composed (hilsim.run.compose): also handed, unencoded, to the subscribers in this process
+        self._local = getattr(self._pub, "deliver", None)
+        # announce: receivers accept this key only from announced writers (hilsim.core.provenance)
+        self._token = service.session.liveliness().declare_token(service.keys.writer(self.gid, key))
+
+    def put(self, msg: Any) -> None:
+        # one at a time: a key written from two threads (logs, health) must still reach receivers
+        # with growing sequence numbers, or they reject one sample as a duplicate or out of order
+        if self._local is None:
+            data = msgs.encode(msg)
+            with self._lock:
+                self.seq += 1
+                self._pub.put(data, attachment=transport.attachment_bytes(self.seq, self.gid))
+        else:
+            with self._lock:
+                self.seq += 1
+                att = transport.Attachment(self.seq, time.time_ns(), self.gid)
+                self._local(msg, att)
+                if self._pub.remote:  # encoded only while a subscriber outside the process exists
+                    self._pub.put(msgs.encode(msg), attachment=att.encode())
+        self._svc.counts_out[self.key] += 1
+
+    def undeclare(self) -> None:
+        self._token.undeclare()
+        self._pub.undeclare()
+
+
+def on_stop_signals(callback: Callable[[], None], signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> None:
+    """Call ``callback`` from a watcher thread when one of ``signals`` arrives (main thread only).
+
+    A Python signal handler runs in the main thread between two bytecodes, maybe while that
+    thread holds a lock: inside ``Event.wait``, or in a first handler's ``Event.set`` when a
+    second signal lands. Setting an Event there took its non-reentrant lock twice and hung the
+    process for good (seen: a controller that outlived its killed launcher). So the handlers do
+    nothing; the interpreter's C handler writes the signal number to a wake-up pipe, and a
+    thread reads it and calls back where taking locks is safe."""
+    r, w = os.pipe()
+    os.set_blocking(w, False)
+    signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+    for s in signals:
+        signal.signal(s, lambda *_: None)
+    wanted = {int(s) for s in signals}
+
+    def watch() -> None:
+        while True:
+            try:
+                data = os.read(r, 64)
+            except OSError:
+                return
+            if not data:
+                return
+            if wanted.intersection(data):
+                callback()
+
+    threading.Thread(target=watch, daemon=True, name="signals").start()
+
+
+class Service:
+    """One hilsim service process. Subclasses set ``name`` and implement :meth:`setup`.
+
+    What the launcher and physics need to know of a service is declared here, by the class:
+    ``stop_rank`` (``hilsim up`` stops services in ascending rank and starts them in the reverse
+    order: physics first to stop, the recorder last), :meth:`lockstep_period` (whether and how
+    often physics waits for it; announced at run time with a liveliness token, so physics needs
+    no list of participants) and ``ack_via``. ``Config`` validates the service's own scenario
+    section (a top-level field named like the service), available as ``self.cfg``.
+    """
+
+    name: ClassVar[str] = "service"
+    stop_rank: ClassVar[int] = 50
+    # how a lockstep participant acknowledges a step: "sync" (a Clock on sync/<name>) or a topic
+    # it publishes exactly once per step anyway (the controller: joint_commands)
+    ack_via: ClassVar[str] = "sync"
+    Config: ClassVar[type[BaseModel] | None] = None
+
+    @classmethod
+    def lockstep_period(cls, sc: Scenario) -> int | None:
+        """Physics steps between this service's lockstep acknowledgements; None: not a participant."""
+        return None
+
+    @classmethod
+    def lockstep_lag(cls, sc: Scenario) -> int:
+        """Steps physics may run past a step this service owes before waiting for it (0: wait at
+        that step). Only for a service whose output for step k takes effect at a later step it
+        stamps itself (the planner's trajectories), so that waiting later changes nothing."""
+        return 0
+
+    @classmethod
+    def resolve(cls, sc: Scenario) -> type[Service]:
+        """The class that actually runs for this scenario (e.g. the controller by ``controller.type``)."""
+        return cls
+
+    def __init__(self, scenario: Scenario) -> None:
+        self.sc = scenario
+        self.cfg: Any = None
+        if self.Config is not None:
+            try:
+                self.cfg = self.Config.model_validate(scenario.section(self.name))
+            except ValidationError as e:
+                raise ConfigError(format_error(scenario.source or "scenario", e, prefix=self.name)) from None
+        self.keys = Keys(scenario.prefix, scenario.robot)
+        self.log = logging.getLogger(f"hilsim.{self.name}")
+        self.lock = threading.RLock()
+        self._health_lock = threading.Lock()
+        self.stop_event = threading.Event()
+        self.state = "starting"
+        self.counts_in: Counter[str] = Counter()
+        self.counts_out: Counter[str] = Counter()
+        self.rejected: Counter[str] = Counter()
+        self.stale: Counter[str] = Counter()  # realtime: samples dropped as older than clock.max_age
+        self.seq_gaps: Counter[str] = Counter()  # samples missing from a writer's sequence, per key
+        self.provenance = Provenance()
+        self.errors = 0
+        self.overruns = 0
+        self.last_error = ""
+        self.sim_ns = 0  # latest sim time this service knows of
+        self.session: zenoh.Session | None = None
+        self._declared: list[Any] = []
+        self._health_pub: Publisher | None = None
+        self._log_pub: Publisher | None = None
+        self._sync_pub: Publisher | None = None
+
+    # ------------------------------------------------------------------ to override
+    def setup(self) -> None:
+        """Declare subscribers, publishers and queryables."""
+
+    def loop(self) -> None:
+        """Run until :attr:`stop_event` is set. Reactive services keep this default."""
+        while not self.stop_event.wait(0.2):
+            pass
+
+    def teardown(self) -> None:
+        """Release what :meth:`setup` acquired beyond Zenoh declarations."""
+
+    def health_values(self) -> dict[str, Any]:
+        """Service-specific figures added to the health message."""
+        return {}
+
+    # ------------------------------------------------------------------ declarations
+    def publisher(self, key: str) -> Publisher:
+        assert self.session is not None
+        p = Publisher(self, key)
+        self._declared.append(p)
+        return p
+
+    def subscribe(
+        self,
+        key: str,
+        cls: type[T],
+        handler: Callable[[T, str], None],
+        *,
+        n_joints: int | None = None,
+        with_attachment: bool = False,
+        stream: bool = True,
+    ) -> None:
+        """Call ``handler(msg, key)`` for every valid message on ``key`` (may be a key expression);
+        with ``with_attachment``, ``handler(msg, key, attachment)`` (None if the sample has none).
+
+        ``stream``: the key carries a stream (states, commands at a rate), where in realtime a
+        sample older than ``clock.max_age`` is dropped because a newer one follows. ``False`` for
+        a key whose samples are each an order given once (a trajectory): never dropped as stale,
+        since nothing would replace it (a task would never start)."""
+        assert self.session is not None
+
+        realtime = self.sc.clock.mode == "realtime" and stream
+        max_age_ns = round(self.sc.clock.max_age * 1e9) if realtime else 0
+
+        def admit(k: str, att: transport.Attachment | None) -> bool:
+            self.counts_in[k] += 1
+            why, gap = self.provenance.check(k, att)
+            if why is not None:
+                return self.reject(k, why)
+            if gap:
+                self.seq_gaps[k] += gap
+            if max_age_ns and att is not None and time.time_ns() - att.source_ns > max_age_ns:
+                # realtime: a sample that waited too long in a queue (this process fell behind)
+                # is dropped, so the loop works on fresh data and catches up instead of lagging more
+                self.stale[k] += 1
+                return False
+            return True
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            k = str(sample.key_expr)
+            att = transport.read_attachment(sample)
+            if not admit(k, att):
+                return
+            try:
+                msg = msgs.decode(cls, sample.payload.to_bytes(), n_joints=n_joints)
+            except msgs.BadMessage as e:
+                self.reject(k, str(e))
+                return
+            handle(k, msg, att)
+
+        def on_local(k: str, msg: Any, att: transport.Attachment) -> None:
+            # composed: a message object from a service of this process, validated where it was made
+            if admit(k, att):
+                handle(k, msg, att)
+
+        def handle(k: str, msg: Any, att: transport.Attachment | None) -> None:
+            try:
+                with self.lock:
+                    if self.stop_event.is_set():
+                        return  # stopping: the publishers may be going away
+                    if with_attachment:
+                        handler(msg, k, att)  # type: ignore[call-arg]
+                    else:
+                        handler(msg, k)
+            except msgs.BadMessage as e:  # well-formed, but not usable here (e.g. an unknown joint)
+                self.reject(k, str(e))
+            except Exception as e:  # a bug or bad value must not kill the subscriber thread
+                self.fault(f"error handling {k}: {type(e).__name__}: {e}", exc=e)
+
+        self._declared.append(self.session.declare_subscriber(key, on_sample))
+        local = getattr(self.session, "local_subscriber", None)
+        if local is not None:
+            self._declared.append(local(key, on_local))
+
+    def queryable(
+        self,
+        key: str,
+        req_cls: type[T],
+        handler: Callable[[T], Any],
+        *,
+        n_joints: int | None = None,
+        reject: Callable[[str], Any] | None = None,
+    ) -> None:
+        """Answer requests on ``key``: ``handler(request) -> reply message``.
+
+        A request that fails validation is answered with ``reject(reason)`` if given.
+        """
+        assert self.session is not None
+
+        def on_query(query: zenoh.Query) -> None:
+            k = str(query.key_expr)
+            self.counts_in[k] += 1
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            try:
+                req = msgs.decode(req_cls, payload, n_joints=n_joints)
+            except msgs.BadMessage as e:
+                self.rejected[k] += 1
+                self.warn(f"rejected request on {k}: {e}")
+                if reject is not None:
+                    query.reply(k, msgs.encode(reject(str(e))))
+                else:
+                    query.reply_err(str(e))
+                return
+            try:
+                with self.lock:
+                    rep = handler(req)
+                query.reply(k, msgs.encode(rep))
+                self.counts_out[k] += 1
+            except Exception as e:
+                self.fault(f"error answering {k}: {type(e).__name__}: {e}", exc=e)
+                query.reply_err(f"{type(e).__name__}: {e}")
+
+        self._declared.append(self.session.declare_queryable(key, on_query))
+
+    def reject(self, key: str, reason: str) -> bool:
+        """A sample that cannot be used: counted per key, logged with the key; returns False."""
+        self.rejected[key] += 1
+        self.warn(f"rejected payload on {key}: {reason}")
+        return False
+
+    # ------------------------------------------------------------------ lockstep
+    @property
+    def lockstep(self) -> bool:
+        """True when physics waits for this service (at its :meth:`lockstep_period`)."""
+        return self.sc.clock.mode == "lockstep" and self.lockstep_period(self.sc) is not None
+
+    def ack_publisher(self) -> Publisher | None:
+        """The publisher whose samples acknowledge steps (``ack_via``); the sync one by default."""
+        return self._sync_pub
+
+    def ack(self, step_ns: int) -> None:
+        """Tell physics this service has delivered its output for the step at ``step_ns``."""
+        if self._sync_pub is not None:
+            self._sync_pub.put(msgs.Clock(clock=msgs.stamp(step_ns)))
+
+    # ------------------------------------------------------------------ reporting
+    def warn(self, text: str) -> None:
+        self.log.warning(text)
+        self._publish_log(30, text)
+
+    def fault(self, text: str, exc: BaseException | None = None) -> None:
+        """An error the service survives: counted, logged, published."""
+        self.errors += 1
+        self.last_error = text
+        self.log.error(text, exc_info=exc if self.log.isEnabledFor(logging.DEBUG) else None)
+        self._publish_log(40, text)
+
+    def _publish_log(self, level: int, text: str) -> None:
+        if self._log_pub is not None:
+            try:
+                self._log_pub.put(msgs.Log(stamp=msgs.stamp(self.sim_ns), level=level, name=self.name, msg=text))
+            except zenoh.ZError:
+                pass  # session closing: the text is in the process log already
+
+    def health(self) -> msgs.DiagnosticArray:
+        if self.state == "fault":
+            level = LEVEL_ERROR
+        else:
+            level = LEVEL_WARN if self.errors or sum(self.rejected.values()) else LEVEL_OK
+        values = {
+            "state": self.state,
+            "msgs_in": sum(self.counts_in.values()),
+            "msgs_out": sum(self.counts_out.values()),
+            "rejected": sum(self.rejected.values()),
+            "errors": self.errors,
+            "overruns": self.overruns,
+            "stale_dropped": sum(self.stale.values()),
+            "seq_gaps": sum(self.seq_gaps.values()),
+            "last_error": self.last_error,
+        }
+        values.update(self.health_values())
+        values.update({f"rejected:{k}": v for k, v in self.rejected.items()})
+        values.update({f"stale:{k}": v for k, v in self.stale.items()})
+        values.update({f"seq_gaps:{k}": v for k, v in self.seq_gaps.items()})
+        # per key, how many samples this service has sent: what a recorder can be checked against
+        values.update({f"published:{k}": v for k, v in self.counts_out.items()})
+        st = msgs.DiagnosticStatus(
+            level=level,
+            name=self.name,
+            message=self.state,
+            hardware_id=f"{self.sc.prefix}/{self.sc.robot}",
+            values=[msgs.KeyValue(key=k, value=str(v)) for k, v in values.items()],
+        )
+        return msgs.DiagnosticArray(header=msgs.header(self.sim_ns), status=[st])
+
+    def publish_health(self) -> None:
+        if self._health_pub is not None:
+            # one at a time: the health thread and an immediate report (e.g. physics pausing) must
+            # not number their samples alike or send them out of order (receivers drop those). Not
+            # under self.lock: a Zenoh callback of this process may wait for it while holding what
+            # the put needs (the recorder receives its own health)
+            with self._health_lock:
+                with self.lock:
+                    h = self.health()
+                self._health_pub.put(h)
+
+    def _health_thread(self) -> None:
+        while not self.stop_event.wait(1.0):
+            try:
+                self.publish_health()
+            except zenoh.ZError:
+                return
+
+    # ------------------------------------------------------------------ lifecycle
+    def request_stop(self, *_: Any) -> None:
+        self.stop_event.set()
+
+    def attach(self, session: Any) -> None:
+        """Declare everything on ``session``: a Zenoh session, or an in-process
+        :class:`hilsim.core.inproc.Bus` session (benchmarks, tests). The liveliness token comes last,
+        so whoever sees it knows the inputs exist."""
+        self.session = session
+        # before any input: who may write which key (history: the writers that exist already)
+        self._declared.append(session.liveliness().declare_subscriber(
+            self.keys.all_writers, self.provenance.on_token, history=True))
+        self._health_pub = self.publisher(self.keys.health(self.name))
+        self._log_pub = self.publisher(self.keys.log(self.name))
+        if self.lockstep and self.ack_via == "sync":
+            self._sync_pub = self.publisher(self.keys.sync(self.name))
+        self.setup()
+        if self.lockstep:
+            # announce the role before the liveliness token: physics, which waits for every
+            # service's token before step 0, then knows whom to wait for at each step
+            period = self.lockstep_period(self.sc)
+            ack = self.ack_publisher()
+            if ack is None:
+                raise RuntimeError(f"{self.name}: lockstep participant without an acknowledgement publisher")
+            token = self.keys.lockstep(self.name, int(period or 1), self.lockstep_lag(self.sc), self.ack_via,
+                                       ack.gid.hex())
+            self._declared.append(session.liveliness().declare_token(token))
+        self._declared.append(session.liveliness().declare_token(self.keys.alive(self.name)))
+        self.state = "running"
+
+    def run(self) -> int:
+        """Run the service until stopped; returns the process exit code."""
+        if threading.current_thread() is threading.main_thread():
+            on_stop_signals(self.request_stop)
+        try:
+            session = transport.open_session(self.sc.zenoh)
+        except ConnectionError as e:
+            self.log.error(str(e))
+            return 2
+        try:
+            return self.serve(session)
+        finally:
+            session.close()
+
+    def serve(self, session: Any) -> int:
+        """Attach to ``session``, loop until stopped, undeclare everything; the session stays
+        open (it may be shared: :mod:`hilsim.run.compose`). Returns the exit code."""
+        self.session = session
+        rc = 0
+        try:
+            self.attach(session)
+            self.log.info("ready")
+            threading.Thread(target=self._health_thread, daemon=True, name="health").start()
+            self.loop()
+            if self.state == "running":
+                self.state = "stopped"
+        except ConfigError as e:
+            # a bad scenario or model: one line, as everywhere else, not a traceback
+            self.state = "fault"
+            self.log.error("%s", e)
+            rc = 2
+        except Exception as e:
+            self.state = "fault"
+            self.log.exception("stopped by an error: %s", e)
+            rc = 1
+        finally:
+            self.stop_event.set()
+            with self.lock:
+                pass  # a handler still running finishes; later ones see stop_event and return
+            try:
+                self.publish_health()
+            except Exception:
+                pass
+            try:
+                self.teardown()
+            finally:
+                for d in reversed(self._declared):
+                    try:
+                        d.undeclare()
+                    except Exception:
+                        pass
+        return rc
+
+
+def setup_logging(name: str, level: int = logging.INFO) -> None:
+    who = f"{name:<10}"
+    if "+" in name:  # composed (hilsim.run.compose): each line says which of the services wrote it
+        who = "%(service)-10s"
+    logging.basicConfig(
+        level=level,
+        stream=sys.stderr,
+        format=f"%(asctime)s {who} %(levelname)-7s %(message)s",
+        datefmt="%H:%M:%S",
+    )
+    if "+" in name:
+        def service_of(record: logging.LogRecord) -> bool:
+            record.service = record.name.removeprefix("hilsim.")
+            return True
+
+        for h in logging.getLogger().handlers:
+            h.addFilter(service_of)
+
+
+def instantiate(name: str, sc: Scenario) -> Service:
+    """The service instance ``name`` (``physics``, ``controller@arm3``) for scenario ``sc``."""
+    svc, robot = split_id(name)
+    rsc = robot_scenario(sc, robot) if robot else sc
+    return service_class(svc, rsc)(rsc)  # type: ignore[no-any-return]

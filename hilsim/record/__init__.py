@@ -1,0 +1,1 @@
+"""What the recorder writes: Rerun rows per message family and the viewer's default layout."""

@@ -1,0 +1,1 @@
+"""Run machinery: starting, supervising and summarising a scenario's processes (``hilsim up``)."""

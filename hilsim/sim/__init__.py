@@ -1,0 +1,1 @@
+"""Simulation models: the MuJoCo world, sensors, control laws, kinematics, the scene and tasks."""

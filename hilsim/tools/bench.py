@@ -1,0 +1,341 @@
+"""``hilsim bench loop``: how fast the distributed arm pipeline runs, against limits measured in the same run.
+
+Three lockstep figures, each the real-time factor (sim seconds per wall second) of the arm
+holding position under 1 kHz PID control with its sensors:
+- ``distributed``: ``hilsim up arm`` — five processes over Zenoh, logger recording;
+- ``in_process``: the *same service code* (physics, sensors, controller, planner) wired through
+  :class:`hilsim.core.inproc.Bus` in one process — CDR encoding kept, Zenoh and processes removed;
+- ``bare``: MuJoCo and the PID arrays alone, no messages at all;
+- ``composed``: ``hilsim up arm --compose physics,sensors,controller`` — those three in one
+  process (:mod:`hilsim.run.compose`), planner and logger separate, recording everything.
+Ratios are distributed / in_process and distributed / bare: compare ratios, not absolute times.
+
+``ring``: a bare zenoh-python ring of three processes (:mod:`hilsim.tools.ring`), the transport floor
+of one distributed step; the distributed step time is reported against ring round + in-process
+step time. The CPU floor: the CPU every process of the distributed run spends per step (psutil,
+from "ready" to the end of the run), divided by the machine's cores: on a small machine the
+distributed pipeline is CPU-bound, and no step can take less wall time than that. Likewise the
+composed run's CPU per step, as the cores it would need at 10x real time.
+
+Then ``realtime``: the same pipeline with ``--clock realtime`` for ``--realtime-seconds``;
+physics reports its tick jitter (p50, p99) and the share of missed deadlines.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import time
+from pathlib import Path
+from tempfile import TemporaryDirectory
+from typing import Any
+
+import numpy as np
+import psutil
+
+from hilsim.core.config import Scenario
+from hilsim.core.scenario import load_scenario
+
+
+def _scenario(sim_seconds: float, **more: Any) -> Scenario:
+    o: dict[str, Any] = {"task.targets": [], "duration": sim_seconds}
+    o.update(more)
+    return load_scenario("arm", o)
+
+
+def bench_bare(sim_seconds: float) -> float:
+    """MuJoCo + PID arrays in one loop: the floor of any implementation."""
+    from hilsim.sim import control
+    from hilsim.sim.world import World
+
+    sc = _scenario(sim_seconds)
+    w = World(sc)
+    gains = control.gains_for(sc.controller.gains, w.joint_names)
+    pids = [control.Pid(g, -float(w.effort_limit[i]), float(w.effort_limit[i])) for i, g in enumerate(gains)]
+    ref = w.positions()
+    steps = round(sim_seconds / sc.clock.dt)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        q, v = w.positions(), w.velocities()
+        u = [p.update(r, 0.0, a, b, sc.clock.dt) for p, r, a, b in zip(pids, ref, q, v, strict=True)]
+        w.command_array(np.array(u))
+        w.step()
+    return sim_seconds / (time.perf_counter() - t0)
+
+
+def bench_in_process(sim_seconds: float) -> float:
+    """The services' own code, one process, no transport."""
+    from hilsim.core.inproc import Bus
+    from hilsim.core.registry import service_class
+
+    sc = _scenario(sim_seconds, services=["physics", "sensors", "controller", "planner"])
+    bus = Bus()
+    svcs = {n: service_class(n)(sc) for n in ("sensors", "controller", "planner", "physics")}
+    for s in svcs.values():
+        s.attach(bus.session())
+    phys = svcs["physics"]
+    phys.fix_participants()
+    t0 = time.perf_counter()
+    with phys.lock:
+        phys.started = True
+        phys.wall_start = time.monotonic()
+        phys._publish_step()
+    bus.drain(until=lambda: phys.done)
+    wall = time.perf_counter() - t0
+    if not phys.done:
+        raise RuntimeError(f"in-process pipeline stalled at t={phys.world.time_ns / 1e9:.3f}s "
+                           f"waiting for {phys._missing()}")
+    for s in svcs.values():
+        s.request_stop()
+        s.teardown()
+    return sim_seconds / wall
+
+
+def cpu_s(pid: int) -> float:
+    """CPU seconds (user + system) of a process and its threads so far; 0 if it is gone."""
+    try:
+        t = psutil.Process(pid).cpu_times()
+        return float(t.user + t.system)
+    except psutil.Error:
+        return 0.0
+
+
+def _launch(sc: Scenario, run_dir: Path, cpu: dict[str, float] | None = None) -> dict[str, str]:
+    """Run ``sc`` with ``hilsim up``'s launcher; physics' health at the end. ``cpu``, if given, is
+    filled with the CPU seconds each process spent from "ready" to the end of the run (the
+    router and launcher: this process)."""
+    from hilsim.run.launcher import Launcher, open_default_router
+
+    ep, router = open_default_router()
+    la = Launcher(sc, run_dir, router=ep, quiet=True)
+    try:
+        la.start()
+        if not la.wait_ready():
+            raise RuntimeError(f"services did not start; see {run_dir}")
+        pids = {c.name: c.proc.pid for c in la.children.values()}
+        pids["router+launcher"] = os.getpid()
+        c0 = {n: cpu_s(p) for n, p in pids.items()}
+        la.follow(wall_timeout=600)
+        if cpu is not None:  # before stop: a process that has exited has no CPU times to read
+            cpu.update({n: cpu_s(p) - c0[n] for n, p in pids.items()})
+    finally:
+        la.stop()
+        router.close()
+    if la.outcome.died:
+        raise RuntimeError(f"service died during the benchmark: {la.outcome.died}; see {run_dir}")
+    if not la.outcome.physics_done:
+        raise RuntimeError(f"the run did not reach its duration; see {run_dir}")
+    return la.outcome.health.get("physics", {})
+
+
+def bench_distributed(sim_seconds: float, tmp: Path, cpu: dict[str, float] | None = None) -> float:
+    h = _launch(_scenario(sim_seconds), tmp / "distributed", cpu)
+    return float(h["real_time_factor"])
+
+
+def bench_composed(sim_seconds: float, tmp: Path, with_recorder: bool = False,
+                   cpu: dict[str, float] | None = None) -> float:
+    """Physics, sensors and controller in one process (hilsim.run.compose), the planner separate, recording
+    everything; ``with_recorder``: the recorder in that process too (its samples never cross Zenoh)."""
+    group = ["physics", "sensors", "controller", *(["logger"] if with_recorder else [])]
+    h = _launch(_scenario(sim_seconds, compose=[group]), tmp / "+".join(group), cpu)
+    return float(h["real_time_factor"])
+
+
+def bench_realtime(seconds: float, tmp: Path) -> dict[str, float]:
+    h = _launch(_scenario(seconds, **{"clock.mode": "realtime"}), tmp / "realtime")
+    return {
+        "jitter_p50_ms": float(h["jitter_p50_us"]) / 1e3,
+        "jitter_p99_ms": float(h["jitter_p99_us"]) / 1e3,
+        "missed_pct": 100.0 * float(h["overruns"]) / max(float(h["steps"]), 1.0),
+        "steps": float(h["steps"]),
+    }
+
+
+def _each(us_per_step: dict[str, float]) -> str:
+    """``name µs, …``, costliest first."""
+    return ", ".join(f"{n} {v:.0f}" for n, v in sorted(us_per_step.items(), key=lambda x: -x[1]))
+
+
+def cmd_loop(args: argparse.Namespace) -> int:
+    logging.basicConfig(level=logging.WARNING)
+    sim = args.sim_seconds
+    res: dict[str, Any] = {"sim_seconds": sim, "control_hz": 1000}
+
+    def say(text: str) -> None:
+        if not args.json:
+            print(text, flush=True)
+
+    say(f"hilsim bench loop: arm, 1 kHz physics and control, {sim:g} s sim per lockstep run")
+    say("  bare (MuJoCo + PID, no messages) …")
+    res["bare_rtf"] = bench_bare(sim)
+    say(f"    {res['bare_rtf']:.2f}x real time")
+    say("  in-process (same service code, no Zenoh) …")
+    res["in_process_rtf"] = bench_in_process(sim)
+    say(f"    {res['in_process_rtf']:.2f}x real time")
+    say("  transport floor: a bare zenoh-python ring of three processes …")
+    from hilsim.tools.ring import PAYLOAD_BYTES, round_trip_us
+
+    res["ring_round_us"] = round_trip_us()
+    say(f"    {res['ring_round_us']:.0f} µs per round ({PAYLOAD_BYTES}-byte payloads, median)")
+    say("  recording floor: CPU per sample sent to another process …")
+    from hilsim.tools.ring import KEYS_PER_STEP, sample_cost_us
+
+    res["sample_cost_us"] = c = sample_cost_us()
+    say(f"    receiver {c['callback']:.1f} µs (callback), {c['channel']:.1f} µs (FIFO channel); "
+        f"sender {c['put']:.1f} µs")
+    with TemporaryDirectory(prefix="hilsim-bench-") as d:
+        say("  distributed (5 processes over Zenoh, logging on) …")
+        cpu: dict[str, float] = {}
+        res["distributed_rtf"] = bench_distributed(sim, Path(d), cpu)
+        steps = sim * 1000
+        res["distributed_cpu_us_per_step"] = {n: 1e6 * s / steps for n, s in cpu.items()}
+        say(f"    {res['distributed_rtf']:.2f}x real time")
+        say("  composed (physics, sensors, controller in one process; planner and logger apart) …")
+        cpu = {}
+        res["composed_rtf"] = bench_composed(sim, Path(d), cpu=cpu)
+        res["composed_cpu_us_per_step"] = {n: 1e6 * s / steps for n, s in cpu.items()}
+        say(f"    {res['composed_rtf']:.2f}x real time")
+        say("  composed with the recorder (physics, sensors, controller, logger in one process) …")
+        res["composed_recorder_rtf"] = bench_composed(sim, Path(d), with_recorder=True)
+        say(f"    {res['composed_recorder_rtf']:.2f}x real time")
+        if args.realtime_seconds > 0:
+            say(f"  realtime mode for {args.realtime_seconds:g} s …")
+            res["realtime"] = bench_realtime(args.realtime_seconds, Path(d))
+    res["ratio_distributed_vs_in_process"] = res["distributed_rtf"] / res["in_process_rtf"]
+    # per 1 ms step: what the distributed pipeline spends against its floor (one ring round for the
+    # three hops of a step, plus the services' own work as measured in one process)
+    step_us = {k: 1000.0 / res[f"{k}_rtf"] for k in ("distributed", "in_process", "composed")}
+    res["step_us"] = step_us
+    res["ratio_distributed_vs_floor"] = step_us["distributed"] / (res["ring_round_us"] + step_us["in_process"])
+    res["ratio_distributed_vs_bare"] = res["distributed_rtf"] / res["bare_rtf"]
+    # the distributed pipeline is CPU-bound on a small machine: the CPU all its processes spend per
+    # step, spread over every core, is a floor of its own besides the ring's latency; and what the
+    # composed run would need at 10x: the CPU of one step, 10 000 steps a second
+    cores = psutil.cpu_count() or 1
+    res["cores"] = cores
+    res["distributed_cpu_floor_us"] = sum(res["distributed_cpu_us_per_step"].values()) / cores
+    res["composed_cores_at_10x"] = sum(res["composed_cpu_us_per_step"].values()) * 10_000 / 1e6
+    if args.json:
+        print(json.dumps(res, indent=2))
+        return 0
+    print()
+    print("| pipeline | real-time factor | vs in-process | vs bare |")
+    print("|---|---|---|---|")
+    for k in ("bare", "in_process", "distributed", "composed", "composed_recorder"):
+        v = res[f"{k}_rtf"]
+        print(f"| {k} | {v:.2f}x | {v / res['in_process_rtf']:.3f} | {v / res['bare_rtf']:.3f} |")
+    fl = res["ring_round_us"] + step_us["in_process"]
+    print(f"\nper step: distributed {step_us['distributed']:.0f} µs, floor {fl:.0f} µs (ring round "
+          f"{res['ring_round_us']:.0f} + in-process {step_us['in_process']:.0f}): ratio "
+          f"{res['ratio_distributed_vs_floor']:.2f} (goal <= 1.5); composed {step_us['composed']:.0f} µs")
+    dist, comp = res["distributed_cpu_us_per_step"], res["composed_cpu_us_per_step"]
+    print(f"distributed CPU per step, all processes: {sum(dist.values()):.0f} µs = "
+          f"{res['distributed_cpu_floor_us']:.0f} µs of wall time on {cores} cores at the least ({_each(dist)})")
+    print(f"composed CPU per step, all processes: {sum(comp.values()):.0f} µs: at 10x real time that is "
+          f"{res['composed_cores_at_10x']:.2f} cores of this machine's {cores} ({_each(comp)})")
+    c = res["sample_cost_us"]
+    per_s = KEYS_PER_STEP * 1000 * 10 * (min(c["callback"], c["channel"]) + c["put"]) / 1e6
+    print(f"recording floor: a recorder in its own process costs {min(c['callback'], c['channel']):.1f} + "
+          f"{c['put']:.1f} µs of CPU per sample on Zenoh alone; at 10x real time the arm's "
+          f"{KEYS_PER_STEP} keys per step take {per_s:.2f} cores for it")
+    if "realtime" in res:
+        r = res["realtime"]
+        print(f"\nrealtime 1 kHz, {args.realtime_seconds:g} s: tick jitter p50 {r['jitter_p50_ms']:.3f} ms, "
+              f"p99 {r['jitter_p99_ms']:.3f} ms, missed deadlines {r['missed_pct']:.3f} % of {r['steps']:.0f} steps")
+    goal = "met" if res["distributed_rtf"] >= 5 else "NOT met"
+    print(f"goal >= 5x real time distributed: {goal}")
+    goal = "met" if res["composed_rtf"] >= 10 else "NOT met"
+    print(f"goal >= 10x real time composed: {goal}")
+    return 0
+
+
+# ---------------------------------------------------------------------------------- the rover
+def bench_laser(world: str, scans: int = 300) -> dict[str, float]:
+    """The scenario's laser alone: scans (one mj_multiRay each) per wall second, from poses along x."""
+    from hilsim.core import msgs
+    from hilsim.run.launcher import world_scenario
+    from hilsim.sim.sensing import make_sensor
+
+    sc = load_scenario(world_scenario("rover", world))
+    laser = make_sensor("laser", sc.sensors["laser"], seed=sc.seed, dt_ns=sc.dt_ns, scenario=sc)
+    truth = [msgs.Odometry(pose=msgs.PoseWithCovariance(pose=msgs.Pose(
+        position=msgs.Point(x=0.01 * k, z=0.255)))) for k in range(scans)]
+    t0 = time.perf_counter()
+    n = 0
+    for k, o in enumerate(truth):
+        n = len(laser.measure(o, k * 100_000_000).ranges)
+    wall = time.perf_counter() - t0
+    return {"rays_per_scan": float(n), "scans_per_s": scans / wall, "rays_per_s": scans * n / wall}
+
+
+def bench_rover_run(world: str, sim_seconds: float, tmp: Path, laser: bool) -> float:
+    from hilsim.run.launcher import world_scenario
+
+    o: dict[str, Any] = {"duration": sim_seconds, "sensors.laser.enabled": laser}
+    sc = load_scenario(world_scenario("rover", world), o)
+    sc.services = [s for s in sc.services if s != "logger"]
+    h = _launch(sc, tmp / f"rover-{world}-laser-{'on' if laser else 'off'}")
+    return float(h["real_time_factor"])
+
+
+def cmd_rover(args: argparse.Namespace) -> int:
+    """``hilsim bench rover``: the rover scenario with navigation, in lockstep.
+
+    - ``laser_on``: ``hilsim up rover --world W`` as shipped (physics 500 Hz, encoders and IMU
+      100 Hz, the 541-ray laser at 10 Hz, the four_wheel_steer controller, the navigator driving
+      the task's goals; recorder off), for ``--sim-seconds``: physics' real-time factor;
+    - ``laser_off``: the same with ``sensors.laser.enabled: false``: what the laser costs the loop;
+    - rays per second: the laser alone, one ``mj_multiRay`` per scan from the scenario's sensor
+      code (:class:`hilsim.sim.sensors_mobile.Laser`), as fast as it goes; and in the run, the rays
+      the loop cast per wall second (rays per scan × scan rate × real-time factor).
+    """
+    logging.basicConfig(level=logging.WARNING)
+    from hilsim.planning import quiet_ompl_at_exit
+
+    quiet_ompl_at_exit()
+    sim, world = args.sim_seconds, args.world
+    res: dict[str, Any] = {"world": world, "sim_seconds": sim, "physics_hz": 500}
+
+    def say(text: str) -> None:
+        if not args.json:
+            print(text, flush=True)
+
+    say(f"hilsim bench rover: {world} world, lockstep, navigating the task's goals, {sim:g} s sim per run")
+    say("  laser alone (one mj_multiRay per scan) …")
+    res["laser_alone"] = bench_laser(world)
+    la = res["laser_alone"]
+    say(f"    {la['rays_per_s'] / 1e6:.2f} M rays/s ({la['scans_per_s']:.0f} scans/s, "
+        f"{la['rays_per_scan']:.0f} rays each)")
+    on: list[float] = []
+    off: list[float] = []
+    with TemporaryDirectory(prefix="hilsim-bench-") as d:
+        # on and off interleaved, the best of each: on a shared machine the load of the moment
+        # matters more than the laser
+        for k in range(args.repeat):
+            say(f"  run {k + 1}/{args.repeat}: the rover scenario, laser on (physics, sensors, controller, "
+                "navigator; no recorder) …")
+            on.append(bench_rover_run(world, sim, Path(d) / str(k), True))
+            say(f"    {on[-1]:.2f}x real time; laser off …")
+            off.append(bench_rover_run(world, sim, Path(d) / str(k), False))
+            say(f"    {off[-1]:.2f}x real time")
+    res["laser_on_rtf"], res["laser_off_rtf"] = max(on), max(off)
+    res["laser_on_runs"], res["laser_off_runs"] = on, off
+    from hilsim.run.launcher import world_scenario
+
+    sc = load_scenario(world_scenario("rover", world))
+    scan_hz = sc.sensors["laser"].rate_hz
+    res["rays_per_s_in_run"] = la["rays_per_scan"] * scan_hz * res["laser_on_rtf"]
+    if args.json:
+        print(json.dumps(res, indent=2))
+        return 0
+    print(f"\nbest of {args.repeat} runs each ({sim:g} s sim)")
+    print("| rover, lockstep | real-time factor | laser rays per wall second |")
+    print("|---|---|---|")
+    print(f"| laser on ({la['rays_per_scan']:.0f} rays at {scan_hz:g} Hz) | {res['laser_on_rtf']:.2f}x | "
+          f"{res['rays_per_s_in_run']:.0f} |")
+    print(f"| laser off | {res['laser_off_rtf']:.2f}x | — |")
+    print(f"| laser alone (no loop) | — | {la['rays_per_s']:.0f} |")
+    return 0

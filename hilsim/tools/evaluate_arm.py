@@ -1,0 +1,240 @@
+"""Several targets, the best one (the paper's Table III), and ``hilsim plan evaluate``.
+
+For each target the scenario's planner plans from the start configuration, the path is timed
+with ruckig (:mod:`hilsim.planning.trajectory`), and per joint ``i``:
+
+- ``P_i = Σ_j |p_i^{j+1} − p_i^j|`` — path length of the joint over the timed samples (rad);
+- ``A_i = D(a_i)`` — the variance of the joint's acceleration along the timed trajectory.
+
+The best target minimises ``Σ_i P_i`` (``length``), ``Σ_i A_i`` (``smoothness``), or a weighted
+sum of both, each normalised by its smallest value over the targets (``weighted``, weights 0.5).
+The table goes to a CSV and the chosen plan to a Rerun recording next to it, by default in a new
+``runs/<timestamp>-plan-evaluate/``; the plan can be executed on a running system.
+
+Targets file (YAML): ``targets: [[q1..q6], …]``, optional ``target_names`` and ``start``
+(or ``home``), e.g. ``models/arm/targets.yaml``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from hilsim.core.config import ConfigError, Scenario
+from hilsim.core.scenario import load_scenario
+from hilsim.planning.collision import ArmModel
+from hilsim.planning.library import PlannerLibrary, Problem
+from hilsim.planning.trajectory import TimedTrajectory, time_parameterize
+from hilsim.run.runs import new_run_dir
+
+CRITERIA = ("length", "smoothness", "weighted")
+
+
+@dataclass
+class Evaluation:
+    name: str
+    target: np.ndarray
+    ok: bool
+    message: str
+    path: np.ndarray | None = None
+    traj: TimedTrajectory | None = None
+    P: np.ndarray | None = None  # per joint
+    A: np.ndarray | None = None  # per joint
+
+
+def joint_path_lengths(q: np.ndarray) -> np.ndarray:
+    """P_i = Σ_j |q_i^{j+1} − q_i^j| for each joint (columns of q)."""
+    q = np.asarray(q, float)
+    return np.sum(np.abs(np.diff(q, axis=0)), axis=0) if len(q) > 1 else np.zeros(q.shape[1])
+
+
+def acceleration_variance(qdd: np.ndarray) -> np.ndarray:
+    """A_i = D(a_i): population variance of each joint's acceleration samples."""
+    return np.var(np.asarray(qdd, float), axis=0)
+
+
+def choose(evals: list[Evaluation], criterion: str, w_length: float = 0.5) -> int | None:
+    """Index of the best successful evaluation by the criterion (None if none succeeded)."""
+    if criterion not in CRITERIA:
+        raise ValueError(f"criterion must be one of {', '.join(CRITERIA)}")
+    ok = [i for i, e in enumerate(evals) if e.ok]
+    if not ok:
+        return None
+    p = np.array([float(np.sum(evals[i].P)) for i in ok])
+    a = np.array([float(np.sum(evals[i].A)) for i in ok])
+    if criterion == "length":
+        score = p
+    elif criterion == "smoothness":
+        score = a
+    else:
+        score = w_length * p / max(p.min(), 1e-12) + (1 - w_length) * a / max(a.min(), 1e-12)
+    return ok[int(np.argmin(score))]
+
+
+def load_targets(path: str | Path, n: int) -> tuple[list[str], list[np.ndarray], np.ndarray | None]:
+    p = Path(path)
+    try:
+        data = yaml.safe_load(p.read_text())
+    except (OSError, yaml.YAMLError) as e:
+        raise ConfigError(f"{p}: cannot read targets: {e}") from None
+    if not isinstance(data, dict) or not isinstance(data.get("targets"), list) or not data["targets"]:
+        raise ConfigError(f"{p}: expected 'targets: [[q1 … q{n}], …]'")
+    targets = []
+    for i, t in enumerate(data["targets"]):
+        if not isinstance(t, list) or len(t) != n or not all(isinstance(v, int | float) for v in t):
+            raise ConfigError(f"{p}: targets[{i}]: expected {n} numbers")
+        targets.append(np.array(t, float))
+    names = data.get("target_names") or [f"target{i + 1}" for i in range(len(targets))]
+    if len(names) != len(targets):
+        raise ConfigError(f"{p}: target_names has {len(names)} names for {len(targets)} targets")
+    start = data.get("start", data.get("home"))
+    return [str(x) for x in names], targets, None if start is None else np.array(start, float)
+
+
+def evaluate(
+    sc: Scenario,
+    targets: list[np.ndarray],
+    names: list[str],
+    start: np.ndarray,
+    library: PlannerLibrary | None = None,
+    planner: str | None = None,
+) -> list[Evaluation]:
+    lib = library or PlannerLibrary.load(sc.planner.library)
+    arm = ArmModel(sc.world.model, sc.planner.clearance)
+    vmax, amax, jmax = lib.joint_limits(arm.n, arm.velocity_limits())
+    name = planner or sc.planner.planner
+    out = []
+    for k, (nm, q) in enumerate(zip(names, targets, strict=True)):
+        bad = arm.why_invalid(q)
+        if bad is not None:
+            out.append(Evaluation(nm, q, False, f"target rejected: {bad[1]}"))
+            continue
+        pb = Problem(arm, start, q, seed=sc.seed + k, max_iterations=lib.iterations,
+                     time_limit=sc.planner.planning_time * lib.wall_cap_factor, resolution=lib.resolution)
+        res = lib.create(name).solve(pb)
+        if res.path is None:
+            out.append(Evaluation(nm, q, False, res.message))
+            continue
+        traj = time_parameterize(res.path, vmax, amax, jmax, dt=0.01)
+        P, A = joint_path_lengths(traj.q), acceleration_variance(traj.qdd)
+        out.append(Evaluation(nm, q, True, "ok", res.path, traj, P, A))
+    return out
+
+
+def format_table(evals: list[Evaluation], joint_names: list[str], best: int | None) -> str:
+    head = f"{'joint':<10}" + "".join(f"{e.name + (' *' if i == best else ''):>22}" for i, e in enumerate(evals))
+    sub = f"{'':<10}" + "".join(f"{'P [rad]':>11}{'A':>11}" for _ in evals)
+    rows = [head, sub]
+    for j, jn in enumerate(joint_names):
+        cells = "".join(f"{e.P[j]:>11.3f}{e.A[j]:>11.4f}" if e.ok else f"{'—':>11}{'—':>11}" for e in evals)
+        rows.append(f"{jn:<10}{cells}")
+    rows.append(f"{'sum':<10}" + "".join(
+        f"{np.sum(e.P):>11.3f}{np.sum(e.A):>11.4f}" if e.ok else f"{'failed':>22}" for e in evals))
+    rows.append(f"{'duration':<10}" + "".join(f"{e.traj.duration:>20.2f} s" if e.ok else f"{'':>22}" for e in evals))
+    return "\n".join(rows)
+
+
+def write_csv(path: str | Path, evals: list[Evaluation], joint_names: list[str], best: int | None) -> None:
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["target", "joint", "P", "A", "duration_s", "chosen", "status"])
+        for i, e in enumerate(evals):
+            for j, jn in enumerate(joint_names):
+                w.writerow([e.name, jn, f"{e.P[j]:.6f}" if e.ok else "", f"{e.A[j]:.6f}" if e.ok else "",
+                            f"{e.traj.duration:.3f}" if e.ok else "", int(i == best), e.message])
+
+
+def log_rerun(path: Path, e: Evaluation, joint_names: list[str]) -> None:
+    """The chosen plan as a Rerun recording: per-joint position / velocity / acceleration over time."""
+    from hilsim.core.recording import disable_analytics
+
+    disable_analytics()
+    import rerun as rr
+
+    rec = rr.RecordingStream("hilsim_plan_evaluate")
+    rec.save(str(path))
+    assert e.traj is not None
+    times = rr.TimeColumn("time", duration=e.traj.t)
+    for j, jn in enumerate(joint_names):
+        for what, arr in (("position", e.traj.q), ("velocity", e.traj.qd), ("acceleration", e.traj.qdd)):
+            cols = rr.Scalars.columns(scalars=arr[:, j])
+            rec.send_columns(f"plan/{e.name}/{jn}/{what}", indexes=[times], columns=cols)
+    rec.flush()
+
+
+def output_csv(sc: Scenario, csv: str | None, out: str | None) -> Path:
+    """Where the CSV goes (the recording goes next to it): ``csv`` if given, else
+    ``plan_evaluate.csv`` in ``out`` or in a new ``runs/<timestamp>-plan-evaluate/``."""
+    if csv:
+        path = Path(csv)
+    else:
+        d = Path(out) if out else new_run_dir(sc.logger.out_dir, "plan-evaluate")
+        path = d / "plan_evaluate.csv"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from hilsim.planning import quiet_ompl_at_exit
+
+    quiet_ompl_at_exit()
+    sc = load_scenario(args.scenario)
+    if "navigator" in sc.services:  # a mobile robot: rover goals (hilsim.tools.evaluate_rover)
+        from hilsim.tools.evaluate_rover import cmd_evaluate_goals
+
+        return cmd_evaluate_goals(sc, args)
+    if not args.targets:
+        raise ConfigError("hilsim plan evaluate: --targets FILE is required for an arm scenario")
+    arm = ArmModel(sc.world.model, sc.planner.clearance)
+    names, targets, start = load_targets(args.targets, arm.n)
+    start = np.zeros(arm.n) if start is None else start
+    evals = evaluate(sc, targets, names, start)
+    best = choose(evals, args.criterion)
+    print(f"planner {sc.planner.planner}, start {np.round(start, 3).tolist()}, criterion {args.criterion}")
+    print(format_table(evals, arm.joint_names, best))
+    for e in evals:
+        if not e.ok:
+            print(f"{e.name}: {e.message}")
+    csv_path = output_csv(sc, args.csv, args.out)
+    write_csv(csv_path, evals, arm.joint_names, best)
+    print(f"CSV: {csv_path}")
+    if best is None:
+        print("no target could be planned", file=sys.stderr)
+        return 1
+    rrd = csv_path.with_suffix(".rrd")
+    log_rerun(rrd, evals[best], arm.joint_names)
+    print(f"chosen: {evals[best].name} (Rerun recording {rrd})")
+    if args.execute:
+        return _execute(sc, evals[best])
+    return 0
+
+
+def _execute(sc: Scenario, e: Evaluation) -> int:
+    from hilsim.core import msgs
+    from hilsim.core.keys import Keys
+    from hilsim.core.transport import open_session
+    from hilsim.planning.client import MoveClient
+
+    session = open_session(sc.zenoh)
+    client = MoveClient(session, Keys(sc.prefix, sc.robot))
+    try:
+        gid = f"evaluate-{e.name}"
+        resp = client.send(msgs.MoveGoal(goal_id=gid, joint_positions=[float(x) for x in e.target]))
+        if not resp.accepted:
+            print(f"execute: rejected: {resp.reason}")
+            return 1
+        res = client.wait(gid, sc.task.target_timeout + 60.0,
+                          on_feedback=lambda f: print(f"  {f.state:<10} {100 * f.progress:5.1f} %", flush=True))
+        print(f"execute: {'succeeded' if res and res.success else 'failed'}: {res.message if res else 'no result'}")
+        return 0 if res is not None and res.success else 1
+    finally:
+        client.close()
+        session.close()
+
+
