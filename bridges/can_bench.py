@@ -33,11 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import random
-import signal
-import subprocess
-import sys
 import tempfile
 import threading
 import time
@@ -45,8 +41,8 @@ from pathlib import Path
 from typing import Any
 
 import can
-import numpy as np
 
+from hilsim.bridges.bench_common import PACE, bridge_process, flat_out, pct, probes
 from hilsim.bridges.can_bus import UDP_GROUP_IPV6
 from hilsim.bridges.can_profiles import DriveCommand, Estimate, FrameError, Heartbeat, make_profile
 from hilsim.core import msgs, transport
@@ -54,7 +50,6 @@ from hilsim.core.config import CONFIG_DIR, ZenohConfig
 from hilsim.core.keys import Keys
 from hilsim.core.scenario import load_scenario, write_scenario
 
-PACE = 0.005  # s between latency probes (200 Hz)
 STEP = 1e-4  # rad per probe number in joint_commands, and per frame number in encoder estimates
 BUS_RATE = 7000.0  # frames/s of a saturated 1 Mbit/s bus (8-byte standard frames, ~140 bits each)
 
@@ -73,25 +68,6 @@ def _paced(send: Any, first: int, rate: float, seconds: float) -> list[float]:
         times.append(time.time())
         send(first + i)
     return times
-
-
-def _flat_out(send: Any, first: int, seconds: float) -> list[float]:
-    times: list[float] = []
-    t0 = time.perf_counter()
-    k = first
-    while time.perf_counter() - t0 < seconds:
-        times.append(time.time())
-        send(k)
-        k += 1
-    return times
-
-
-def _pct(xs: list[float]) -> dict[str, float]:
-    if not xs:
-        return {"n": 0, "p50_us": float("nan"), "p99_us": float("nan")}
-    a = np.asarray(xs) * 1e6
-    return {"n": len(xs), "p50_us": round(float(np.percentile(a, 50)), 1),
-            "p99_us": round(float(np.percentile(a, 99)), 1)}
 
 
 def _bus(port: int) -> can.BusABC:
@@ -118,11 +94,7 @@ def bench_python_can(port: int, n: int, seconds: float) -> dict[str, Any]:
     th = threading.Thread(target=reader, daemon=True)
     th.start()
     try:
-        sent: dict[int, float] = {}
-        for k in range(n):
-            sent[k] = time.time()
-            tx.send(can.Message(arbitration_id=0x123, data=k.to_bytes(4, "little") + bytes(4), is_extended_id=False))
-            time.sleep(PACE)
+        sent = probes(send, range(n), time.time)
         time.sleep(0.2)
         lat = [got[k] - sent[k] for k in sent if k in got]
         # at the bus's rate
@@ -132,11 +104,11 @@ def bench_python_can(port: int, n: int, seconds: float) -> dict[str, Any]:
         time.sleep(0.3)
         rate_lat = [got[first + i] - t for i, t in enumerate(times) if first + i in got]
         at_rate = {"offered_per_s": round(len(times) / seconds), "received_per_s": round(count[0] / seconds),
-                   "lost": len(times) - count[0], "latency": _pct(rate_lat)}
+                   "lost": len(times) - count[0], "latency": pct(rate_lat)}
         # flat out
         count[0] = 0
         first += len(times)
-        sent_n = len(_flat_out(send, first, seconds))
+        sent_n = flat_out(send, seconds, first)
         time.sleep(0.3)
         fps = count[0] / seconds
     finally:
@@ -144,7 +116,7 @@ def bench_python_can(port: int, n: int, seconds: float) -> dict[str, Any]:
         th.join(2)
         tx.shutdown()
         rx.shutdown()
-    return {"latency": _pct(lat), "lost": n - len(lat), "at_bus_rate": at_rate, "frames_per_s": round(fps),
+    return {"latency": pct(lat), "lost": n - len(lat), "at_bus_rate": at_rate, "frames_per_s": round(fps),
             "sent_per_s": round(sent_n / seconds)}
 
 
@@ -233,7 +205,7 @@ def _absorbed(first: int, times: list[float], seen: list[tuple[int, float, float
         "coalesced": delta("estimates_coalesced") if "estimates_coalesced" in after else 0, "received": len(mine),
         "distinct_frames_seen": len({x[0] for x in mine}), "backwards": backwards,
         "last_sample_is_last_frame": bool(mine) and mine[-1][0] == last,
-        "latency_oldest": _pct(oldest), "latency_oldest_to_put": _pct(oldest_put), "latency_newest": _pct(newest),
+        "latency_oldest": pct(oldest), "latency_oldest_to_put": pct(oldest_put), "latency_newest": pct(newest),
     }
 
 
@@ -246,7 +218,7 @@ def bench_bridge(port: int, n: int, seconds: float, workdir: Path, priority: int
         "bridge-can.realtime_priority": priority}, overlays=[CONFIG_DIR / "hil" / "can.yaml"])
     cfg = workdir / "scenario.yaml"
     write_scenario(sc, cfg)
-    keys = Keys(sc.prefix, sc.robot)
+    keys = Keys.of(sc)
     session = transport.open_session(ZenohConfig(connect=[ep]))
     drive = FakeDrive(port)
     zen_rx: dict[int, float] = {}
@@ -296,71 +268,45 @@ def bench_bridge(port: int, n: int, seconds: float, workdir: Path, priority: int
     sub = session.declare_subscriber(keys.server_state("bridge-can"), on_state)
     hsub = session.declare_subscriber(keys.health("bridge-can"), on_health)
     pub = session.declare_publisher(keys.topic("joint_commands"))
-    log = open(workdir / "bridge-can.log", "wb")  # closed in the finally below
-    proc = subprocess.Popen([sys.executable, "-m", "hilsim.cli", "run", "bridge-can", "--config", str(cfg)],
-                            stdout=log, stderr=log, start_new_session=True)
     try:
-        alive = threading.Event()
-        tok = session.liveliness().declare_subscriber(keys.alive("bridge-can"), lambda s: alive.set(), history=True)
-        if not alive.wait(60):
-            raise RuntimeError(f"bridge-can did not start (log: {workdir / 'bridge-can.log'})")
-        tok.undeclare()
-        deadline = time.monotonic() + 10
-        while drive.state != drive.p.CLOSED_LOOP:
-            if time.monotonic() > deadline:
-                raise RuntimeError("bridge-can did not put the drive into closed loop")
-            time.sleep(0.01)
-        time.sleep(0.3)
+        with bridge_process("bridge-can", cfg, workdir, session, keys):
+            deadline = time.monotonic() + 10
+            while drive.state != drive.p.CLOSED_LOOP:
+                if time.monotonic() > deadline:
+                    raise RuntimeError("bridge-can did not put the drive into closed loop")
+                time.sleep(0.01)
+            time.sleep(0.3)
 
-        def command(k: int) -> None:
-            pub.put(msgs.encode(msgs.JointState(header=msgs.header(0), name=["joint_1"], position=[k * STEP],
-                                                velocity=[0.0], effort=[0.0])))
+            def command(k: int) -> None:
+                pub.put(msgs.encode(msgs.JointState(header=msgs.header(0), name=["joint_1"], position=[k * STEP],
+                                                    velocity=[0.0], effort=[0.0])))
 
-        # latency, command on Zenoh -> frame on the bus
-        sent: dict[int, float] = {}
-        for k in range(1, n + 1):
-            sent[k] = time.time()
-            command(k)
-            time.sleep(PACE)
-        time.sleep(0.3)
-        out_lat = [drive.cmd_rx[k] - sent[k] for k in sent if k in drive.cmd_rx]
-        # latency, frame on the bus -> sample on Zenoh
-        sent = {}
-        for k in range(1, n + 1):
-            sent[k] = time.time()
-            drive.estimate(k)
-            time.sleep(PACE)
-        time.sleep(0.3)
-        in_lat = [zen_rx[k] - sent[k] for k in sent if k in zen_rx]
-        # flat out, Zenoh -> CAN
-        before = drive.setpoints
-        t0 = time.perf_counter()
-        k = 0
-        while time.perf_counter() - t0 < seconds:
-            k += 1
-            command(k % 1000)
-        cmd_sent = k
-        time.sleep(0.5)
-        out_fps = (drive.setpoints - before) / seconds
-        # CAN -> Zenoh at the bus's rate, then flat out; every estimate numbered
-        first = n + 1
-        before = counters()
-        times = _paced(drive.estimate, first, BUS_RATE, seconds)
-        time.sleep(0.5)
-        after = counters()
-        at_rate = _absorbed(first, times, seen, before, after, seconds, keys.server_state("bridge-can"))
-        first += len(times)
-        times = _flat_out(drive.estimate, first, seconds)
-        time.sleep(0.5)
-        flat = _absorbed(first, times, seen, after, counters(), seconds, keys.server_state("bridge-can"))
+            # latency, command on Zenoh -> frame on the bus
+            sent = probes(command, range(1, n + 1), time.time)
+            time.sleep(0.3)
+            out_lat = [drive.cmd_rx[k] - sent[k] for k in sent if k in drive.cmd_rx]
+            # latency, frame on the bus -> sample on Zenoh
+            sent = probes(drive.estimate, range(1, n + 1), time.time)
+            time.sleep(0.3)
+            in_lat = [zen_rx[k] - sent[k] for k in sent if k in zen_rx]
+            # flat out, Zenoh -> CAN
+            before = drive.setpoints
+            cmd_sent = flat_out(lambda i: command(i % 1000), seconds)
+            time.sleep(0.5)
+            out_fps = (drive.setpoints - before) / seconds
+            # CAN -> Zenoh at the bus's rate, then flat out; every estimate numbered
+            first = n + 1
+            before = counters()
+            times = _paced(drive.estimate, first, BUS_RATE, seconds)
+            time.sleep(0.5)
+            after = counters()
+            at_rate = _absorbed(first, times, seen, before, after, seconds, keys.server_state("bridge-can"))
+            first += len(times)
+            times = []
+            flat_out(drive.estimate, seconds, first, times)
+            time.sleep(0.5)
+            flat = _absorbed(first, times, seen, after, counters(), seconds, keys.server_state("bridge-can"))
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-        log.close()
         # whether the scheduling class asked for was granted, as the bridge's own log says
         fifo = "running with SCHED_FIFO" in (workdir / "bridge-can.log").read_text(errors="replace")
         drive.close()
@@ -371,9 +317,9 @@ def bench_bridge(port: int, n: int, seconds: float, workdir: Path, priority: int
         router.close()
     return {
         "bridge_sched_fifo": fifo,
-        "zenoh_to_can": {"latency": _pct(out_lat), "lost": n - len(out_lat), "frames_per_s": round(out_fps),
+        "zenoh_to_can": {"latency": pct(out_lat), "lost": n - len(out_lat), "frames_per_s": round(out_fps),
                          "offered_per_s": round(cmd_sent / seconds)},
-        "can_to_zenoh": {"latency": _pct(in_lat), "lost": n - len(in_lat), "at_bus_rate": at_rate,
+        "can_to_zenoh": {"latency": pct(in_lat), "lost": n - len(in_lat), "at_bus_rate": at_rate,
                          "flat_out": flat, "samples_per_s": flat["published_per_s"],
                          "absorbed_per_s": flat["absorbed_per_s"], "offered_per_s": flat["offered_per_s"]},
     }

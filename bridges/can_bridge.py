@@ -49,7 +49,7 @@ from typing import Any, Literal
 import can
 from pydantic import BaseModel, ConfigDict, Field
 
-from hilsim.bridges.can_bus import BusConfig, CanLink, JointMap, finite, raise_priority
+from hilsim.bridges.can_bus import BusConfig, CanLink, JointMap, UnusedFrames, finite, raise_priority
 from hilsim.bridges.can_profiles import DriveCommand, Estimate, FrameError, Heartbeat, make_profile
 from hilsim.core import msgs
 from hilsim.core.config import ConfigError, Scenario
@@ -141,14 +141,14 @@ class CanBridgeService(Service):
         self.hb_timeout = c.heartbeat_misses * c.heartbeat_period
         self.bus_down = ""
         self.bus_up_t = time.monotonic()
-        self.bad: dict[str, int] = {"unknown_id": 0, "bad_length": 0, "malformed": 0}
+        self._unused = UnusedFrames(("unknown_id", "bad_length", "malformed"), self.rejected, self.warn)
+        self.bad = self._unused.counts
         self.frames_host = 0  # host -> drive frames seen (our own, echoed by the bus, or another host's)
         self.frames_other_nodes = 0
         self.commands = 0
         self.estimates = 0  # encoder estimates of our joints taken in
         self.state_samples = 0  # joint_states samples published
         self.coalesced = 0  # estimates a newer one of the same joint replaced before publication
-        self._warned: dict[str, float] = {}
         self.link = CanLink(c.bus, self._on_frame, self._on_bus, reconnect_interval=c.reconnect_interval,
                             name=self.name, on_batch_end=self._publish_states, batch_window=c.batch_window,
                             rx_buffer=c.rx_buffer)
@@ -187,14 +187,6 @@ class CanBridgeService(Service):
                            f"retrying every {self.cfg.reconnect_interval:g} s")
             self._update_holds()
 
-    def _count(self, kind: str, text: str) -> None:
-        self.bad[kind] += 1
-        self.rejected[f"can:{kind}"] += 1
-        now = time.monotonic()
-        if now - self._warned.get(kind, -1e9) > 5.0:  # said at most every 5 s per kind
-            self._warned[kind] = now
-            self.warn(f"CAN frame not used ({kind}, {self.bad[kind]} so far): {text}")
-
     def _on_frame(self, frame: can.Message) -> None:
         if self.profile.direction(frame) == "to_drive":
             self.frames_host += 1  # a host's frame (ours, echoed by the bus, or another host's)
@@ -203,7 +195,7 @@ class CanBridgeService(Service):
             ev = self.profile.parse(frame)
         except FrameError as e:
             with self.lock:
-                self._count(e.kind, str(e))
+                self._unused(e.kind, str(e))
             return
         if isinstance(ev, DriveCommand):
             self.frames_host += 1

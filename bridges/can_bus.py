@@ -1,5 +1,6 @@
 """What the CAN bridge and the drive emulator share: the bus settings, the joint <-> motor mapping,
-and :class:`CanLink`, a python-can bus that opens, reads, sends and reopens on its own.
+:class:`CanLink`, a python-can bus that opens, reads, sends and reopens on its own, and
+:class:`UnusedFrames`, how they count and say the frames they cannot use.
 
 The bus is any python-can interface: ``interface`` and ``channel`` as python-can names them, any
 other field is passed to ``can.Bus`` as it is (``bitrate``, ``port``, ``hop_limit``, ``fd``, …)::
@@ -16,13 +17,15 @@ import logging
 import math
 import os
 import socket
-import threading
 import time
-from collections.abc import Callable
+from collections import Counter
+from collections.abc import Callable, Iterable
 from typing import Any, Literal
 
 import can
 from pydantic import BaseModel, ConfigDict, Field
+
+from hilsim.bridges.link import KeptOpen, OncePer
 
 # python-can's udp_multicast defaults (can.interfaces.udp_multicast.UdpMulticastBus)
 UDP_GROUP_IPV6 = "ff15:7079:7468:6f6e:6465:6d6f:6d63:6173"
@@ -97,12 +100,12 @@ def is_bus_off(msg: can.Message) -> bool:
     return bool(msg.is_error_frame and msg.arbitration_id & CAN_ERR_BUSOFF)
 
 
-class CanLink:
-    """A bus that keeps itself open: a reader thread hands every data frame to ``on_frame`` and,
-    when the bus cannot be opened, fails to receive, goes bus-off, reports an error state or
-    keeps refusing frames, closes it, calls ``on_state(False, reason)`` (once per outage), and
-    reopens it every ``reconnect_interval`` s; ``on_state(True, "")`` once it works again.
-    Sending never raises: a refused frame is counted.
+class CanLink(KeptOpen):
+    """A bus that keeps itself open (:class:`bridges.link.KeptOpen`): a reader thread hands every
+    data frame to ``on_frame`` and, when the bus cannot be opened, fails to receive, goes bus-off,
+    reports an error state or keeps refusing frames, closes it, calls ``on_state(False, reason)``
+    (once per outage), and reopens it every ``reconnect_interval`` s; ``on_state(True, "")`` once
+    it works again. Sending never raises: a refused frame is counted.
 
     With ``on_batch_end``, the reader drains the bus after each frame it waited for: it goes on
     reading what is already there (``recv(timeout=0)``, any interface) for at most
@@ -118,118 +121,73 @@ class CanLink:
     ``net.core.rmem_max``."""
 
     SEND_FAILURES_DOWN = 50  # consecutive refused frames that count as the bus being down
+    SEND_ERRORS = (can.CanError, OSError, ValueError)
 
     def __init__(self, cfg: BusConfig, on_frame: Callable[[can.Message], None],
                  on_state: Callable[[bool, str], None], *, reconnect_interval: float = 1.0,
                  name: str = "can", opener: Callable[[BusConfig], can.BusABC] = open_bus,
                  on_batch_end: Callable[[], None] | None = None, batch_window: float = 3e-4,
                  rx_buffer: int = 0) -> None:
-        self.cfg = cfg
-        self.on_frame, self.on_state = on_frame, on_state
+        super().__init__(cfg, opener, on_state, name=name, logger="bus", reconnect_interval=reconnect_interval)
+        self.on_frame = on_frame
         self.on_batch_end, self.batch_window = on_batch_end, batch_window
         self.rx_buffer = rx_buffer
         self.rx_buffer_granted: int | None = None  # bytes, as the kernel reports it (None: not set)
-        self.reconnect_interval = reconnect_interval
-        self.opener = opener
-        self.log = logging.getLogger(f"hilsim.{name}.bus")
-        self.bus: can.BusABC | None = None
-        self.up = False
-        self.reason = ""
-        self._stop = threading.Event()
-        self._send_lock = threading.Lock()
         self._reopen: str | None = None  # set by a sender that saw the bus fail; the reader acts on it
-        self._thread = threading.Thread(target=self._run, daemon=True, name=f"{name}-rx")
-        self.rx = self.tx = self.tx_failed = self.error_frames = self.outages = 0
+        self.error_frames = 0
         self.batches = 0  # on_batch_end calls
         self._consecutive_failures = 0
+        self._next_state_check = 0.0
 
-    def start(self) -> None:
-        self._thread.start()
+    @property
+    def bus(self) -> can.BusABC | None:
+        return self.handle
 
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join(5.0)
-        self._close()
+    # ---------------------------------------------------------------- KeptOpen's hooks
+    def _write(self, handle: can.BusABC, msg: can.Message) -> None:
+        handle.send(msg, timeout=0.005)
 
-    def send(self, msg: can.Message) -> bool:
-        bus = self.bus
-        if bus is None or not self.up:
-            self.tx_failed += 1
-            return False
-        try:
-            with self._send_lock:
-                bus.send(msg, timeout=0.005)
-        except (can.CanError, OSError, ValueError) as e:
-            self.tx_failed += 1
-            self._consecutive_failures += 1
-            if self._consecutive_failures >= self.SEND_FAILURES_DOWN and self._reopen is None:
-                self._reopen = f"{self._consecutive_failures} frames in a row refused ({e})"
-            return False
+    def _refused(self, e: BaseException) -> None:
+        self._consecutive_failures += 1
+        if self._consecutive_failures >= self.SEND_FAILURES_DOWN and self._reopen is None:
+            self._reopen = f"{self._consecutive_failures} frames in a row refused ({e})"
+
+    def _sent(self) -> None:
         self._consecutive_failures = 0
-        self.tx += 1
-        return True
+
+    def _shutdown(self, handle: can.BusABC) -> None:
+        handle.shutdown()
+
+    def _opened(self) -> None:
+        self._consecutive_failures = 0
+        self._reopen = None
+        if self.rx_buffer > 0:
+            self.rx_buffer_granted = grow_rx_buffer(self.handle, self.rx_buffer)
+            self.log.info("receive buffer: %s bytes asked, %s granted", self.rx_buffer,
+                          self.rx_buffer_granted if self.rx_buffer_granted is not None
+                          else "none (the interface has no socket)")
 
     # ---------------------------------------------------------------- reader thread
-    def _close(self) -> None:
-        bus, self.bus = self.bus, None
-        if bus is not None:
-            try:
-                bus.shutdown()
-            except Exception:  # a bus that failed may fail to close too
-                pass
-
-    def _down(self, reason: str) -> None:
-        self._close()
-        if self.up or not self.reason:
-            self.outages += 1
-            self.up = False
-            self.reason = reason
-            self.on_state(False, reason)
-
-    def _run(self) -> None:
-        next_state_check = 0.0
-        while not self._stop.is_set():
-            if self.bus is None:
-                try:
-                    self.bus = self.opener(self.cfg)
-                except ConnectionError as e:
-                    if self.reason != str(e):
-                        self.up = True  # so that _down reports this new reason
-                    self._down(str(e))
-                    self._stop.wait(self.reconnect_interval)
-                    continue
-                self._consecutive_failures = 0
-                self._reopen = None
-                if self.rx_buffer > 0:
-                    self.rx_buffer_granted = grow_rx_buffer(self.bus, self.rx_buffer)
-                    self.log.info("receive buffer: %s bytes asked, %s granted", self.rx_buffer,
-                                  self.rx_buffer_granted if self.rx_buffer_granted is not None
-                                  else "none (the interface has no socket)")
-                self.up, self.reason = True, ""
-                self.on_state(True, "")
-            if self._reopen is not None:
-                self._down(self._reopen)
-                self._stop.wait(self.reconnect_interval)
-                continue
-            try:
-                msg = self.bus.recv(0.05)
-            except (can.CanError, OSError, ValueError) as e:
-                self._down(f"receive failed: {type(e).__name__}: {e}")
-                self._stop.wait(self.reconnect_interval)
-                continue
-            now = time.monotonic()
-            if now >= next_state_check:
-                next_state_check = now + 0.5
-                if _bus_state(self.bus) == can.BusState.ERROR:
-                    self._down("bus-off (the interface reports an error state)")
-                    continue
-            if msg is None:
-                continue
-            if self.on_batch_end is None:
-                if not self._take(msg):
-                    self._stop.wait(self.reconnect_interval)
-                continue
-            self._drain(msg)
+    def _read(self) -> bool:
+        if self._reopen is not None:
+            self._down(self._reopen)
+            return False
+        try:
+            msg = self.handle.recv(0.05)
+        except (can.CanError, OSError, ValueError) as e:
+            self._down(f"receive failed: {type(e).__name__}: {e}")
+            return False
+        now = time.monotonic()
+        if now >= self._next_state_check:
+            self._next_state_check = now + 0.5
+            if _bus_state(self.handle) == can.BusState.ERROR:
+                self._down("bus-off (the interface reports an error state)")
+                return True  # reopened at once
+        if msg is None:
+            return True
+        if self.on_batch_end is None:
+            return self._take(msg)
+        return self._drain(msg)
 
     def _take(self, msg: can.Message) -> bool:
         """Hand one received frame on; False if it said the bus went off (it is closed then)."""
@@ -246,11 +204,12 @@ class CanLink:
             self.log.exception("frame handler failed: %s", e)
         return True
 
-    def _drain(self, first: can.Message) -> None:
-        """``first`` and whatever else is readable now (within ``batch_window``), then ``on_batch_end``."""
+    def _drain(self, first: can.Message) -> bool:
+        """``first`` and whatever else is readable now (within ``batch_window``), then ``on_batch_end``;
+        False if the bus went down meanwhile."""
         end = time.monotonic() + self.batch_window
         ok = self._take(first)
-        bus = self.bus
+        bus = self.handle
         try:
             while ok and bus is not None and time.monotonic() < end:
                 msg = bus.recv(0)
@@ -266,8 +225,7 @@ class CanLink:
             self.on_batch_end()
         except Exception as e:
             self.log.exception("batch handler failed: %s", e)
-        if not ok:
-            self._stop.wait(self.reconnect_interval)
+        return ok
 
 
 def grow_rx_buffer(bus: can.BusABC, size: int) -> int | None:
@@ -298,6 +256,23 @@ def _bus_state(bus: can.BusABC) -> Any:
         return bus.state
     except Exception:
         return None
+
+
+class UnusedFrames:
+    """``unused(kind, text)``: a frame a CAN service could not use, counted per kind in ``counts`` (its
+    health's ``frames_<kind>``) and in the service's ``rejected`` as ``can:<kind>``, and said (``warn``)
+    at most once every 5 s per kind."""
+
+    def __init__(self, kinds: Iterable[str], rejected: Counter[str], warn: Callable[[str], None]) -> None:
+        self.counts: dict[str, int] = dict.fromkeys(kinds, 0)
+        self._rejected, self._warn = rejected, warn
+        self._said = OncePer(5.0)
+
+    def __call__(self, kind: str, text: str) -> None:
+        self.counts[kind] += 1
+        self._rejected[f"can:{kind}"] += 1
+        if self._said.due(kind):
+            self._warn(f"CAN frame not used ({kind}, {self.counts[kind]} so far): {text}")
 
 
 def raise_priority(priority: int, log: logging.Logger) -> None:

@@ -44,7 +44,7 @@ from typing import Any, Literal
 import can
 from pydantic import BaseModel, ConfigDict, Field
 
-from hilsim.bridges.can_bus import BusConfig, CanLink, JointMap, raise_priority
+from hilsim.bridges.can_bus import BusConfig, CanLink, JointMap, UnusedFrames, raise_priority
 from hilsim.bridges.can_profiles import DriveCommand, DriveProfile, Estimate, FrameError, Heartbeat, make_profile
 from hilsim.core import msgs
 from hilsim.core.config import SIM, ConfigError, Scenario
@@ -228,9 +228,9 @@ class DriveEmulatorService(Service):
             if c.mode == "simulation":
                 d.mode = self.interfaces[j]  # the simulated joint's own interface
             self.drives[m.node_id] = d
-        self.bad: dict[str, int] = {"unknown_id": 0, "bad_length": 0, "malformed": 0, "refused": 0}
+        self._unused = UnusedFrames(("unknown_id", "bad_length", "malformed", "refused"), self.rejected, self.warn)
+        self.bad = self._unused.counts
         self.other_frames = 0
-        self._warned: dict[str, float] = {}
         self._last_step = time.monotonic()
         self.have_state = False
         self.link = CanLink(self.bus_cfg, self._on_frame, self._on_bus, reconnect_interval=c.reconnect_interval,
@@ -273,7 +273,7 @@ class DriveEmulatorService(Service):
             ev = self.profile.parse(frame)
         except FrameError as e:
             with self.lock:
-                self._count(e.kind, str(e))
+                self._unused(e.kind, str(e))
             return
         if not isinstance(ev, DriveCommand):
             self.other_frames += 1  # drive -> host traffic (ours echoed, or another drive's)
@@ -293,21 +293,13 @@ class DriveEmulatorService(Service):
                 what = d.handle(ev)
             except ValueError as e:
                 d.refused += 1
-                self._count("refused", f"{d.joint} (node {d.node}): {e}")
+                self._unused("refused", f"{d.joint} (node {d.node}): {e}")
                 return
             if what == "estimate":
                 if not d.silent:
                     self.link.send(d.estimate())
             elif what in ("state", "input") and self.cfg.mode == "simulation":
                 self._command(d)
-
-    def _count(self, kind: str, text: str) -> None:
-        self.bad[kind] += 1
-        self.rejected[f"can:{kind}"] += 1
-        now = time.monotonic()
-        if now - self._warned.get(kind, -1e9) > 5.0:  # said at most every 5 s per kind
-            self._warned[kind] = now
-            self.warn(f"CAN frame not used ({kind}, {self.bad[kind]} so far): {text}")
 
     def _command(self, d: EmulatedDrive) -> None:
         """Simulation mode: the drive's input as the joint's command in the simulation."""

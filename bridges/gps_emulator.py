@@ -32,6 +32,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from pymavlink.dialects.v20 import common as mavlink
 
 from hilsim.bridges import mavlink_gps as mg
+from hilsim.bridges.link import OncePer
 from hilsim.bridges.mavlink_link import LinkConfig, MavLink
 from hilsim.core import msgs
 from hilsim.core.config import ConfigError, Scenario
@@ -91,7 +92,7 @@ class GpsEmulatorService(Service):
         self.sent = 0
         self.host: tuple[tuple[int, int], float] | None = None
         self.received = 0
-        self._warned: dict[str, float] = {}
+        self._said = OncePer(5.0)
 
     def setup(self) -> None:
         self.subscribe(self.keys.truth("odom"), msgs.Odometry, self._on_odom)
@@ -115,9 +116,7 @@ class GpsEmulatorService(Service):
     def _on_bad(self, kind: str, text: str) -> None:
         with self.lock:
             self.rejected[f"mavlink:{kind}"] += 1
-            now = time.monotonic()
-            if now - self._warned.get(kind, -1e9) > 5.0:
-                self._warned[kind] = now
+            if self._said.due(kind):
                 self.warn(f"MAVLink input not used ({kind}): {text}")
 
     def _on_message(self, m: Any, t_rx: float) -> None:

@@ -20,35 +20,22 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import signal
 import socket
-import subprocess
-import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from pymavlink.dialects.v20 import common as mavlink
 
+from hilsim.bridges.bench_common import PACE, bridge_process, flat_out, pct, probes
 from hilsim.core import msgs, transport
 from hilsim.core.config import CONFIG_DIR, ZenohConfig
 from hilsim.core.keys import Keys
 from hilsim.core.scenario import load_scenario, write_scenario
 
-PACE = 0.005  # s between latency probes (200 Hz)
 LAT0, LON0 = 411778800, -85977900  # degE7: the outdoor world's datum
-
-
-def _pct(xs: list[float]) -> dict[str, float]:
-    if not xs:
-        return {"n": 0, "p50_us": float("nan"), "p99_us": float("nan")}
-    a = np.asarray(xs) * 1e6
-    return {"n": len(xs), "p50_us": round(float(np.percentile(a, 50)), 1),
-            "p99_us": round(float(np.percentile(a, 99)), 1)}
 
 
 def _probe(k: int) -> Any:
@@ -103,19 +90,11 @@ def bench_pymavlink(n: int, seconds: float) -> dict[str, Any]:
     th = threading.Thread(target=reader, daemon=True)
     th.start()
     try:
-        sent: dict[int, float] = {}
-        for k in range(1, n + 1):
-            sent[k] = time.perf_counter()
-            tx.send(k)
-            time.sleep(PACE)
+        sent = probes(tx.send, range(1, n + 1), time.perf_counter)
         time.sleep(0.2)
         lat = [got[k] - sent[k] for k in sent if k in got]
         count[0] = 0
-        t0 = time.perf_counter()
-        k = 0
-        while time.perf_counter() - t0 < seconds:
-            k += 1
-            tx.send(k % 1000)
+        k = flat_out(lambda i: tx.send(i % 1000), seconds)
         time.sleep(0.3)
         mps = count[0] / seconds
     finally:
@@ -123,7 +102,7 @@ def bench_pymavlink(n: int, seconds: float) -> dict[str, Any]:
         th.join(2)
         tx.sock.close()
         rx_sock.close()
-    return {"latency": _pct(lat), "lost": n - len(lat), "messages_per_s": round(mps), "sent_per_s": round(k / seconds)}
+    return {"latency": pct(lat), "lost": n - len(lat), "messages_per_s": round(mps), "sent_per_s": round(k / seconds)}
 
 
 # ---------------------------------------------------------------------- the bridge
@@ -138,7 +117,7 @@ def bench_bridge(n: int, seconds: float, workdir: Path) -> dict[str, Any]:
         "bridge-mavlink.gps.startup_timeout": 60.0}, overlays=[CONFIG_DIR / "hil" / "mavlink.yaml"])
     cfg = workdir / "scenario.yaml"
     write_scenario(sc, cfg)
-    keys = Keys(sc.prefix, sc.robot)
+    keys = Keys.of(sc)
     session = transport.open_session(ZenohConfig(connect=[ep]))
     zen_rx: dict[int, float] = {}
     zcount = [0]
@@ -151,52 +130,29 @@ def bench_bridge(n: int, seconds: float, workdir: Path) -> dict[str, Any]:
 
     sub = session.declare_subscriber(keys.topic("gps/fix"), on_fix)
     tx = _Sender(port)
-    log = open(workdir / "bridge-mavlink.log", "wb")  # closed in the finally below
-    proc = subprocess.Popen([sys.executable, "-m", "hilsim.cli", "run", "bridge-mavlink", "--config", str(cfg)],
-                            stdout=log, stderr=log, start_new_session=True)
     try:
-        alive = threading.Event()
-        tok = session.liveliness().declare_subscriber(keys.alive("bridge-mavlink"), lambda s: alive.set(),
-                                                      history=True)
-        if not alive.wait(60):
-            raise RuntimeError(f"bridge-mavlink did not start (log: {workdir / 'bridge-mavlink.log'})")
-        tok.undeclare()
-        deadline = time.monotonic() + 10
-        while not zen_rx:  # the first fix: the bridge's publisher has reached our subscriber
-            if time.monotonic() > deadline:
-                raise RuntimeError("no gps/fix from bridge-mavlink")
-            tx.send(0)
-            time.sleep(0.05)
-        time.sleep(0.3)
-        zen_rx.clear()
-        sent: dict[int, float] = {}
-        for k in range(1, n + 1):
-            sent[k] = time.perf_counter()
-            tx.send(k)
-            time.sleep(PACE)
-        time.sleep(0.3)
-        lat = [zen_rx[k] - sent[k] for k in sent if k in zen_rx]
-        zcount[0] = 0
-        t0 = time.perf_counter()
-        k = 0
-        while time.perf_counter() - t0 < seconds:
-            k += 1
-            tx.send(k % 1000)
-        time.sleep(0.5)
-        sps = zcount[0] / seconds
+        with bridge_process("bridge-mavlink", cfg, workdir, session, keys):
+            deadline = time.monotonic() + 10
+            while not zen_rx:  # the first fix: the bridge's publisher has reached our subscriber
+                if time.monotonic() > deadline:
+                    raise RuntimeError("no gps/fix from bridge-mavlink")
+                tx.send(0)
+                time.sleep(0.05)
+            time.sleep(0.3)
+            zen_rx.clear()
+            sent = probes(tx.send, range(1, n + 1), time.perf_counter)
+            time.sleep(0.3)
+            lat = [zen_rx[k] - sent[k] for k in sent if k in zen_rx]
+            zcount[0] = 0
+            k = flat_out(lambda i: tx.send(i % 1000), seconds)
+            time.sleep(0.5)
+            sps = zcount[0] / seconds
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(15)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-        log.close()
         tx.sock.close()
         sub.undeclare()
         session.close()
         router.close()
-    return {"latency": _pct(lat), "lost": n - len(lat), "samples_per_s": round(sps),
+    return {"latency": pct(lat), "lost": n - len(lat), "samples_per_s": round(sps),
             "offered_per_s": round(k / seconds)}
 
 

@@ -55,6 +55,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 from pymavlink.dialects.v20 import common as mavlink
 
 from hilsim.bridges import mavlink_gps as mg
+from hilsim.bridges.link import OncePer
 from hilsim.bridges.mavlink_link import LinkConfig, MavLink
 from hilsim.core import msgs
 from hilsim.core.config import ConfigError, Scenario
@@ -158,7 +159,7 @@ class MavlinkBridgeService(Service):
         self.link = MavLink(c, self._on_message, self._on_link, self._on_bad, name=self.name)
         self.t0 = time.monotonic()  # since when the first GPS message is awaited
         self.clock_seen = False
-        self._warned: dict[str, float] = {}
+        self._said = OncePer(self.WARN_EVERY)
         self.ignored = 0
         # GPS in
         self.gps_src: dict[str, tuple[int, int]] = {}  # message type -> the source locked onto
@@ -223,9 +224,7 @@ class MavlinkBridgeService(Service):
         self._publish_log(20, text)
 
     def _say_once_per(self, kind: str, text: str, warn: bool = True) -> None:
-        now = time.monotonic()
-        if now - self._warned.get(kind, -1e9) > self.WARN_EVERY:
-            self._warned[kind] = now
+        if self._said.due(kind):
             if warn:
                 self.warn(text)
             else:

@@ -19,15 +19,15 @@ that are not a frame, and a message id the dialect does not know are each counte
 
 from __future__ import annotations
 
-import logging
 import select
-import threading
 import time
 from collections.abc import Callable
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field
 from pymavlink.dialects.v20 import common as mavlink
+
+from hilsim.bridges.link import KeptOpen
 
 # what the count of bad input is kept under (health ``mavlink_<kind>``)
 BAD_CRC, BAD_DATA, UNKNOWN = "bad_crc", "bad_data", "unknown_id"
@@ -81,112 +81,68 @@ class _Writer:
         conn.write(buf)
 
 
-class MavLink:
-    """A MAVLink connection that keeps itself open: a reader thread parses what arrives and hands
-    every message of the dialect to ``on_message(msg, t_rx)`` (``t_rx``: ``time.perf_counter()``
-    when its bytes were read); bad CRCs, stray bytes and unknown message ids go to
-    ``on_bad(kind, text)``. When the connection cannot be opened or fails, it is closed,
-    ``on_state(False, reason)`` is called once per outage, and it is reopened every
-    ``reconnect_interval`` s (``on_state(True, "")`` once it works). Sending never raises."""
+class MavLink(KeptOpen):
+    """A MAVLink connection that keeps itself open (:class:`bridges.link.KeptOpen`): a reader thread
+    parses what arrives and hands every message of the dialect to ``on_message(msg, t_rx)``
+    (``t_rx``: ``time.perf_counter()`` when its bytes were read); bad CRCs, stray bytes and unknown
+    message ids go to ``on_bad(kind, text)``. When the connection cannot be opened or fails, it is
+    closed, ``on_state(False, reason)`` is called once per outage, and it is reopened every
+    ``reconnect_interval`` s (``on_state(True, "")`` once it works). Sending never raises: ``send``
+    encodes one message (MAVLink 2, or 1 with ``mavlink1``) and says whether it went."""
 
     def __init__(self, cfg: LinkConfig, on_message: Callable[[Any, float], None],
                  on_state: Callable[[bool, str], None], on_bad: Callable[[str, str], None], *, name: str = "mavlink",
                  opener: Callable[[LinkConfig], Any] = open_connection) -> None:
-        self.cfg = cfg
-        self.on_message, self.on_state, self.on_bad = on_message, on_state, on_bad
-        self.opener = opener
-        self.log = logging.getLogger(f"hilsim.{name}.link")
-        self.conn: Any = None
-        self.up = False
-        self.reason = ""
+        super().__init__(cfg, opener, on_state, name=name, logger="link", reconnect_interval=cfg.reconnect_interval)
+        self.on_message, self.on_bad = on_message, on_bad
         self.mav = mavlink.MAVLink(_Writer(self), srcSystem=cfg.system_id, srcComponent=cfg.component_id)
         self.mav.robust_parsing = True
-        self._stop = threading.Event()
-        self._send_lock = threading.Lock()
-        self._thread = threading.Thread(target=self._run, daemon=True, name=f"{name}-rx")
-        self.rx = self.tx = self.tx_failed = self.outages = 0
         self.bad: dict[str, int] = {BAD_CRC: 0, BAD_DATA: 0, UNKNOWN: 0}
         self.by_type: dict[str, int] = {}
 
-    def start(self) -> None:
-        self._thread.start()
-
-    def stop(self) -> None:
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(5.0)
-        self._close()
-
-    def send(self, msg: Any) -> bool:
-        """Encode and send one message (MAVLink 2, or 1 with ``mavlink1``); False if it could not go."""
-        if self.conn is None or not self.up:
-            self.tx_failed += 1
-            return False
-        try:
-            with self._send_lock:
-                self.mav.send(msg, force_mavlink1=self.cfg.mavlink1)
-        except Exception as e:  # a closed socket, a serial port gone: counted, the reader reopens it
-            self.tx_failed += 1
-            self.log.debug("send failed: %s", e)
-            return False
-        self.tx += 1
-        return True
+    @property
+    def conn(self) -> Any:
+        return self.handle
 
     def heartbeat(self, mav_type: int, autopilot: int = mavlink.MAV_AUTOPILOT_INVALID,
                   state: int = mavlink.MAV_STATE_ACTIVE) -> bool:
         return self.send(mavlink.MAVLink_heartbeat_message(mav_type, autopilot, 0, 0, state, 3))
 
-    # ---------------------------------------------------------------- reader thread
-    def _close(self) -> None:
-        conn, self.conn = self.conn, None
-        if conn is not None:
-            try:
-                conn.close()
-            except Exception:  # a link that failed may fail to close too
-                pass
+    # ---------------------------------------------------------------- KeptOpen's hooks
+    def _write(self, handle: Any, msg: Any) -> None:
+        self.mav.send(msg, force_mavlink1=self.cfg.mavlink1)
 
-    def _down(self, reason: str) -> None:
-        self._close()
+    def _refused(self, e: BaseException) -> None:  # a closed socket, a serial port gone: the reader reopens it
+        self.log.debug("send failed: %s", e)
+
+    def _shutdown(self, handle: Any) -> None:
+        handle.close()
+
+    def _closed(self) -> None:
         self.mav.buf, self.mav.buf_index = bytearray(), 0  # a partial frame of the old link is gone
-        if self.up or not self.reason:
-            self.outages += 1
-            self.up = False
-            self.reason = reason
-            self.on_state(False, reason)
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            if self.conn is None:
-                try:
-                    self.conn = self.opener(self.cfg)
-                except ConnectionError as e:
-                    if self.reason != str(e):
-                        self.up = True  # so that _down reports this new reason
-                    self._down(str(e))
-                    self._stop.wait(self.cfg.reconnect_interval)
-                    continue
-                self.up, self.reason = True, ""
-                self.on_state(True, "")
-            try:
-                fd = self.conn.fd
-                if fd is not None:
-                    ready, _, _ = select.select([fd], [], [], 0.1)
-                    if not ready:
-                        continue
-                data = self.conn.recv(4096)
-                t_rx = time.perf_counter()
-            except Exception as e:  # socket or serial errors: the link is down, reopen it
-                self._down(f"receive failed: {type(e).__name__}: {e}")
-                self._stop.wait(self.cfg.reconnect_interval)
-                continue
-            if not data:
-                if self.cfg.is_stream and fd is not None:
-                    self._down("closed by the other end")
-                    self._stop.wait(self.cfg.reconnect_interval)
-                elif fd is None:
-                    self._stop.wait(0.005)
-                continue
-            self._parse(bytes(data) if not isinstance(data, bytes | bytearray) else data, t_rx)
+    # ---------------------------------------------------------------- reader thread
+    def _read(self) -> bool:
+        try:
+            fd = self.handle.fd
+            if fd is not None:
+                ready, _, _ = select.select([fd], [], [], 0.1)
+                if not ready:
+                    return True
+            data = self.handle.recv(4096)
+            t_rx = time.perf_counter()
+        except Exception as e:  # socket or serial errors: the link is down, reopen it
+            self._down(f"receive failed: {type(e).__name__}: {e}")
+            return False
+        if not data:
+            if self.cfg.is_stream and fd is not None:
+                self._down("closed by the other end")
+                return False
+            if fd is None:
+                self._stop.wait(0.005)
+            return True
+        self._parse(bytes(data) if not isinstance(data, bytes | bytearray) else data, t_rx)
+        return True
 
     def _parse(self, data: bytes | bytearray, t_rx: float) -> None:
         try:

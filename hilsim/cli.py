@@ -42,6 +42,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         return 2
     sc = load_scenario(args.config, parse_overrides(args.set))
     from hilsim.core import fleet
+    from hilsim.core.service import instantiate
 
     # robots > 1: controller@arm3 is one robot's controller, controller@* every robot's (hilsim.core.fleet)
     names = fleet.members(sc, args.service)
@@ -49,7 +50,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         from hilsim.run import compose
 
         return compose.run(names, sc)
-    return int(fleet.instantiate(names[0], sc).run())
+    return int(instantiate(names[0], sc).run())
 
 
 def _lazy(module: str, func: str) -> Callable[[argparse.Namespace], int]:
@@ -115,12 +116,16 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
     run.set_defaults(func=cmd_run)
 
-    topic = sub.add_parser("topic", help="inspect keys like `ros2 topic`")
+    topic = sub.add_parser("topic", help="inspect topics like `ros2 topic` (ROS 2 names, rmw_zenoh keys)")
     tsub = topic.add_subparsers(dest="topic_cmd", required=True)
     for name in ("list", "echo", "hz"):
         t = tsub.add_parser(name)
         if name != "list":
-            t.add_argument("key", help="full key, e.g. hilsim/arm/joint_states")
+            t.add_argument("key", help="a ROS 2 topic name, e.g. /arm/joint_states, or a Zenoh key expression")
+        else:
+            t.add_argument("--all", action="store_true", help="also hilsim's internal topics (health, sync, log, hw)")
+            t.add_argument("-t", "--show-types", action="store_true", help="print each topic's type")
+        t.add_argument("--domain", type=int, default=None, help="ROS 2 domain (default: ROS_DOMAIN_ID, else 0)")
         _endpoint_args(t)
         t.add_argument("--duration", type=float, default=None, help="seconds to listen")
         if name == "echo":
@@ -164,7 +169,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--csv", help="CSV path; the recording goes next to it (default: OUT/plan_evaluate.csv)")
     ev.add_argument("--out", help="output directory (default runs/<timestamp>-plan-evaluate)")
     ev.add_argument("--execute", action="store_true")
-    ev.set_defaults(func=_lazy("hilsim.tools.evaluate_arm", "cmd_evaluate"))
+    ev.set_defaults(func=_lazy("hilsim.tools.evaluate", "cmd_evaluate"))
 
     bench = sub.add_parser("bench", help="benchmarks (figures and ratios against an in-run baseline)")
     bsub = bench.add_subparsers(dest="bench_cmd", required=True)

@@ -30,8 +30,8 @@ sys.path.insert(0, os.environ.get("HILSIM_SRC", str(REPO)))
 
 from hilsim.core import msgs  # noqa: E402
 from hilsim.core.keys import message_type  # noqa: E402
-from hilsim.sim.kinematics import RobotModel  # noqa: E402
 from hilsim.record.rows import RowWriter, rr  # noqa: E402
+from hilsim.sim.kinematics import RobotModel  # noqa: E402
 
 FLUSH_ROWS = 20_000  # as services/logger.py
 

@@ -45,9 +45,10 @@ import numpy as np
 import zenoh
 
 from hilsim.core import fleet, msgs
-from hilsim.core.keys import Keys
+from hilsim.core.keys import Keys, topic_name
 from hilsim.core.service import LEVEL_ERROR, Publisher, Service
 from hilsim.core.transport import Attachment
+from hilsim.sim.fleet_world import FleetWorld
 from hilsim.sim.world import World
 
 SPIN_NS = 80_000  # realtime: busy-wait at most this long before a deadline
@@ -92,7 +93,7 @@ class Robot:
 class PhysicsService(Service):
     name = "physics"
     stop_rank = 0  # stopped first: sim time ends before its consumers go
-    world: World | fleet.FleetWorld  # loaded in setup(), inside run()'s error handling
+    world: World | FleetWorld  # loaded in setup(), inside run()'s error handling
 
     def __init__(self, scenario: Any) -> None:
         super().__init__(scenario)
@@ -109,7 +110,7 @@ class PhysicsService(Service):
     def setup(self) -> None:
         sc = self.sc
         if sc.robots > 1:
-            self.world = fleet.FleetWorld(sc)
+            self.world = FleetWorld(sc)
             views = self.world.views
         else:
             self.world = World(sc)
@@ -129,7 +130,7 @@ class PhysicsService(Service):
         self.end_ns = round(sc.duration * 1e9) if sc.duration else None
         self.last_progress = time.monotonic()
         self.waiting_reported = False
-        robot_keys = [Keys(sc.prefix, r) for r in fleet.robot_names(sc)]
+        robot_keys = [Keys.of(sc, r) for r in fleet.robot_names(sc)]
         self.robots = [Robot(self, k, v) for k, v in zip(robot_keys, views, strict=True)]
         self.pub_clock = self.publisher(self.keys.clock)
         self.contact_steps = 0
@@ -140,7 +141,7 @@ class PhysicsService(Service):
             self.subscribe(r.keys.topic("joint_commands"), msgs.JointState, on_command, with_attachment=True)
             self.subscribe(r.keys.sync("*"), msgs.Clock, self._on_sync, with_attachment=True)
         # the scenario's own namespace, or (robots > 1) every robot's: whose tokens physics follows
-        ns = Keys(sc.prefix, "*") if sc.robots > 1 else self.keys
+        ns = Keys.of(sc, "*") if sc.robots > 1 else self.keys
         # external joint servers (a single robot only): which joints each serves, when it last reported
         self.servers: dict[str, set[str]] = {}
         w0 = views[0]
@@ -250,7 +251,7 @@ class PhysicsService(Service):
         self._ack(name, msgs.ns_of(clk.clock))
 
     def _on_server_state(self, js: msgs.JointState, key: str) -> None:
-        server = key.split("/")[-2]
+        server = topic_name(key).split("/")[-2]  # …/hw/<server>/joint_states
         served = self.servers.get(server)
         if served is None:
             raise msgs.BadMessage(f"{server!r} serves no joint in this scenario")

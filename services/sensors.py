@@ -27,6 +27,7 @@ from typing import Any
 
 from hilsim.core import msgs
 from hilsim.core.config import ConfigError, Scenario
+from hilsim.core.keys import topic_name
 from hilsim.core.service import Publisher, Service
 from hilsim.sim.sensing import Sensor, make_sensor
 
@@ -85,7 +86,7 @@ class SensorService(Service):
             self.subscribe(self.keys.all_server_states, msgs.JointState, self._on_server_state)
 
     def _on_server_state(self, js: msgs.JointState, key: str) -> None:
-        server = key.split("/")[-2]
+        server = topic_name(key).split("/")[-2]  # …/hw/<server>/joint_states
         if any(self.sc.joint(n).server != server for n in js.name) or len(js.position) != len(js.name):
             self.reject(key, f"{server} reports joints it does not serve, or no positions: {list(js.name)}")
             return

@@ -34,7 +34,7 @@ class Rig:
     def __init__(self, svc: ControllerService, session: Any) -> None:
         self.svc = svc
         self.session = session
-        self.keys = Keys(svc.sc.prefix, svc.sc.robot)
+        self.keys = Keys.of(svc.sc)
         self.cmds: list[msgs.JointState] = []
         self.refs: list[msgs.JointState] = []
         self.health: list[msgs.DiagnosticArray] = []
@@ -239,7 +239,7 @@ def test_lockstep_chain_with_sensors_and_mujoco(
 ) -> None:
     """Physics stand-in in the test: truth -> sensors -> joint_states -> controller -> commands -> step."""
     sc = scenario(overrides={"services": ["physics", "sensors", "controller"]})
-    keys = Keys(sc.prefix, sc.robot)
+    keys = Keys.of(sc)
     spec = mujoco.MjSpec.from_file(str(sc.world.model))
     for b in spec.bodies:
         b.gravcomp = 1.0  # must be set before compiling to take effect

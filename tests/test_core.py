@@ -9,24 +9,35 @@ import pytest
 
 from hilsim.core import msgs, registry
 from hilsim.core.config import ConfigError
-from hilsim.core.keys import Keys, UnknownKey, message_type
+from hilsim.core.keys import Keys, UnknownKey, message_type, topic_name
 from hilsim.core.scenario import load_scenario
 
 REPO = Path(__file__).resolve().parent.parent
 
 
+JOINT_STATE = ("sensor_msgs::msg::dds_::JointState_/"
+               "RIHS01_a13ee3a330e346c9d87b5aa18d24e11690752bd33a0350f11c5882bc9179260e")
+CLOCK = "rosgraph_msgs::msg::dds_::Clock_/RIHS01_692f7a66e93a3c83e71765d033b60349ba68023a8c689a79e48078bcb5c58564"
+
+
 def test_key_scheme_and_types() -> None:
-    k = Keys("lab2", "arm")
-    assert k.topic("joint_states") == "lab2/arm/joint_states"
-    assert k.truth("imu") == "lab2/arm/truth/imu"
-    assert k.clock == "lab2/clock"
-    assert message_type("lab2/clock") is msgs.Clock
-    assert message_type("lab2/arm/gps/fix") is msgs.NavSatFix
+    """rmw_zenoh's keys: <domain>/<namespace>/<topic>/<DDS type>/<type hash> (published hashes)."""
+    k = Keys("lab2", "arm", 7)
+    assert k.topic("joint_states") == f"7/arm/joint_states/{JOINT_STATE}"
+    assert k.truth("imu").startswith("7/arm/truth/imu/sensor_msgs::msg::dds_::Imu_/RIHS01_")
+    assert k.clock == f"7/clock/{CLOCK}"
+    assert k.topic_name("gps/fix") == "/arm/gps/fix"
+    assert Keys("x", "arm0", 0, "/lab/{robot}").topic("joint_states") == f"0/lab/arm0/joint_states/{JOINT_STATE}"
+    assert message_type(k.clock) is msgs.Clock
+    assert message_type(k.topic("gps/fix")) is msgs.NavSatFix
     assert message_type(k.health("physics")) is msgs.DiagnosticArray
+    assert topic_name(k.topic("cmd_vel")) == "/arm/cmd_vel"
     with pytest.raises(UnknownKey):
         k.topic("jointstates")
     with pytest.raises(UnknownKey):
-        message_type("lab2/arm/nope")
+        message_type("7/arm/nope")
+    with pytest.raises(UnknownKey):
+        message_type("7/arm/nope/pkg::msg::dds_::Nope_/RIHS01_00")
 
 
 def test_cdr_round_trip_matches_ros_layout() -> None:

@@ -163,14 +163,19 @@ def test_no_circles() -> None:
     assert not cycles(g), f"import circles: {cycles(g)}"
 
 
-@pytest.mark.parametrize("edge", [("hilsim.core.config", "hilsim.core.scenario"), ("hilsim.sim.world", "hilsim.run.launcher")])
-def test_the_check_sees_a_wrong_arrow(edge: tuple[str, str], monkeypatch: pytest.MonkeyPatch) -> None:
-    """The checks fail on an upward arrow and on a circle (so they cannot pass vacuously)."""
+@pytest.mark.parametrize(("edge", "check"), [
+    (("hilsim.core.config", "hilsim.core.scenario"), "test_the_core_is_ordered"),
+    (("hilsim.sim.world", "hilsim.run.launcher"), "test_no_import_runs_up_or_sideways"),
+    (("hilsim.services.physics", "hilsim.bridges.can_bus"), "test_no_import_runs_up_or_sideways"),
+])
+def test_the_check_sees_a_wrong_arrow(edge: tuple[str, str], check: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The checks fail on an upward or sideways arrow and on a circle (so they cannot pass vacuously)."""
     g = graph()
     src, dst = edge
     g[src] = {*g[src], dst}
-    g[dst] = {*g[dst], src}
-    monkeypatch.setattr(__import__(__name__), "graph", lambda: g)
+    module = __import__(__name__)
+    monkeypatch.setattr(module, "graph", lambda: g)
     with pytest.raises(AssertionError):
-        test_no_import_runs_up_or_sideways()
+        getattr(module, check)()
+    g[dst] = {*g[dst], src}
     assert cycles(g)

@@ -53,7 +53,7 @@ def test_logger_records_every_message(
 
     run_dir = tmp_path / "run"
     sc = scenario("arm", {"logger.run_dir": str(run_dir)})
-    keys = Keys(sc.prefix, sc.robot)
+    keys = Keys.of(sc)
     svc = LoggerService(sc)
     st = run_service(svc)
     topics = {
@@ -244,7 +244,7 @@ def test_logger_counts_lost_samples_per_key(
     monkeypatch.setenv("HILSIM_LOGGER_DELAY_US", "50")
     run_dir = tmp_path / "run"
     sc = scenario("arm", {"logger.run_dir": str(run_dir), "clock.mode": "realtime"})
-    keys = Keys(sc.prefix, sc.robot)
+    keys = Keys.of(sc)
     svc = LoggerService(sc)
     assert svc.delay_s == pytest.approx(50e-6)
     assert LoggerService(scenario("arm", {"logger.run_dir": str(tmp_path / "ls")})).queue_limit is None  # lockstep
@@ -295,11 +295,12 @@ def test_a_strangers_gaps_are_not_the_recorders_losses(
 
     run_dir = tmp_path / "run"
     sc = scenario("arm", {"logger.run_dir": str(run_dir)})
-    keys = Keys(sc.prefix, sc.robot)
+    keys = Keys.of(sc)
     svc = LoggerService(sc)
     clock = msgs.encode(msgs.Clock(clock=msgs.stamp(0)))
-    real, stranger = transport.new_gid(), transport.new_gid()
-    token = session.liveliness().declare_token(keys.writer(real, keys.clock))
+    token_key, real = keys.writer_token(keys.clock)
+    stranger = transport.new_gid()
+    token = session.liveliness().declare_token(token_key)
     st = run_service(svc)
     with st:
         pub = session.declare_publisher(keys.clock)

@@ -25,7 +25,7 @@ def test_world_holds_still_with_gravity_compensation(scenario: Any) -> None:
 
 def test_lockstep_waits_for_every_participant(scenario: Any, session: zenoh.Session, run_service: Any) -> None:
     sc = scenario("arm", {"services": ["physics", "sensors", "controller", "planner"], "clock.ack_timeout": 1.0})
-    keys = Keys(sc.prefix, sc.robot)
+    keys = Keys.of(sc)
     clocks: list[int] = []
     got = threading.Event()
 
@@ -105,7 +105,7 @@ def test_a_lagging_participant_is_waited_for_lag_steps_later(scenario: Any, sess
     their own) is waited for ``lag`` steps after the step it owes, not at it; physics stops
     there until the acknowledgement comes, and never runs further ahead."""
     sc = scenario("arm", {"services": ["physics", "sensors", "controller", "planner"], "clock.ack_timeout": 5.0})
-    keys = Keys(sc.prefix, sc.robot)
+    keys = Keys.of(sc)
     names = [f"joint_{i}" for i in range(1, 7)]
     gid_sync, gid_cmd = transport.new_gid(), transport.new_gid()
     sync = transport.publisher(session, keys.sync("planner"))
@@ -213,7 +213,7 @@ def test_a_touch_is_published_on_truth_contacts(scenario: Any) -> None:
     bus = Bus()
     got: list[msgs.Contacts] = []
     ses = bus.session()
-    ses.declare_subscriber(Keys(sc.prefix, sc.robot).truth("contacts"),
+    ses.declare_subscriber(Keys.of(sc).truth("contacts"),
                            lambda s: got.append(msgs.decode(msgs.Contacts, s.payload.to_bytes())))
     phys = PhysicsService(sc)
     phys.attach(bus.session())

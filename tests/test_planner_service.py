@@ -115,7 +115,7 @@ def rig(scenario: Any, session: zenoh.Session, run_service: Any, request: Any) -
 
     extra = getattr(request, "param", {})
     sc = scenario("arm", overrides(**extra))
-    keys = Keys(sc.prefix, sc.robot)
+    keys = Keys.of(sc)
     client = MoveClient(session, keys)
     sim = FakeSim(session, keys, [0.0] * 6)
     with run_service(PlannerService(sc)) as svc:

@@ -226,8 +226,9 @@ def test_the_installed_plugin_is_found_by_entry_point(plugin_on_path: Path, tmp_
     assert importlib.metadata.version(DIST) == VERSION
     assert SENSOR in registry.names("sensors") and SERVICE in registry.names("services")
     # its topic joins the key scheme: a key for it, and its message type for the recorder
-    assert Keys("hilsim", "arm").topic(TOPIC) == f"hilsim/arm/{TOPIC}"
-    assert hilsim_keys.message_type(f"hilsim/arm/{TOPIC}") is msgs.Imu
+    key = Keys("hilsim", "arm").topic(TOPIC)
+    assert key.startswith(f"0/arm/{TOPIC}/sensor_msgs::msg::dds_::Imu_/RIHS01_")
+    assert hilsim_keys.message_type(key) is msgs.Imu
     # the built-in services first, in their table's order, then the plug-ins
     builtin = list(registry.BUILTIN["services"])
     assert registry.names("services")[: len(builtin)] == builtin and builtin[:2] == ["physics", "sensors"]

@@ -14,7 +14,8 @@ from hilsim.core.provenance import Provenance, parse_writer_token
 from hilsim.core.transport import Attachment
 from hilsim.services.controller import ControllerService
 
-KEY = "hilsim/arm/joint_commands"
+KEY = "hilsim/arm/joint_commands"  # any string: the bookkeeping does not parse keys
+KEY_ROS = Keys().topic("joint_commands")
 A, B = b"A" * 16, b"B" * 16
 
 
@@ -75,11 +76,16 @@ def test_a_departed_writers_last_samples_are_still_its_own_for_a_moment() -> Non
 
 
 def test_writer_tokens_round_trip() -> None:
+    """A publisher's graph token names the key it writes; its gid is the token's hash (rmw_zenoh)."""
     k = Keys("hilsim", "arm")
-    assert parse_writer_token(k.writer(A, KEY)) == (KEY, A)
-    assert parse_writer_token(k.writer(A, "hilsim/clock")) == ("hilsim/clock", A)
+    for key in (k.topic("joint_commands"), k.clock):
+        token, gid = k.writer_token(key)
+        assert parse_writer_token(token) == (key, gid)
+    node = "@ros2_lv/0/1/0/0/NN/%/%arm/tool"
+    assert parse_writer_token(node) is None
+    assert parse_writer_token(k.writer_token(KEY_ROS)[0].replace("/MP/", "/MS/")) is None  # a subscription
     assert parse_writer_token("hilsim/writers/zz/arm/x") is None
-    assert parse_writer_token("hilsim/alive/physics") is None
+    assert parse_writer_token("hilsim/arm/alive/physics") is None
 
 
 def test_a_running_service_rejects_impostors_and_counts_gaps(scenario: Any, session: zenoh.Session,
@@ -87,7 +93,7 @@ def test_a_running_service_rejects_impostors_and_counts_gaps(scenario: Any, sess
     """Over Zenoh: the controller takes joint_states only from the announced writer, counts a gap,
     rejects a duplicate, and says why for each rejected sample."""
     sc = scenario()
-    keys = Keys(sc.prefix, sc.robot)
+    keys = Keys.of(sc)
     key = keys.topic("joint_states")
     names = [f"joint_{i}" for i in range(1, 7)]
     cmds: list[int] = []
@@ -99,8 +105,9 @@ def test_a_running_service_rejects_impostors_and_counts_gaps(scenario: Any, sess
 
     sub = session.declare_subscriber(keys.topic("joint_commands"), on_cmd)
     pub = transport.publisher(session, key)
-    gid, stranger = transport.new_gid(), transport.new_gid()
-    token = session.liveliness().declare_token(keys.writer(gid, key))
+    token_key, gid = keys.writer_token(key)
+    stranger = transport.new_gid()
+    token = session.liveliness().declare_token(token_key)
 
     def send(k: int, seq: int, who: bytes | None) -> None:
         js = msgs.JointState(header=msgs.header(k * 1_000_000), name=names, position=[0.0] * 6, velocity=[0.0] * 6)

@@ -56,7 +56,7 @@ def test_rover_settles_on_its_wheels(scenario: Any) -> None:
 
 
 def _order(sc: Any, session: zenoh.Session, run_service: Any) -> list[tuple[str, int]]:
-    keys = Keys(sc.prefix, sc.robot)
+    keys = Keys.of(sc)
     seen: list[tuple[str, int]] = []
     lock = threading.Lock()
 
@@ -111,7 +111,7 @@ def test_lockstep_steps_through_steps_nobody_is_due_at(scenario: Any, session: z
     from hilsim.core import transport
 
     sc = scenario("rover", {"services": ["physics", "controller"]})
-    keys = Keys(sc.prefix, sc.robot)
+    keys = Keys.of(sc)
     clocks: list[int] = []
     sub = session.declare_subscriber(keys.clock, lambda s: clocks.append(
         msgs.ns_of(msgs.decode(msgs.Clock, s.payload.to_bytes()).clock)))

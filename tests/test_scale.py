@@ -14,10 +14,11 @@ import numpy as np
 import zenoh
 from util import REPO, finish, up
 
-from hilsim.core import fleet, msgs, transport
+from hilsim.core import msgs, transport
 from hilsim.core.config import ZenohConfig
 from hilsim.core.keys import Keys
-from hilsim.core.scenario import load_scenario
+from hilsim.core.scenario import load_scenario, robot_scenario
+from hilsim.sim.fleet_world import FleetWorld
 from hilsim.sim.world import World
 
 LEFT = [0.866, -0.789, -0.399, 0.0, -0.382, 0.0]  # config/arm.yaml's first target
@@ -26,7 +27,7 @@ OVER = [0.0, -0.167, 0.031, 0.0, -1.435, 0.0]  # …and its third
 
 def test_the_world_model_is_multiplied_side_by_side_with_names_of_their_own() -> None:
     sc = load_scenario("arm", {"robots": 3, "robot_spacing": [0.0, 2.0, 0.0]})
-    fw = fleet.FleetWorld(sc)
+    fw = FleetWorld(sc)
     one = World(load_scenario("arm"))
     m = fw.model
     assert fw.robots == ["arm0", "arm1", "arm2"]
@@ -157,7 +158,7 @@ def test_each_robot_keeps_its_own_restart_state(tmp_path: Path) -> None:
     sc = load_scenario("arm", {"robots": 2, "logger.run_dir": str(tmp_path)})
     one = load_scenario("arm", {"logger.run_dir": str(tmp_path)})
     assert restart.state_path(one, "planner") == tmp_path / "state" / "planner.json"  # one robot: as always
-    rs = [fleet.robot_scenario(sc, r) for r in ("arm0", "arm1")]
+    rs = [robot_scenario(sc, r) for r in ("arm0", "arm1")]
     paths = [restart.state_path(r, "planner") for r in rs]
     assert [p.name for p in paths if p] == ["planner@arm0.json", "planner@arm1.json"]
     errors: list[BaseException] = []

@@ -149,8 +149,8 @@ def test_a_read_only_identity_reads_but_cannot_move_the_robot(pki: Path, secure_
 
         # 1. joint commands, the way a service sends them: announced writer, attachment, every joint
         keys = Keys()
-        gid = transport.new_gid()
-        token = observer.liveliness().declare_token(keys.writer(gid, keys.topic("joint_commands")))
+        token_key, gid = keys.writer_token(keys.topic("joint_commands"))
+        token = observer.liveliness().declare_token(token_key)
         pub = transport.publisher(observer, keys.topic("joint_commands"))
         names = [f"joint_{i}" for i in range(1, 7)]
         for seq in range(1, 200):

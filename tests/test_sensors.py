@@ -166,7 +166,7 @@ def test_service_publishes_due_outputs_and_acks(
 ) -> None:
     # without a controller in the scenario, the sensors acknowledge every step themselves
     sc = scenario(overrides={"services": ["physics", "sensors", "logger"]})
-    keys = Keys(sc.prefix, sc.robot)
+    keys = Keys.of(sc)
     inbox = Inbox(
         session,
         {keys.topic("joint_states"): msgs.JointState, keys.topic("imu"): msgs.Imu, keys.sync("sensors"): msgs.Clock},

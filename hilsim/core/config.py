@@ -180,7 +180,24 @@ class LoggerConfig(_Model):
     enabled: bool = True
     out_dir: Path = Path("runs")
     run_dir: Path | None = Field(None, description="write here instead of <out_dir>/<timestamp> (set by `hilsim up`)")
-    record: list[str] = Field(default_factory=lambda: ["**"], description="key expressions under <prefix>/")
+    record: list[str] = Field(default_factory=lambda: ["**"],
+                              description="key expressions under <domain id>/, e.g. arm/** (hilsim.core.keys)")
+
+
+class Ros2Config(_Model):
+    """Where the simulation sits in the ROS 2 graph (rmw_zenoh's key scheme: docs/ros2.md)."""
+
+    domain_id: int = Field(0, ge=0, le=232, description="ROS_DOMAIN_ID of every key; two simulations on one "
+                           "router use different ones")
+    namespace: str = Field("/{robot}", description="a robot's namespace, {robot} replaced by its name")
+    enclave: str = Field("/", description="the enclave of hilsim's nodes in their graph tokens")
+
+    @field_validator("namespace")
+    @classmethod
+    def _ns(cls, v: str) -> str:
+        if not v.startswith("/") or "{robot}" not in v or any(c in v for c in "*?#$ -"):
+            raise ValueError("must start with '/', contain {robot} and only ROS 2 name characters, e.g. /{robot}")
+        return v
 
 
 RestartPolicy = Literal["no", "on-failure"]
@@ -266,6 +283,7 @@ class Scenario(_Model):
     planner: PlannerConfig = Field(default_factory=PlannerConfig)
     task: TaskConfig = Field(default_factory=TaskConfig)
     logger: LoggerConfig = Field(default_factory=LoggerConfig)
+    ros2: Ros2Config = Field(default_factory=Ros2Config)
     restart: RestartConfig = Field(default_factory=RestartConfig)
     source: Path | None = Field(None, exclude=True, description="file this came from")
     fleet_member: bool = Field(False, exclude=True, description="set by hilsim.core.fleet: one robot's view of a "

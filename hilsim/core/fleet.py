@@ -83,9 +83,11 @@ def split_id(name: str) -> tuple[str, str | None]:
 
 
 def service_id(sc: _Fleet, key: str, kind: str) -> str:
-    """Who a key ``<prefix>/<ns>/<kind>/<service>[/…]`` belongs to: ``<service>`` in the
-    scenario's own namespace, ``<service>@<ns>`` in a robot's."""
+    """Who a key belongs to: ``<service>`` in the scenario's own namespace, ``<service>@<ns>`` in a robot's.
+    A data key ``<domain>/<ns>/<kind>/<service>[/…]/<type>/<hash>`` or a liveliness token
+    ``<prefix>/<ns>/<kind>/<service>[/…]`` (hilsim.core.keys spells both)."""
     parts = key.split("/")
-    i = parts.index(kind, 2)
-    ns, svc = parts[1], parts[i + 1]
+    parts = parts[1:-2] if parts[-1].startswith("RIHS") else parts[1:]
+    i = parts.index(kind, 1)
+    ns, svc = parts[0], parts[i + 1]
     return svc if ns == sc.robot else f"{svc}@{ns}"

@@ -1,19 +1,32 @@
 """The key scheme: the one place that spells Zenoh keys and says which message type each carries.
 
-Every key is ``<prefix>/<robot>/<topic>`` (prefix ``hilsim`` by default, so several
-simulations can share a network by choosing different prefixes), except sim time, which
-is ``<prefix>/clock``. Ground truth lives under ``<prefix>/<robot>/truth/…``.
+Every data key is the key a ROS 2 node on ``rmw_zenoh_cpp`` uses for the same topic
+(:mod:`hilsim.core.ros2.wire`): ``<domain id>/<namespace>/<topic>/<DDS type>/<RIHS01 type hash>``,
+e.g. ``0/arm/joint_states/sensor_msgs::msg::dds_::JointState_/RIHS01_a13e…``. A robot's namespace
+is ``/<robot>`` by default (``ros2.namespace``); sim time is the global ``/clock``; ground truth
+lives under ``<namespace>/truth/…``. So ``ros2 topic echo /arm/joint_states`` on rmw_zenoh connected
+to the same router reads what the controller reads, and two simulations share a router by using
+different ``ros2.domain_id`` values, as ROS 2 systems do.
+
+hilsim's own liveliness (a service is alive, a lockstep participant's role) stays under
+``<prefix>/<robot>/…``: it is not data, and ROS 2 tools do not look there; the ROS 2 graph
+(nodes, publishers, subscriptions) is announced as rmw_zenoh does, under ``@ros2_lv/<domain>/…``.
+
 ``docs/keys.md`` documents the same table for people; ``TOPICS`` below is the table for code,
 extended by other packages through the ``hilsim.topics`` entry-point group (:func:`plugin_topics`).
-
-No other module builds a key string by hand: services ask a :class:`Keys` instance.
+No other module builds a key string by hand: services ask a :class:`Keys` instance, and
+:func:`message_type` / :func:`topic_name` read a key back.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cache
+from typing import Any
 
 from hilsim.core import msgs
+from hilsim.core.ros2 import types as ros2types
+from hilsim.core.ros2 import wire as ros2wire
 
 DEFAULT_PREFIX = "hilsim"
 
@@ -89,47 +102,113 @@ class UnknownKey(KeyError):
     """A key outside the scheme: no message type is known for it."""
 
 
+DEFAULT_DOMAIN = 0
+DEFAULT_NAMESPACE = "/{robot}"
+
+
+@cache
+def _type_segments(cls: type) -> str:
+    """``<DDS type>/<type hash>`` of a message class: the last two chunks of its keys."""
+    name = msgs.type_name(cls)
+    return f"{ros2types.dds_type_name(name)}/{ros2types.type_hash(name)}"
+
+
+def classes_by_type() -> dict[str, type]:
+    """ROS 2 type name (``sensor_msgs/msg/JointState``) -> message class, for every type a key may carry."""
+    global _BY_TYPE
+    if _BY_TYPE is None:
+        found: dict[str, type] = {}
+        tables = [TOPICS, PER_SERVICE_TOPICS, SERVER_TOPICS, GLOBAL_TOPICS, plugin_topics()]
+        for table in tables:
+            for cls in table.values():
+                found.setdefault(msgs.type_name(cls), cls)
+        for req, rep in SERVICES.values():
+            found.setdefault(msgs.type_name(req), req)
+            found.setdefault(msgs.type_name(rep), rep)
+        _BY_TYPE = found
+    return _BY_TYPE
+
+
+_BY_TYPE: dict[str, type] | None = None
+
+
 @dataclass(frozen=True)
 class Keys:
     """Builds the keys of one robot in one simulation."""
 
     prefix: str = DEFAULT_PREFIX
     robot: str = "arm"
+    domain: int = DEFAULT_DOMAIN
+    namespace_template: str = DEFAULT_NAMESPACE
+
+    @classmethod
+    def of(cls, sc: Any, robot: str | None = None) -> Keys:
+        """The keys of scenario ``sc`` (its ``prefix``, ``ros2`` section) for ``robot`` (default its own)."""
+        ros2 = getattr(sc, "ros2", None)
+        return cls(sc.prefix, sc.robot if robot is None else robot,
+                   ros2.domain_id if ros2 is not None else DEFAULT_DOMAIN,
+                   ros2.namespace if ros2 is not None else DEFAULT_NAMESPACE)
+
+    @property
+    def namespace(self) -> str:
+        """The robot's ROS 2 namespace, e.g. ``/arm`` (``*`` for every robot in a wildcard)."""
+        ns = "/" + self.namespace_template.format(robot=self.robot).strip("/")
+        return ns.rstrip("/") or "/"
+
+    def for_robot(self, robot: str) -> Keys:
+        return Keys(self.prefix, robot, self.domain, self.namespace_template)
+
+    def _data(self, topic: str, cls: type) -> str:
+        return f"{self.domain}/{topic.strip('/')}/{_type_segments(cls)}"
+
+    def topic_name(self, name: str) -> str:
+        """The ROS 2 topic name of a topic of this robot, e.g. ``/arm/joint_states``."""
+        return f"{self.namespace.rstrip('/')}/{name}"
 
     def topic(self, name: str) -> str:
-        if name not in TOPICS and name not in SERVICES and name not in plugin_topics():
+        cls = TOPICS.get(name) or plugin_topics().get(name)
+        if cls is None and name in SERVICES:
+            cls = SERVICES[name][0]
+        if cls is None:
             known = sorted([*TOPICS, *plugin_topics()])
             raise UnknownKey(f"unknown topic {name!r}; known: {', '.join(known)}")
-        return f"{self.prefix}/{self.robot}/{name}"
+        return self._data(self.topic_name(name), cls)
+
+    def service(self, name: str) -> str:
+        """The queryable key of a request/reply service of this robot (``planner/goal``)."""
+        if name not in SERVICES:
+            raise UnknownKey(f"unknown service {name!r}; known: {', '.join(sorted(SERVICES))}")
+        return self._data(self.topic_name(name), SERVICES[name][0])
 
     @property
     def clock(self) -> str:
-        return f"{self.prefix}/clock"
+        return self._data("/clock", GLOBAL_TOPICS["clock"])
 
     def truth(self, name: str) -> str:
         return self.topic(f"truth/{name}")
 
     def health(self, service: str) -> str:
-        return f"{self.prefix}/{self.robot}/health/{service}"
+        return self._data(self.topic_name(f"health/{service}"), PER_SERVICE_TOPICS["health"])
 
     def sync(self, service: str) -> str:
         """Lockstep acknowledgement of a participant: a Clock stamped with the step it finished."""
-        return f"{self.prefix}/{self.robot}/sync/{service}"
+        return self._data(self.topic_name(f"sync/{service}"), PER_SERVICE_TOPICS["sync"])
 
     def log(self, service: str) -> str:
-        return f"{self.prefix}/{self.robot}/log/{service}"
-
-    def alive(self, service: str) -> str:
-        """Liveliness token of a running service (no payload)."""
-        return f"{self.prefix}/{self.robot}/alive/{service}"
+        return self._data(self.topic_name(f"log/{service}"), PER_SERVICE_TOPICS["log"])
 
     def server_state(self, server: str) -> str:
         """Measured state of the joints an external server serves (sensor_msgs/JointState)."""
-        return f"{self.prefix}/{self.robot}/hw/{server}/joint_states"
+        return self._data(self.topic_name(f"hw/{server}/joint_states"), SERVER_TOPICS["joint_states"])
 
     @property
     def all_server_states(self) -> str:
-        return f"{self.prefix}/{self.robot}/hw/*/joint_states"
+        return self._data(self.topic_name("hw/*/joint_states"), SERVER_TOPICS["joint_states"])
+
+    # ---------------------------------------------------------- hilsim's own liveliness (not data)
+    def alive(self, service: str) -> str:
+        """Liveliness token of a running service (no payload)."""
+        return f"{self.prefix}/{self.robot}/alive/{service}"
 
     def lockstep(self, service: str, period: int, lag: int, via: str, gid: str) -> str:
         """Liveliness token of a lockstep participant: ``service`` acknowledges every ``period``-th
@@ -146,38 +225,62 @@ class Keys:
     def all_alive(self) -> str:
         return f"{self.prefix}/{self.robot}/alive/*"
 
-    def writer(self, gid: bytes, key: str) -> str:
-        """Liveliness token of a publisher: writer ``gid`` writes ``key`` (a key under this prefix)."""
-        rest = key[len(self.prefix) + 1:] if key.startswith(f"{self.prefix}/") else key
-        return f"{self.prefix}/writers/{gid.hex()}/{rest}"
-
+    # ---------------------------------------------------------- the ROS 2 graph
     @property
     def all_writers(self) -> str:
-        return f"{self.prefix}/writers/**"
+        """Every ROS 2 graph token of the domain (publishers among them: :mod:`hilsim.core.provenance`)."""
+        return ros2wire.graph_key(self.domain)
 
-    def scoped(self, expr: str) -> str:
-        """A key expression under this simulation's prefix, e.g. ``scoped("**")``."""
-        return f"{self.prefix}/{expr}"
+    def writer_token(self, key: str, node: str = "tool", zid: str = "1", entity_id: int = 1) -> tuple[str, bytes]:
+        """The graph token (``MP``) a tool or test declares before writing ``key`` as node ``node`` of
+        this robot's namespace, and the gid its samples then carry (the token's hash, as rmw_zenoh's)."""
+        parts = key.split("/")
+        token = ros2wire.entity_token("MP", self.domain, zid, 0, entity_id, "/", self.namespace, node,
+                                      "/" + "/".join(parts[1:-2]), parts[-2], parts[-1], ros2wire.QOS_DEFAULT)
+        return token, ros2wire.entity_gid(token)
 
     @property
     def everything(self) -> str:
-        """Wildcard matching every key of the simulation (all robots, the clock, liveliness)."""
-        return self.scoped("**")
+        """Every data key of the domain (all robots, the clock, and any ROS 2 node's topics)."""
+        return ros2wire.domain_key(self.domain)
+
+    def scoped(self, expr: str) -> str:
+        """A key expression under this simulation's domain, e.g. ``scoped("**")``, ``scoped("arm/**")``."""
+        return f"{self.domain}/{expr}"
+
+
+def topic_name(key: str) -> str:
+    """The ROS 2 topic name of a data key: ``0/arm/joint_states/<type>/<hash>`` -> ``/arm/joint_states``."""
+    parts = key.split("/")
+    if len(parts) < 4 or not parts[-1].startswith("RIHS"):
+        raise UnknownKey(f"{key!r} is not a ROS 2 data key (<domain>/<topic>/<type>/<hash>)")
+    return "/" + "/".join(parts[1:-2])
+
+
+def robot_of(key: str, namespace_template: str = DEFAULT_NAMESPACE) -> str | None:
+    """The robot whose namespace a key is in (default namespaces ``/<robot>``); None for ``/clock``."""
+    name = topic_name(key).strip("/").split("/")
+    fixed = [p for p in namespace_template.strip("/").split("/") if p]
+    i = fixed.index("{robot}") if "{robot}" in fixed else 0
+    return name[i] if len(name) > i + 1 else None
+
+
+def relative_topic(key: str, namespace_template: str = DEFAULT_NAMESPACE) -> str:
+    """A key's topic below its robot's namespace (``truth/joint_states``); ``clock`` for ``/clock``."""
+    name = topic_name(key).strip("/").split("/")
+    depth = len([p for p in namespace_template.strip("/").split("/") if p])
+    return "/".join(name[depth:]) if len(name) > depth else "/".join(name)
 
 
 def message_type(key: str) -> type:
-    """Message type carried by a concrete key of the scheme (any prefix and robot)."""
+    """Message type carried by a concrete data key (any domain and robot), read from its type chunk."""
     parts = key.split("/")
-    if len(parts) == 2 and parts[1] in GLOBAL_TOPICS:
-        return GLOBAL_TOPICS[parts[1]]
-    if len(parts) >= 3:
-        rest = "/".join(parts[2:])
-        if rest in TOPICS:
-            return TOPICS[rest]
-        if rest in plugin_topics():
-            return plugin_topics()[rest]
-        if len(parts) == 4 and parts[2] in PER_SERVICE_TOPICS:
-            return PER_SERVICE_TOPICS[parts[2]]
-        if len(parts) == 5 and parts[2] == "hw" and parts[4] in SERVER_TOPICS:
-            return SERVER_TOPICS[parts[4]]
+    if len(parts) >= 4:
+        try:
+            name = ros2wire.ros_type_name(parts[-2])
+        except ValueError:
+            name = ""
+        cls = classes_by_type().get(name)
+        if cls is not None:
+            return cls
     raise UnknownKey(f"{key!r} is not a hilsim data key")

@@ -1,9 +1,11 @@
 """Who sent what: the announced writers of each key and what each writer sent last.
 
-Every hilsim publisher announces itself with a liveliness token
-``<prefix>/writers/<gid hex>/<key below the prefix>`` (see :meth:`hilsim.core.keys.Keys.writer`) and
-stamps every sample with rmw_zenoh's attachment (sequence number, source time, its gid; see
-:mod:`hilsim.core.transport`). A receiver keeps a :class:`Provenance` and asks it about every sample:
+Every hilsim publisher announces itself as a ROS 2 node's publisher does on rmw_zenoh: a graph
+token ``@ros2_lv/<domain>/…/MP/…/<topic>/<type>/<hash>/<qos>`` (:mod:`hilsim.core.ros2.wire`), whose
+XXH3-128 hash is the publisher's gid, and it stamps every sample with rmw_zenoh's attachment
+(sequence number, source time, that gid; :mod:`hilsim.core.transport`). A ROS 2 node's publisher
+(say a lab's teleop on ``/rover/cmd_vel``) announces itself the same way, so it is a writer too.
+A receiver keeps a :class:`Provenance` and asks it about every sample:
 
 - a key that has had an announced writer is *restricted*: a sample on it without an attachment,
   or from a writer that has not announced itself for that key, is rejected (an impostor, or a
@@ -27,6 +29,7 @@ from typing import Any
 
 import zenoh
 
+from hilsim.core.ros2 import wire
 from hilsim.core.transport import Attachment
 
 # A writer's last samples may arrive after its token was withdrawn (a service stopping: the token
@@ -61,7 +64,7 @@ class Provenance:
             self.last.pop((key, gid), None)
 
     def on_token(self, sample: Any) -> None:
-        """Liveliness callback for ``Keys.all_writers``: a writer appeared or went away."""
+        """Liveliness callback for ``Keys.all_writers`` (the ROS 2 graph): a writer appeared or went away."""
         parsed = parse_writer_token(str(sample.key_expr))
         if parsed is None:
             return
@@ -97,14 +100,13 @@ class Provenance:
 
 
 def parse_writer_token(token: str) -> tuple[str, bytes] | None:
-    """``<prefix>/writers/<gid hex>/<rest>`` → (``<prefix>/<rest>``, gid); None if malformed."""
-    parts = token.split("/", 3)
-    if len(parts) != 4 or parts[1] != "writers":
+    """A publisher's (``MP``) graph token → (the data key it writes, its gid); None for any other token."""
+    if "/MP/" not in token:
         return None
     try:
-        gid = bytes.fromhex(parts[2])
+        tok = wire.parse_token(token)
     except ValueError:
         return None
-    if len(gid) != 16:
+    if tok.topic is None or tok.dds_type is None or tok.type_hash is None:
         return None
-    return f"{parts[0]}/{parts[3]}", gid
+    return wire.topic_key(tok.domain, tok.topic, tok.dds_type, tok.type_hash), tok.gid

@@ -18,6 +18,7 @@ What the base does once for all:
 
 from __future__ import annotations
 
+import itertools
 import logging
 import os
 import signal
@@ -37,9 +38,13 @@ from hilsim.core.fleet import split_id
 from hilsim.core.keys import Keys
 from hilsim.core.provenance import Provenance
 from hilsim.core.registry import service_class
+from hilsim.core.ros2 import wire
 from hilsim.core.scenario import robot_scenario
 
 T = TypeVar("T")
+# node and entity ids of the ROS 2 graph: unique per Zenoh session, as rmw_zenoh counts them per
+# context; one counter per process keeps them unique however many services share a session
+_ENTITY_IDS = itertools.count()
 LEVEL_OK, LEVEL_WARN, LEVEL_ERROR = 0, 1, 2
 
 
@@ -51,13 +56,15 @@ class Publisher:
         self._svc = service
         # realtime: a subscriber that cannot keep up loses samples rather than delaying us
         self._pub = transport.publisher(service.session, key, drop_when_congested=service.sc.clock.mode == "realtime")
-        self.gid = transport.new_gid()
         self.seq = 0
         self._lock = threading.Lock()
         # composed (hilsim.run.compose): also handed, unencoded, to the subscribers in this process
         self._local = getattr(self._pub, "deliver", None)
-        # announce: receivers accept this key only from announced writers (hilsim.core.provenance)
-        self._token = service.session.liveliness().declare_token(service.keys.writer(self.gid, key))
+        # announce as a ROS 2 publisher does (its gid is its token's hash): receivers accept this key
+        # only from announced writers (hilsim.core.provenance), and `ros2 topic list` sees it
+        token = service.graph_token("MP", key)
+        self.gid = wire.entity_gid(token)
+        self._token = service.session.liveliness().declare_token(token)
 
     def put(self, msg: Any) -> None:
         # one at a time: a key written from two threads (logs, health) must still reach receivers
@@ -154,7 +161,7 @@ class Service:
                 self.cfg = self.Config.model_validate(scenario.section(self.name))
             except ValidationError as e:
                 raise ConfigError(format_error(scenario.source or "scenario", e, prefix=self.name)) from None
-        self.keys = Keys(scenario.prefix, scenario.robot)
+        self.keys = Keys.of(scenario)
         self.log = logging.getLogger(f"hilsim.{self.name}")
         self.lock = threading.RLock()
         self._health_lock = threading.Lock()
@@ -175,6 +182,8 @@ class Service:
         self._health_pub: Publisher | None = None
         self._log_pub: Publisher | None = None
         self._sync_pub: Publisher | None = None
+        self._zid = ""
+        self._node_id = 0
 
     # ------------------------------------------------------------------ to override
     def setup(self) -> None:
@@ -191,6 +200,28 @@ class Service:
     def health_values(self) -> dict[str, Any]:
         """Service-specific figures added to the health message."""
         return {}
+
+    # ------------------------------------------------------------------ the ROS 2 graph
+    @property
+    def node_name(self) -> str:
+        """This service as a ROS 2 node: ``controller`` (``motor-model`` is ``motor_model``)."""
+        return self.name.split("@")[0].replace("-", "_")
+
+    def graph_token(self, kind: str, key: str) -> str:
+        """The rmw_zenoh liveliness token of this node's publisher (``MP``) or subscription (``MS``) on a
+        concrete data key, as a ROS 2 node on rmw_zenoh_cpp declares it (:mod:`hilsim.core.ros2.wire`)."""
+        parts = key.split("/")
+        qos = wire.QOS_CLOCK if key == self.keys.clock else wire.QOS_DEFAULT
+        return wire.entity_token(kind, self.keys.domain, self._zid, self._node_id, next(_ENTITY_IDS),
+                                 self.sc.ros2.enclave, self.keys.namespace, self.node_name,
+                                 "/" + "/".join(parts[1:-2]), parts[-2], parts[-1], qos)
+
+    def _declare_node(self, session: Any) -> None:
+        info = getattr(session, "info", None)
+        self._zid = str(info.zid()) if info is not None else "1"  # an in-process bus has no Zenoh id
+        self._node_id = next(_ENTITY_IDS)
+        self._declared.append(session.liveliness().declare_token(wire.node_token(
+            self.keys.domain, self._zid, self._node_id, self.sc.ros2.enclave, self.keys.namespace, self.node_name)))
 
     # ------------------------------------------------------------------ declarations
     def publisher(self, key: str) -> Publisher:
@@ -267,6 +298,8 @@ class Service:
                 self.fault(f"error handling {k}: {type(e).__name__}: {e}", exc=e)
 
         self._declared.append(self.session.declare_subscriber(key, on_sample))
+        if "*" not in key:  # a concrete topic: a ROS 2 subscription, seen by `ros2 topic info`
+            self._declared.append(self.session.liveliness().declare_token(self.graph_token("MS", key)))
         local = getattr(self.session, "local_subscriber", None)
         if local is not None:
             self._declared.append(local(key, on_local))
@@ -409,6 +442,7 @@ class Service:
         :class:`hilsim.core.inproc.Bus` session (benchmarks, tests). The liveliness token comes last,
         so whoever sees it knows the inputs exist."""
         self.session = session
+        self._declare_node(session)
         # before any input: who may write which key (history: the writers that exist already)
         self._declared.append(session.liveliness().declare_subscriber(
             self.keys.all_writers, self.provenance.on_token, history=True))

@@ -15,7 +15,6 @@ import json
 import logging
 import os
 import socket
-import struct
 import threading
 import time
 from pathlib import Path
@@ -25,6 +24,7 @@ import zenoh
 
 from hilsim.core.config import ConfigError, TlsConfig, ZenohConfig, tls_from_env
 from hilsim.core.keys import DEFAULT_PREFIX, Keys
+from hilsim.core.ros2 import wire
 
 LOG = logging.getLogger(__name__)
 DEFAULT_ROUTER_PORT = 7447
@@ -133,17 +133,16 @@ def publisher(session: zenoh.Session, key: str, *, drop_when_congested: bool = F
 
 
 # ---------------------------------------------------------------- sample attachment
-# Every sample a hilsim service publishes carries the attachment rmw_zenoh puts on ROS 2 samples,
-# serialised as zenoh-ext does it (little-endian int64 sequence number, int64 source timestamp
-# [ns, wall clock], the publisher's 16-byte global id as a fixed-size array). Receivers use the
-# sequence number to count lost samples and the id to tell writers apart.
-ATTACHMENT = struct.Struct("<qq16s")
-_ATT_SIZE, _unpack = ATTACHMENT.size, ATTACHMENT.unpack
+# Every sample a hilsim service publishes carries the attachment rmw_zenoh puts on ROS 2 samples
+# (hilsim.core.ros2.wire): int64 sequence number, int64 source timestamp [ns, wall clock], the
+# publisher's 16-byte gid as a sequence (length 0x10 first), 33 bytes. Receivers use the sequence
+# number to count lost samples and the gid to tell writers apart; a ROS 2 node's samples read the same.
+_encode, _decode = wire.encode_attachment, wire.decode_attachment
 
 
 def new_gid() -> bytes:
-    """A global id for one publishing entity (random, as rmw_zenoh's are unique per entity)."""
-    return os.urandom(16)
+    """A random global id, for a writer that has no graph token to derive one from (tests, tools)."""
+    return os.urandom(wire.GID_SIZE)
 
 
 class Attachment(NamedTuple):
@@ -153,7 +152,7 @@ class Attachment(NamedTuple):
     gid: bytes
 
     def encode(self) -> bytes:
-        return ATTACHMENT.pack(self.seq, self.source_ns, self.gid)
+        return _encode(self.seq, self.source_ns, self.gid)
 
     @property
     def writer(self) -> str:
@@ -162,18 +161,16 @@ class Attachment(NamedTuple):
 
 
 def attachment_bytes(seq: int, gid: bytes) -> bytes:
-    return ATTACHMENT.pack(seq, time.time_ns(), gid)
+    return _encode(seq, time.time_ns(), gid)
 
 
 def read_attachment(sample: Any) -> Attachment | None:
-    """The attachment of a received sample, or None if it has none or not in hilsim's layout."""
+    """The attachment of a received sample, or None if it has none or not in rmw_zenoh's layout."""
     att = sample.attachment
     if att is None:
         return None
-    raw = att.to_bytes()
-    if len(raw) != _ATT_SIZE:
-        return None
-    return Attachment._make(_unpack(raw))
+    got = _decode(att.to_bytes())
+    return None if got is None else Attachment._make(got)
 
 
 # ---------------------------------------------------------------- command-line tools
@@ -190,8 +187,25 @@ def tool_endpoints(connect: str | None = None) -> list[str]:
 
 
 def tool_prefix(prefix: str | None = None) -> str:
-    """Key prefix a tool uses: ``--prefix``, else ``HILSIM_PREFIX``, else ``hilsim``."""
+    """Liveliness prefix a tool uses: ``--prefix``, else ``HILSIM_PREFIX``, else ``hilsim``."""
     return prefix or os.environ.get("HILSIM_PREFIX") or DEFAULT_PREFIX
+
+
+def tool_domain(domain: int | None = None) -> int:
+    """ROS 2 domain a tool uses: ``--domain``, else ``ROS_DOMAIN_ID`` (as every ROS 2 tool), else 0."""
+    if domain is not None:
+        return domain
+    text = os.environ.get("ROS_DOMAIN_ID", "").strip()
+    if not text:
+        return 0
+    if not text.isdigit() or int(text) > 232:
+        raise ConfigError(f"ROS_DOMAIN_ID: expected a number from 0 to 232, got {text!r}")
+    return int(text)
+
+
+def tool_keys(robot: str = "arm", prefix: str | None = None, domain: int | None = None) -> Keys:
+    """The keys of ``robot`` as a tool sees them (:func:`tool_prefix`, :func:`tool_domain`)."""
+    return Keys(tool_prefix(prefix), robot, tool_domain(domain))
 
 
 def tool_zenoh(connect: str | None = None) -> ZenohConfig:

@@ -176,14 +176,14 @@ def cmd_goal(args: argparse.Namespace) -> int:
     except ValueError as e:
         print(f"hilsim goal: {e}", file=sys.stderr)
         return 2
-    prefix = transport.tool_prefix(args.prefix)
+    keys = transport.tool_keys(args.robot, args.prefix)
     try:
         session = transport.open_tool_session(args.connect)
     except ConnectionError as e:
         print(f"hilsim goal: {e}", file=sys.stderr)
         return 2
     rover = getattr(args, "xy", None) is not None
-    client = MoveClient(session, Keys(prefix, args.robot), service="navigator" if rover else "planner")
+    client = MoveClient(session, keys, service="navigator" if rover else "planner")
     try:
         resp = client.send(goal)
         if not resp.accepted:

@@ -1,5 +1,9 @@
 """``hilsim up``: start a scenario's services as separate processes, run its task, stop, summarise.
 
+This module supervises the processes (the :class:`Launcher`: start, liveliness, restarts, stop) and
+holds the command; following what the services report is :mod:`hilsim.run.follow`, the summary
+printed at the end :mod:`hilsim.run.summary`, the embedded router :mod:`hilsim.run.router`.
+
 The launcher opens an embedded Zenoh router on a free loopback port (or joins ``--router``),
 writes the resolved scenario to ``runs/<timestamp>/scenario.yaml``, starts one
 ``hilsim run SERVICE`` process per service of the scenario and per external joint server it
@@ -23,18 +27,19 @@ their liveliness tokens as for its own (saying who is still missing), follows th
 and reports a remote service that leaves and does not come back.
 
 Many robots (``robots: N``, :mod:`hilsim.core.fleet`): a per-robot service is one process for every
-robot (``controller@*``); the launcher follows every robot's keys (``<prefix>/*/…``), names a
+robot (``controller@*``); the launcher follows every robot's keys (``<domain>/*/…``), names a
 robot's service ``<service>@<robot>`` and waits for every robot's ``task/result``.
 
-Reads: ``<prefix>/<robot>/task/result``, ``planner/result`` and ``navigator/result``, ``health/*``, ``log/*`` (faults,
-printed as they happen), ``alive/*``.
+Reads: ``<prefix>/<robot>/alive/*`` (liveliness tokens: who is up, who left; every robot's
+``<prefix>/*/alive/*`` with ``robots: N``), also asked for with a liveliness query while services of
+other hosts are expected. Through its :class:`~hilsim.run.follow.Follower`: the ROS 2 graph,
+``task/result``, ``planner/result``, ``navigator/result``, ``health/*``, ``log/*``. Writes no key.
 """
 
 from __future__ import annotations
 
 import argparse
 import ctypes
-import json
 import os
 import shutil
 import signal
@@ -49,12 +54,20 @@ from typing import Any
 
 import zenoh
 
-from hilsim.core import fleet, msgs, transport
+from hilsim.core import fleet, transport
 from hilsim.core.config import Scenario
 from hilsim.core.keys import Keys
 from hilsim.core.provenance import Provenance
 from hilsim.core.restart import RESTART_ENV, STATE_DIR
 from hilsim.core.scenario import load_scenario, write_scenario
+from hilsim.run.follow import Follower, Outcome, Restart
+from hilsim.run.router import cmd_router, open_default_router
+from hilsim.run.summary import summarise
+from hilsim.run.worlds import world_scenario
+
+# the names other modules import from here, wherever they are defined
+__all__ = ["Child", "Launcher", "Outcome", "Restart", "cmd_router", "cmd_up", "default_run_dir", "local_units",
+           "open_default_router", "stop_order", "summarise", "world_scenario"]
 
 LOGGER_NICE = 10
 RESTART_READY_TIMEOUT = 120.0  # wall seconds a restarted service has to announce itself
@@ -106,32 +119,9 @@ class Child:
     died_at: float = 0.0  # monotonic time its last process was found dead
 
 
-@dataclass
-class Restart:
-    """One restart of a service, for the summary."""
-
-    name: str
-    rc: int
-    sim_time: str  # physics' sim time when the death was noticed (its last health)
-    back_after: float | None = None  # wall seconds from the death to its liveliness token
-
-
-@dataclass
-class Outcome:
-    task: msgs.MoveResult | None = None
-    tasks: dict[str, msgs.MoveResult] = field(default_factory=dict)  # per robot (robots > 1)
-    results: list[msgs.MoveResult] = field(default_factory=list)
-    result_robots: list[str] = field(default_factory=list)  # the robot of each of results
-    health: dict[str, dict[str, str]] = field(default_factory=dict)
-    physics_done: bool = False
-    died: list[tuple[str, int]] = field(default_factory=list)
-    faults: list[str] = field(default_factory=list)
-    stalled: str = ""  # physics waited longer than clock.ack_timeout for a lockstep participant
-    interrupted: bool = False
-    restarts: list[Restart] = field(default_factory=list)
-
-
 class Launcher:
+    """The processes of one run: started, watched (liveliness, exit codes), restarted, stopped."""
+
     def __init__(self, sc: Scenario, run_dir: Path, *, router: str | None = None, quiet: bool = False,
                  only: list[str] | None = None) -> None:
         self.sc = sc
@@ -140,23 +130,33 @@ class Launcher:
         self.remote: dict[str, bool] = {}  # remote service -> alive now
         self.remote_left: dict[str, float] = {}  # remote service -> monotonic time it left
         self.run_dir = run_dir
-        self.keys = Keys(sc.prefix, sc.robot)
+        self.keys = Keys.of(sc)
         # the keys followed: the robot's, or with robots > 1 every robot's (<prefix>/*/…)
-        self.follow_keys = Keys(sc.prefix, "*") if sc.robots > 1 else self.keys
+        self.follow_keys = Keys.of(sc, "*") if sc.robots > 1 else self.keys
         self.robots = fleet.robot_names(sc)
         self.quiet = quiet
         self.router_ep = router
         self._router: zenoh.Session | None = None
         self.children: dict[str, Child] = {}
-        self.outcome = Outcome()
         self.changed = threading.Event()
         self.lock = threading.Lock()
         # a service of another host: its last samples (task/result) may reach us well after its token
         # left, through the router and a loaded host; believed for longer than the default grace
         self.prov = Provenance(grace=REMOTE_GRACE_S) if len(self.local) < len(sc.launch_units()) else Provenance()
-        self.untrusted = 0  # samples on the keys it follows from writers other than the services
-        self.paused_for = ""  # lockstep: the services physics waits for to come back (its health)
         self._say_lock = threading.Lock()
+        # what the services report (results, health, faults), followed into the outcome
+        self.follower = Follower(sc, self.follow_keys, self.robots, self.prov, lock=self.lock, changed=self.changed,
+                                 say=self.say)
+
+    @property
+    def outcome(self) -> Outcome:
+        """The run so far: what the follower saw, and the deaths and restarts seen here."""
+        return self.follower.outcome
+
+    @property
+    def untrusted(self) -> int:
+        """Samples on the keys it follows from writers other than the services."""
+        return self.follower.untrusted
 
     def say(self, text: str) -> None:
         if not self.quiet:
@@ -181,13 +181,7 @@ class Launcher:
                        for s in fleet.members(self.sc, u)}
         self.session = transport.open_session(self.sc.zenoh)
         self._subs = [
-            # first: who writes what, so that only the services' own samples are believed
-            self.session.liveliness().declare_subscriber(self.keys.all_writers, self.prov.on_token, history=True),
-            self.session.declare_subscriber(self.follow_keys.topic("planner/result"), self._on_result),
-            self.session.declare_subscriber(self.follow_keys.topic("navigator/result"), self._on_result),
-            self.session.declare_subscriber(self.follow_keys.topic("task/result"), self._on_result),
-            self.session.declare_subscriber(self.follow_keys.health("*"), self._on_health),
-            self.session.declare_subscriber(self.follow_keys.log("*"), self._on_log),
+            *self.follower.subscribe(self.session),  # first who writes what, then results, health, logs
             self.session.liveliness().declare_subscriber(self.follow_keys.all_alive, self._on_alive, history=True),
         ]
         self.order = [n for n in stop_order(self.sc) if n in self.local]
@@ -305,92 +299,6 @@ class Launcher:
                 if up != (svc in alive) and (up or svc in self.remote_left):  # left, or back
                     self._on_remote(svc, not up)
 
-    def _trusted(self, sample: zenoh.Sample) -> bool:
-        """A sample from the key's announced writer (not a stranger's, nor a duplicate)."""
-        why, _ = self.prov.check(str(sample.key_expr), transport.read_attachment(sample))
-        if why is not None:
-            self.untrusted += 1
-        return why is None
-
-    def _on_result(self, sample: zenoh.Sample) -> None:
-        """``planner/result``: one goal ended (progress); ``task/result``: the task ended (the run ends)."""
-        if not self._trusted(sample):
-            return
-        try:
-            res = msgs.decode(msgs.MoveResult, sample.payload.to_bytes())
-        except msgs.BadMessage as e:
-            self.say(f"warning: unreadable result on {sample.key_expr}: {e}")
-            return
-        key = str(sample.key_expr)
-        robot = key.split("/")[1]
-        with self.lock:
-            if key.endswith("/task/result"):
-                self.outcome.tasks[robot] = res
-                if len(self.robots) == 1:
-                    self.outcome.task = res
-            elif res.goal_id != "task":  # the planner repeats the task's result on planner/result
-                self.outcome.results.append(res)
-                self.outcome.result_robots.append(robot)
-                err = max((abs(e) for e in res.execution_error), default=float("nan"))
-                status = "reached" if res.success else f"FAILED ({res.message})"
-                if key.endswith("/navigator/result"):  # a rover goal: [m, rad]
-                    pos, yaw = (*res.execution_error, float("nan"), float("nan"))[:2]
-                    what = f"position error {pos:.3f} m, yaw error {yaw:.3f} rad (odometry)"
-                else:
-                    what = f"max joint error {err:.4f} rad"
-                who = f"{robot}: " if len(self.robots) > 1 else ""
-                self.say(f"  {who}{res.goal_id}: {status} at t={msgs.seconds(res.header.stamp):.2f}s sim, "
-                         f"planning {res.planning_time:.2f}s, {what}")
-        self.changed.set()
-
-    def _on_log(self, sample: zenoh.Sample) -> None:
-        """Faults of any service (a silent joint server, a stalled lockstep) as they happen."""
-        if not self._trusted(sample):
-            return
-        try:
-            m = msgs.decode(msgs.Log, sample.payload.to_bytes())
-        except msgs.BadMessage:
-            return
-        if m.level >= 40:
-            with self.lock:
-                self.outcome.faults.append(f"{m.name}: {m.msg}")
-            self.say(f"  fault: {m.name}: {m.msg}")
-
-    def _on_health(self, sample: zenoh.Sample) -> None:
-        if not self._trusted(sample):
-            return
-        try:
-            h = msgs.decode(msgs.DiagnosticArray, sample.payload.to_bytes())
-        except msgs.BadMessage:
-            return
-        # a robot's service (robots > 1) by <service>@<robot>: the robots' health apart
-        sid = fleet.service_id(self.sc, str(sample.key_expr), "health")
-        for st in h.status:
-            vals = {kv.key: kv.value for kv in st.values}
-            with self.lock:
-                self.outcome.health[sid if st.name == sid.split("@")[0] else st.name] = vals
-                if st.name == "physics" and vals.get("state") == "done":
-                    self.outcome.physics_done = True
-                if st.name == "physics" and vals.get("state") == "stalled" and not self.outcome.stalled:
-                    self.outcome.stalled = vals.get("last_error", "lockstep stalled")
-                if st.name == "physics":
-                    self._paused(vals)
-        self.changed.set()
-
-    def _paused(self, vals: dict[str, str]) -> None:
-        """Lockstep physics pauses sim time while a service is gone (under self.lock): say so once
-        per pause. Physics also says at which sim time each service left: the restarts' time."""
-        for r in self.outcome.restarts:
-            left = f"left:{r.name.split('+')[0]}"  # a composed process: its first service
-            if r.back_after is None and left in vals:
-                r.sim_time = vals[left]
-        gone = vals.get("paused_for", "")
-        if gone and gone != self.paused_for:
-            self.say(f"  physics: sim time paused at t={vals.get('sim_time', '?')} s until {gone} is back")
-        elif not gone and self.paused_for:
-            self.say(f"  physics: sim time runs again from t={vals.get('sim_time', '?')} s")
-        self.paused_for = gone
-
     def check_children(self) -> bool:
         """True if a service died and is not restarted (recorded in the outcome); a service
         whose restart policy allows it is started again once its backoff has passed."""
@@ -442,14 +350,8 @@ class Launcher:
         while True:
             if self.check_children():
                 return
-            with self.lock:
-                if self.outcome.task is not None or self.outcome.physics_done:
-                    return
-                if len(self.robots) > 1 and len(self.outcome.tasks) == len(self.robots):
-                    return  # every robot's task ended
-                if self.outcome.stalled:
-                    self.say(f"error: the simulation stalled: {self.outcome.stalled}; stopping")
-                    return
+            if self.follower.ended():  # the task, the duration, or a stalled lockstep
+                return
             if wall_timeout is not None and time.monotonic() - t0 > wall_timeout:
                 self.say(f"error: run did not finish within {wall_timeout:.0f}s wall")
                 return
@@ -472,9 +374,7 @@ class Launcher:
                 return
             if time.monotonic() - last_print > 10.0:
                 last_print = time.monotonic()
-                ph = self.outcome.health.get("physics", {})
-                self.say(f"  … sim time {ph.get('sim_time', '?')} s, "
-                         f"real-time factor {ph.get('real_time_factor', '?')}")
+                self.follower.progress()
             self.changed.wait(0.2)
             self.changed.clear()
 
@@ -507,18 +407,6 @@ class Launcher:
                 c.proc.kill()
 
 
-def open_default_router() -> tuple[str, zenoh.Session]:
-    """The well-known loopback port if free (so `hilsim topic` finds it), else any free port."""
-    ep = f"tcp/127.0.0.1:{transport.DEFAULT_ROUTER_PORT}"
-    try:
-        return ep, transport.open_router(ep)
-    except ConnectionError:
-        ep = f"tcp/127.0.0.1:{transport.free_port()}"
-        print(f"note: port {transport.DEFAULT_ROUTER_PORT} is taken (another simulation?); using {ep} "
-              f"(pass --connect {ep} to hilsim topic)", flush=True)
-        return ep, transport.open_router(ep)
-
-
 def local_units(sc: Scenario, only: list[str] | None) -> list[str]:
     """The launch units this host starts: all of them, or those of ``--only`` (services by name;
     a composed group ``a+b`` as a whole). ConfigError (one line) for a name the scenario lacks."""
@@ -544,14 +432,6 @@ def local_units(sc: Scenario, only: list[str] | None) -> list[str]:
     return out
 
 
-def _num(v: str | None) -> int:
-    """A count from a health value (0 when absent or not a number)."""
-    try:
-        return int(v or 0)
-    except ValueError:
-        return 0
-
-
 def _tail(path: Path, n: int = 1) -> str:
     try:
         lines = [ln for ln in path.read_text(errors="replace").splitlines() if ln.strip()]
@@ -564,178 +444,6 @@ def _tail(path: Path, n: int = 1) -> str:
 def default_run_dir(sc: Scenario) -> Path:
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S-%f")[:-3]
     return Path(sc.logger.out_dir) / stamp
-
-
-def summarise(la: Launcher) -> int:
-    o, sc = la.outcome, la.sc
-    # with no task and no duration, Ctrl-C is how a run ends: not a failure
-    open_ended = not sc.task.targets and sc.duration is None
-    ok = not o.died and not o.stalled and (not o.interrupted or open_ended)
-    n_targets = len(sc.task.targets)
-    print("summary:")
-    if n_targets and len(la.robots) > 1:  # robots > 1: each robot's own task
-        for robot in la.robots:
-            reached = sum(1 for r, who in zip(o.results, o.result_robots, strict=True)
-                          if who == robot and r.success and r.goal_id.startswith("task-"))
-            task = o.tasks.get(robot)
-            if task is None:
-                print(f"  {robot}: targets reached {reached}/{n_targets}, task not finished")
-                ok = ok and sc.duration is not None and o.physics_done
-                continue
-            err = max((abs(e) for e in task.execution_error), default=float("nan"))
-            print(f"  {robot}: targets reached {reached}/{n_targets}, final max joint error {err:.4f} rad")
-            ok = ok and task.success and reached == n_targets
-    elif n_targets:
-        reached = sum(1 for r in o.results if r.success and r.goal_id.startswith("task-"))
-        print(f"  targets reached: {reached}/{n_targets}")
-        if o.task is not None:
-            # the joints as the planner named them in its trajectories (index if it sent none)
-            named = next((list(r.trajectory.joint_names) for r in o.results if r.trajectory.joint_names), [])
-            err = o.task.execution_error
-            names = named if len(named) == len(err) else [f"#{i}" for i in range(len(err))]
-            errs = ", ".join(f"{n} {e:+.4f}" for n, e in zip(names, err, strict=True))
-            if "navigator" in sc.services and len(err) == 2:  # the rover: [position m, yaw rad]
-                print(f"  final error: position {err[0]:.3f} m, yaw {err[1]:.3f} rad (odometry)")
-            else:
-                print(f"  final error per joint [rad]: {errs}")
-            ok = ok and o.task.success and reached == n_targets
-        else:
-            print("  task: not finished")
-            ok = ok and sc.duration is not None and o.physics_done
-    ph = o.health.get("physics", {})
-    if ph:
-        print(f"  sim time {ph.get('sim_time', '?')} s, real-time factor {ph.get('real_time_factor', '?')}, "
-              f"clock {sc.clock.mode}, seed {sc.seed}")
-    for name, h in sorted(o.health.items()):
-        bad = _num(h.get("rejected")) + _num(h.get("errors"))
-        if bad:
-            print(f"  {name}: {h.get('rejected')} rejected, {h.get('errors')} errors (last: {h.get('last_error', '')})")
-    rrd = la.run_dir / "recording.rrd"
-    if any("logger" in u.split("+") for u in la.local):  # a recorder on another host summarises there
-        # a recorder that died left no footer (and no counts): make its file whole, say what it holds
-        logger_restarted = any(r.name == "logger" for r in o.restarts)
-        if logger_restarted or any(n == "logger" for n, _ in o.died):
-            ok = _recover_recordings(la.run_dir) and ok
-        summary = la.run_dir / "record_summary.json"
-        if summary.exists():
-            counts = json.loads(summary.read_text())
-            rec = sum(v.get("recorded", 0) for v in counts.values())
-            recv = sum(v.get("received", 0) for v in counts.values())
-            mismatch = sorted(k for k, v in counts.items() if v.get("received") != v.get("recorded"))
-            lost = {k: v["lost"] for k, v in counts.items() if v.get("lost")}
-            n_lost, n_full = sum(lost.values()), sum(v.get("dropped", 0) for v in counts.values())
-            realtime = sc.clock.mode == "realtime"
-
-            def short(key: str) -> str:  # keys as the user names them: clock, truth/joint_states, …
-                for p in (f"{sc.prefix}/{sc.robot}/", f"{sc.prefix}/"):
-                    if key.startswith(p):
-                        return key[len(p):]
-                return key
-
-            line = f"  recorded {rec} of {recv} received messages on {len(counts)} keys"
-            if n_lost:
-                where = "in transport"
-                if n_full:
-                    where = f"({n_lost - n_full} in transport, {n_full} dropped by the recorder)"
-                why = "realtime: the recorder could not keep up" if realtime else "lockstep, where nothing may be lost"
-                top = sorted(lost.items(), key=lambda kv: (-kv[1], kv[0]))
-                keys = ", ".join(f"{short(k)} {n}" for k, n in top[:8]) + (", …" if len(top) > 8 else "")
-                line += f"; lost {n_lost} {where} ({why}): {keys}"
-            if mismatch:
-                line += f"; MISMATCH (received but not recorded) on {mismatch}"
-            print(line)
-            # Samples sent after the last one of their writer that reached the recorder (dropped, or
-            # still in flight when the run stopped) leave no gap it could count: compare with what
-            # every service says it published per key (final health).
-            published: dict[str, int] = {}
-            for h in o.health.values():
-                for k, v in h.items():
-                    if k.startswith("published:"):
-                        published[k[10:]] = published.get(k[10:], 0) + _num(v)
-            unseen = {}
-            for k, v in counts.items():
-                seen = v["received"] + v.get("lost", 0) + v.get("before_first", 0)
-                if published.get(k, 0) > seen:
-                    unseen[k] = published[k] - seen
-            if unseen:
-                top = sorted(unseen.items(), key=lambda kv: (-kv[1], kv[0]))
-                keys = ", ".join(f"{short(k)} {n}" for k, n in top[:8]) + (", …" if len(top) > 8 else "")
-                print(f"  {sum(unseen.values())} published samples never reached the recorder: {keys}")
-                n_lost += sum(unseen.values())
-            if logger_restarted:
-                # what the killed recorder had received is in its part of the recording, but its
-                # counts died with it, and what it had not flushed yet is lost: reported, not
-                # judged (the restart policy asked for the run to go on)
-                print("  (the recorder was restarted: these counts are its last process's; samples the killed "
-                      "one had not written yet are lost)")
-                n_lost = 0
-            # realtime: a loss is reported, not a failure; lockstep promises that nothing is lost
-            ok = ok and not mismatch and (realtime or not n_lost)
-        else:
-            print("  recording summary missing")
-            ok = False
-        print(f"  recording: {rrd}")
-    print(f"  logs: {la.run_dir}/")
-    for name, rc in o.died:
-        print(f"  service {name} died (exit code {rc})")
-    if o.stalled:
-        print(f"  stalled: {o.stalled}")
-    if o.faults:
-        print(f"  faults reported: {len(o.faults)} (first: {o.faults[0]})")
-    for r in o.restarts:
-        back = f"back after {r.back_after:.1f} s" if r.back_after is not None else "not back"
-        print(f"  restarted {r.name} (exit code {r.rc} at sim time {r.sim_time} s; {back})")
-    if la.untrusted:
-        print(f"  ignored {la.untrusted} samples on results, health and logs from writers other than the services")
-    print("result: " + ("OK" if ok else "FAILED"))
-    return 0 if ok else 1
-
-
-def _world_of(path: Path) -> str | None:
-    try:
-        return load_scenario(path).world.model.stem
-    except Exception:  # not a scenario (an overlay), or a broken one: no world to offer
-        return None
-
-
-def world_scenario(scenario: str, world: str) -> str:
-    """``hilsim up SCENARIO --world NAME``: the scenario itself when its world is
-    ``models/worlds/NAME.xml``, else its variant ``<scenario>-NAME.yaml`` next to it (which sets that
-    world and what goes with it: the GPS and its datum, the goals); anything else is a one-line error."""
-    from hilsim.core.config import ConfigError
-    from hilsim.core.scenario import scenario_path
-
-    base = scenario_path(scenario)
-    own = load_scenario(base).world.model.stem
-    if world == own:
-        return str(base)
-    variant = base.with_name(f"{base.stem}-{world}.yaml")
-    if variant.exists():
-        return str(variant)
-    variants = {p.stem[len(base.stem) + 1:]: p for p in base.parent.glob(f"{base.stem}-*.yaml")}
-    worlds = [own, *sorted(w for w, p in variants.items() if _world_of(p) == w)]
-    raise ConfigError(f"--world {world}: scenario {base.stem} has no such world (worlds: {', '.join(worlds)}; "
-                      f"a world W needs {base.parent.name}/{base.stem}-W.yaml)")
-
-
-def _recover_recordings(run_dir: Path) -> bool:
-    """After a recorder died: make each part of the run's recording complete (a SIGKILL leaves no
-    RRD footer) and say what it holds; False if a part could not be recovered."""
-    from hilsim.core.recording import RecordingError, contents, recording_parts, recover_rrd
-
-    ok = True
-    for part in recording_parts(run_dir):
-        try:
-            rewritten = recover_rrd(part)
-            c = contents(part)
-        except RecordingError as e:
-            print(f"  recording {part}: NOT RECOVERED: {str(e).splitlines()[0]}")
-            ok = False
-            continue
-        upto = f"up to t={c.last_sim_ns / 1e9:.3f} s sim" if c.last_sim_ns is not None else "no sim time"
-        how = "the recorder was killed: recovered, verified" if rewritten else "complete, verified"
-        print(f"  recording {part}: {sum(c.rows.values())} rows on {len(c.rows)} entities {upto} ({how})")
-    return ok
 
 
 def cmd_up(args: argparse.Namespace) -> int:
@@ -787,7 +495,7 @@ def cmd_up(args: argparse.Namespace) -> int:
                 robot = fleet.robot_names(sc)[0] if sc.robots > 1 else sc.robot  # robots > 1: e.g. arm0
                 how = (f"send goals with `hilsim goal {robot} --joints …`" if "planner" in sc.services
                        else f"send goals with `hilsim goal {robot} --xy X Y`" if "navigator" in sc.services
-                       else f"drive it with geometry_msgs/Twist on {Keys(sc.prefix, robot).topic('cmd_vel')}")
+                       else f"drive it with geometry_msgs/Twist on {Keys.of(sc, robot).topic_name('cmd_vel')}")
                 print(f"no task targets and no --duration: running until Ctrl-C ({how})", flush=True)
             la.follow()
     except KeyboardInterrupt:
@@ -801,28 +509,3 @@ def cmd_up(args: argparse.Namespace) -> int:
         except KeyboardInterrupt:
             la.kill_all()
     return summarise(la)
-
-
-def cmd_router(args: argparse.Namespace) -> int:
-    """``hilsim router [--listen EP] [--config FILE]``: a standalone router; with a Zenoh config
-    file (listen endpoints, TLS, access control: docs/security.md), ``--listen`` replaces its
-    endpoints."""
-    try:
-        if args.config:
-            conf = transport.router_config(Path(args.config), [args.listen] if args.listen else None)
-            where = ", ".join(json.loads(conf.get_json("listen/endpoints") or "[]")) or "no endpoint"
-            r = transport.open_router_config(conf, f"{args.config}: {where}")
-        else:
-            where = args.listen or transport.DEFAULT_CONNECT
-            r = transport.open_router(where)
-    except ConnectionError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    print(f"zenoh router listening on {where} (Ctrl-C to stop)", flush=True)
-    from hilsim.core.service import on_stop_signals
-
-    stop = threading.Event()
-    on_stop_signals(stop.set)  # Ctrl-C or SIGTERM: not stop.set in a signal handler (see there)
-    stop.wait()
-    r.close()
-    return 0

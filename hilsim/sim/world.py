@@ -85,7 +85,7 @@ class World:
     def __init__(self, sc: Scenario, *, model: mujoco.MjModel | None = None, data: mujoco.MjData | None = None,
                  prefix: str = "") -> None:
         """The scenario's world; or, with ``model``, ``data`` and ``prefix``, one robot of a
-        fleet's shared world (:class:`hilsim.core.fleet.FleetWorld`): the actuators, joints and truth
+        fleet's shared world (:class:`hilsim.sim.fleet_world.FleetWorld`): the actuators, joints and truth
         IMU whose names start with ``prefix``, addressed by their names without it."""
         self.sc = sc
         where = f"{sc.source}: " if sc.source else ""

@@ -37,6 +37,7 @@ import psutil
 
 from hilsim.core.config import Scenario
 from hilsim.core.scenario import load_scenario
+from hilsim.tools import progress
 
 
 def _scenario(sim_seconds: float, **more: Any) -> Scenario:
@@ -163,10 +164,7 @@ def cmd_loop(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING)
     sim = args.sim_seconds
     res: dict[str, Any] = {"sim_seconds": sim, "control_hz": 1000}
-
-    def say(text: str) -> None:
-        if not args.json:
-            print(text, flush=True)
+    say = progress(args.json)
 
     say(f"hilsim bench loop: arm, 1 kHz physics and control, {sim:g} s sim per lockstep run")
     say("  bare (MuJoCo + PID, no messages) …")
@@ -298,10 +296,7 @@ def cmd_rover(args: argparse.Namespace) -> int:
     quiet_ompl_at_exit()
     sim, world = args.sim_seconds, args.world
     res: dict[str, Any] = {"world": world, "sim_seconds": sim, "physics_hz": 500}
-
-    def say(text: str) -> None:
-        if not args.json:
-            print(text, flush=True)
+    say = progress(args.json)
 
     say(f"hilsim bench rover: {world} world, lockstep, navigating the task's goals, {sim:g} s sim per run")
     say("  laser alone (one mj_multiRay per scan) …")

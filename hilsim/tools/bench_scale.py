@@ -38,6 +38,7 @@ from pathlib import Path
 from tempfile import TemporaryDirectory
 from typing import Any
 
+from hilsim.tools import progress
 from hilsim.tools.bench import _scenario, cpu_s
 
 SERVICES = ["physics", "sensors", "controller", "planner", "logger"]
@@ -131,7 +132,7 @@ def run_one(robots: int, subscribers: int, sim_seconds: float, tmp: Path, compos
     la = Launcher(sc, run_dir, router=ep, quiet=True)
     try:
         if subscribers:
-            subs = Subscribers(ep, Keys(sc.prefix, "*").topic("joint_states"), subscribers)
+            subs = Subscribers(ep, Keys.of(sc, "*").topic("joint_states"), subscribers)
         la.start()
         if not la.wait_ready():
             raise RuntimeError(f"services did not start; see {run_dir}")
@@ -201,10 +202,7 @@ def cmd_scale(args: argparse.Namespace) -> int:
         print(f"hilsim bench scale: --repeat must be at least 1, got {args.repeat}", file=sys.stderr)
         return 2
     pipeline = "composed" if args.compose else "distributed"
-
-    def say(text: str) -> None:
-        if not args.json:
-            print(text, flush=True)
+    say = progress(args.json)
 
     say(f"hilsim bench scale: arms holding position, lockstep 1 kHz, {sim:g} s sim per run, robots {robots}, "
         f"extra subscribers {subs}, {pipeline} ({os.cpu_count()} CPUs)")

@@ -39,7 +39,7 @@ def cmd_gains(args: argparse.Namespace) -> int:
             print(f"hilsim gains: {item!r}: expected JOINT.GAIN=NUMBER, e.g. joint_2.kp=80")
             return 2
         values[name.strip()] = v
-    keys = Keys(transport.tool_prefix(args.prefix), args.robot)
+    keys = transport.tool_keys(args.robot, args.prefix)
     with transport.open_tool_session(args.connect) as ses:
         res = set_parameters(ses, keys, values)
     print(("set: " if res.successful else "not set: ") + res.reason)

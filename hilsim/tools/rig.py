@@ -47,10 +47,13 @@ the stamped step, as ``controller/reference`` does for the arm.
 
 from __future__ import annotations
 
+import argparse
+import functools
 import logging
 import math
 import queue
 import signal
+import sys
 import tempfile
 import threading
 import time
@@ -77,6 +80,21 @@ GROUPS = ("steering", "traction")  # the rover's loops, by kind
 
 class RigError(RuntimeError):
     """A step experiment that could not be run or measured; the message says why, in one line."""
+
+
+def rig_command(cmd: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """A command that runs step experiments: a :class:`RigError` (a run that failed) is said in one
+    line, exit status 1, as for a bad scenario."""
+
+    @functools.wraps(cmd)
+    def run(args: argparse.Namespace) -> int:
+        try:
+            return cmd(args)
+        except RigError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 1
+
+    return run
 
 
 class LateStep(RigError):

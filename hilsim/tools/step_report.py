@@ -24,14 +24,13 @@ import argparse
 import csv
 import json
 import math
-import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 from hilsim.core.config import ConfigError, Scenario
 from hilsim.tools.metrics import ZERO_OVERSHOOT, ZERO_TOL, Figures, step_figures
-from hilsim.tools.rig import Experiment, Response, RigError, loop_scenario, run_experiments
+from hilsim.tools.rig import Experiment, Response, loop_scenario, rig_command, run_experiments
 
 DEFAULT_STEP = 0.2  # [rad] (see above: the drives stop at 2 rad/s)
 DEFAULT_JOINTS = ("joint_1", "joint_2", "joint_3", "joint_4", "joint_5")
@@ -271,15 +270,8 @@ def log_rerun(path: Path, robot: str, rows: Sequence[Row]) -> None:
     rec.flush()
 
 
+@rig_command
 def cmd_report_step(args: argparse.Namespace) -> int:
-    try:
-        return _cmd_report_step(args)
-    except RigError as e:  # a run that failed: one line, as for a bad scenario
-        print(f"error: {e}", file=sys.stderr)
-        return 1
-
-
-def _cmd_report_step(args: argparse.Namespace) -> int:
     from hilsim.run.runs import new_run_dir
 
     joints = [j.strip() for j in args.joints.split(",") if j.strip()] if args.joints else default_joints(args.robot)

@@ -1,13 +1,17 @@
 """``hilsim topic list|echo|hz``: look at a running simulation the way ``ros2 topic`` does.
 
 Connects as a Zenoh peer to ``--connect`` (default: ``HILSIM_ZENOH_CONNECT`` or the
-launcher's well-known ``tcp/127.0.0.1:7447``, see :func:`hilsim.core.transport.tool_endpoints`),
-decodes payloads by key through :func:`hilsim.core.keys.message_type`, and never publishes anything.
+launcher's well-known ``tcp/127.0.0.1:7447``, see :func:`hilsim.core.transport.tool_endpoints`)
+and never publishes anything. Topics are ROS 2 names (``/arm/joint_states``) in the domain
+``--domain`` (``ROS_DOMAIN_ID``); ``list`` reads the ROS 2 graph (rmw_zenoh's liveliness tokens) as
+``ros2 topic list`` does, so a ROS 2 node's topics show up beside hilsim's. ``echo``/``hz`` take a
+topic name (its key is ``<domain>/<name>/*/*``: any type) or a Zenoh key expression, and decode
+each sample by the type in its key (:func:`hilsim.core.keys.message_type`).
 
 ``hz`` believes only the key's rightful writer: once a publisher has announced itself for the key
-(``<prefix>/writers/…``, :mod:`hilsim.core.provenance`), a sample without an attachment, from another
+(its ``MP`` graph token, :mod:`hilsim.core.provenance`), a sample without an attachment, from another
 writer, or a duplicate or reordered one is not counted (it says how many it ignored), so an
-impostor on ``clock`` cannot change the figures; ``--any-writer`` counts every sample.
+impostor on ``/clock`` cannot change the figures; ``--any-writer`` counts every sample.
 """
 
 from __future__ import annotations
@@ -24,8 +28,9 @@ import yaml
 import zenoh
 
 from hilsim.core import msgs, transport
-from hilsim.core.keys import Keys, UnknownKey, message_type
+from hilsim.core.keys import UnknownKey, message_type, topic_name
 from hilsim.core.provenance import Provenance
+from hilsim.core.ros2 import wire
 
 WRITERS_SETTLE_S = 0.5  # hz: time for the announced writers (liveliness history) to arrive
 
@@ -45,8 +50,21 @@ def _stamp_of(msg: Any) -> float | None:
     return None
 
 
+INTERNAL = ("health", "sync", "log", "hw")  # hilsim's own topics under a robot's namespace: `list --all`
+
+
+def key_expr(name: str, domain: int) -> str:
+    """A topic name (``/arm/joint_states``) as the key expression of every type on it; a key expression as is."""
+    return f"{domain}/{name.strip('/')}/*/*" if name.startswith("/") else name
+
+
+def _internal(topic: str) -> bool:
+    parts = topic.strip("/").split("/")
+    return len(parts) > 1 and parts[1] in INTERNAL
+
+
 def cmd_list(args: argparse.Namespace) -> int:
-    prefix = transport.tool_prefix(args.prefix)
+    domain = transport.tool_domain(getattr(args, "domain", None))
     counts: dict[str, int] = defaultdict(int)
     lock = threading.Lock()
 
@@ -67,33 +85,60 @@ def cmd_list(args: argparse.Namespace) -> int:
     with _session(args) as ses:
         # a subscriber with history, not a one-shot get: right after connecting, a get can
         # run before the router has told this session about the other peers
-        everything = Keys(prefix).everything
-        live = ses.liveliness().declare_subscriber(everything, on_token, history=True)
-        sub = ses.declare_subscriber(everything, on_sample)
+        live = ses.liveliness().declare_subscriber(wire.graph_key(domain), on_token, history=True)
+        sub = ses.declare_subscriber(wire.domain_key(domain), on_sample)
         time.sleep(listen)
         sub.undeclare()
         live.undeclare()
-    alive = sorted(tokens)
-    if not alive and not counts:
-        print(f"no hilsim services or traffic under {prefix}/ (is a simulation running? try --connect)")
-        return 1
-    for a in alive:
-        print(f"{a}  [service]")
-    for key in sorted(counts):
+    graph = []
+    for k in tokens:
         try:
-            t = msgs.type_name(message_type(key))
+            graph.append(wire.parse_token(k))
+        except ValueError:
+            continue
+    topics: dict[str, set[str]] = defaultdict(set)
+    for name, types in wire.list_topics(graph).items():
+        topics[name].update(types)
+    rates: dict[str, float] = defaultdict(float)
+    for key, n in counts.items():  # traffic without a graph token (a tool publishing by hand) shows too
+        try:
+            name = topic_name(key)
         except UnknownKey:
-            t = "?"
-        print(f"{key}  [{t}]  {counts[key] / listen:.1f} msg/s")
+            continue
+        topics[name].add(wire.ros_type_name(key.split("/")[-2]))
+        rates[name] += n / listen
+    if not topics:
+        print(f"no topics in ROS 2 domain {domain} (is a simulation running? try --connect, --domain)")
+        return 1
+    hidden = 0
+    for name in sorted(topics):
+        if _internal(name) and not getattr(args, "all", False):
+            hidden += 1
+            continue
+        line = name
+        if getattr(args, "show_types", False):
+            line += f" [{', '.join(sorted(topics[name]))}]"
+        if rates.get(name):
+            line += f"  {rates[name]:.1f} msg/s"
+        print(line)
+    if hidden:
+        print(f"({hidden} internal topics hidden: health, sync, log, hw; --all shows them)")
     return 0
 
 
-def cmd_echo(args: argparse.Namespace) -> int:
+def _resolve(args: argparse.Namespace) -> str:
+    return key_expr(args.key, transport.tool_domain(getattr(args, "domain", None)))
+
+
+def _class_of(key: str) -> type | None:
     try:
-        cls = message_type(args.key)
-    except UnknownKey as e:
-        print(f"error: {e.args[0]}")
-        return 2
+        return message_type(key)
+    except UnknownKey:
+        return None
+
+
+def cmd_echo(args: argparse.Namespace) -> int:
+    expr = _resolve(args)
     done = threading.Event()
     n = 0
     lock = threading.Lock()
@@ -102,6 +147,9 @@ def cmd_echo(args: argparse.Namespace) -> int:
         nonlocal n
         with lock:
             if done.is_set():
+                return
+            cls = _class_of(str(s.key_expr))
+            if cls is None:
                 return
             try:
                 m = msgs.decode(cls, s.payload.to_bytes())
@@ -115,7 +163,7 @@ def cmd_echo(args: argparse.Namespace) -> int:
                 done.set()
 
     with _session(args) as ses:
-        sub = ses.declare_subscriber(args.key, on_sample)
+        sub = ses.declare_subscriber(expr, on_sample)
         try:
             done.wait(args.duration)
         except KeyboardInterrupt:
@@ -125,10 +173,7 @@ def cmd_echo(args: argparse.Namespace) -> int:
 
 
 def cmd_hz(args: argparse.Namespace) -> int:
-    try:
-        cls = message_type(args.key)
-    except UnknownKey:
-        cls = None
+    expr = _resolve(args)
     arrivals: deque[float] = deque(maxlen=args.window)
     stamps: deque[float] = deque(maxlen=args.window)
     lock = threading.Lock()
@@ -146,6 +191,7 @@ def cmd_hz(args: argparse.Namespace) -> int:
                     ignored += 1
                 return
         st = None
+        cls = _class_of(str(s.key_expr))
         if cls is not None:
             try:
                 st = _stamp_of(msgs.decode(cls, s.payload.to_bytes()))
@@ -162,10 +208,11 @@ def cmd_hz(args: argparse.Namespace) -> int:
     with _session(args) as ses:
         writers = None
         if check:
-            prefix = args.key.split("/", 1)[0]
-            writers = ses.liveliness().declare_subscriber(Keys(prefix).all_writers, prov.on_token, history=True)
+            domain = expr.split("/", 1)[0]
+            writers = ses.liveliness().declare_subscriber(f"{wire.ADMIN_SPACE}/{domain}/**", prov.on_token,
+                                                          history=True)
             time.sleep(WRITERS_SETTLE_S)
-        sub = ses.declare_subscriber(args.key, on_sample)
+        sub = ses.declare_subscriber(expr, on_sample)
         try:
             while not stop.wait(1.0):
                 with lock:

@@ -62,7 +62,6 @@ import argparse
 import json
 import math
 import re
-import sys
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -72,8 +71,9 @@ import numpy as np
 from hilsim.core.config import ConfigError, Scenario
 from hilsim.core.scenario import load_scenario, scenario_path
 from hilsim.sim import control
+from hilsim.tools import progress
 from hilsim.tools.metrics import ZERO_OVERSHOOT_PCT, ZERO_TOL, Figures, step_figures
-from hilsim.tools.rig import Experiment, Response, RigError, loop_scenario, run_experiments
+from hilsim.tools.rig import Experiment, Response, loop_scenario, rig_command, run_experiments
 from hilsim.tools.step_report import DEFAULT_SPEED, ROVER_ZERO
 
 SUSTAINED = 0.95  # decay ratio per period counted as a sustained oscillation
@@ -531,15 +531,8 @@ def _print_result(r: Result) -> None:
     print("  target: " + ("met" if not r.misses else "NOT met: " + "; ".join(r.misses)))
 
 
+@rig_command
 def cmd_tune(args: argparse.Namespace) -> int:
-    try:
-        return _cmd_tune(args)
-    except RigError as e:  # a run that failed: one line, as for a bad scenario
-        print(f"error: {e}", file=sys.stderr)
-        return 1
-
-
-def _cmd_tune(args: argparse.Namespace) -> int:
     sc = loop_scenario(args.robot)
     rover = sc.controller.type == "four_wheel_steer"
     names = list(control.joint_table(sc.world.model).names)
@@ -550,10 +543,7 @@ def _cmd_tune(args: argparse.Namespace) -> int:
     else:
         raise ConfigError("hilsim tune: name a JOINT (the rover: steering or traction) or give --all")
     quiet = args.json
-
-    def say(text: str) -> None:
-        if not quiet:
-            print(text, flush=True)
+    say = progress(quiet)
 
     results = []
     for j in joints:

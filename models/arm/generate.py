@@ -4,9 +4,10 @@
 Everything numeric in the two model files comes from the tables below:
 joint origins / axes / limits, and per-link primitive shapes with masses.
 Link inertial properties (mass, centre of mass, full inertia tensor) are
-*computed* here from the primitives (uniform density per primitive, exact
+*computed* from the primitives (uniform density per primitive, exact
 solid formulas, rotated into the link frame and shifted with the
-parallel-axis theorem), so nothing in the generated files is hand-typed.
+parallel-axis theorem; the maths in models/modelgen.py, shared with the
+rover's generator), so nothing in the generated files is hand-typed.
 
 Usage (from anywhere):
     python models/arm/generate.py          # rewrites arm.urdf and arm.xml next to this file
@@ -15,13 +16,28 @@ Only numpy is required.
 """
 from __future__ import annotations
 
-import math
 import os
+import sys
 from dataclasses import dataclass
 
 import numpy as np
 
 HERE = os.path.dirname(os.path.abspath(__file__))
+if os.path.dirname(HERE) not in sys.path:
+    sys.path.insert(0, os.path.dirname(HERE))  # models/: modelgen, what the generators share
+from modelgen import (  # noqa: E402
+    Prim,
+    R_to_rpy,
+    fmt,
+    fmt_rad,
+    generate,
+    mjcf_geom,
+    mjcf_inertial,
+    urdf_fixed_frame,
+    urdf_joint,
+    urdf_link,
+    write_lines,
+)
 
 # ----------------------------------------------------------------------------
 # Kinematics.  Frames (see README.md):
@@ -75,21 +91,9 @@ TOOL_SITE = ("hand_link", (0.05, 0.0, 0.0))   # tool tip: 5 cm beyond joint_6 al
 # ----------------------------------------------------------------------------
 # Geometry + mass.  Capsules/cylinders are given by segment end points
 # (fromto, link frame) and radius; boxes by centre and half sizes (axis
-# aligned with the link frame).  Same primitives are used for visual and
-# collision.  Total mass 3.3 kg.
+# aligned with the link frame), as modelgen.Prim.  Same primitives are used
+# for visual and collision.  Total mass 3.3 kg.
 # ----------------------------------------------------------------------------
-
-@dataclass
-class Prim:
-    name: str
-    kind: str                 # capsule | cylinder | box | sphere
-    mass: float
-    fromto: tuple = None      # capsule / cylinder
-    radius: float = None      # capsule / cylinder / sphere
-    pos: tuple = None         # box / sphere centre
-    half: tuple = None        # box half sizes
-    rgba: tuple = (0.85, 0.85, 0.88, 1)
-
 
 GREY = (0.35, 0.35, 0.38, 1)
 WHITE = (0.9, 0.9, 0.92, 1)
@@ -116,71 +120,6 @@ LINKS: dict[str, list[Prim]] = {
 }
 
 # ----------------------------------------------------------------------------
-# Inertia maths
-# ----------------------------------------------------------------------------
-
-def rot_z_to(d):
-    """Rotation matrix whose z column is the unit vector d."""
-    d = np.asarray(d, float)
-    d = d / np.linalg.norm(d)
-    z = np.array([0.0, 0.0, 1.0])
-    v = np.cross(z, d)
-    c = float(np.dot(z, d))
-    if np.linalg.norm(v) < 1e-12:
-        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
-    vx = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
-    return np.eye(3) + vx + vx @ vx * (1.0 / (1.0 + c))
-
-
-def prim_frame(p: Prim):
-    """(centre, R, length) of a primitive; R's z column is the primitive axis."""
-    if p.kind in ("capsule", "cylinder"):
-        a, b = np.array(p.fromto[:3], float), np.array(p.fromto[3:], float)
-        return (a + b) / 2, rot_z_to(b - a), float(np.linalg.norm(b - a))
-    return np.array(p.pos, float), np.eye(3), 0.0
-
-
-def prim_local_inertia(p: Prim, length: float) -> np.ndarray:
-    """Inertia about the primitive's own centre, primitive frame (axis = z)."""
-    m = p.mass
-    if p.kind == "cylinder":
-        r, h = p.radius, length
-        ixx = m * (3 * r * r + h * h) / 12.0
-        izz = m * r * r / 2.0
-        return np.diag([ixx, ixx, izz])
-    if p.kind == "capsule":
-        r, h = p.radius, length
-        vc = math.pi * r * r * h
-        vh = 2.0 / 3.0 * math.pi * r ** 3          # one hemisphere
-        mc = m * vc / (vc + 2 * vh)
-        mh = m * vh / (vc + 2 * vh)
-        izz = mc * r * r / 2.0 + 2 * mh * 2.0 * r * r / 5.0
-        # hemisphere about the capsule centre: 2/5 m r^2 + m (h^2/4 + 3 h r / 8)
-        ixx = mc * (3 * r * r + h * h) / 12.0 + 2 * mh * (2.0 * r * r / 5.0 + h * h / 4.0 + 3.0 * h * r / 8.0)
-        return np.diag([ixx, ixx, izz])
-    if p.kind == "box":
-        a, b, c = p.half
-        return np.diag([m * (b * b + c * c) / 3.0, m * (a * a + c * c) / 3.0, m * (a * a + b * b) / 3.0])
-    if p.kind == "sphere":
-        return np.eye(3) * 0.4 * m * p.radius ** 2
-    raise ValueError(p.kind)
-
-
-def link_inertial(prims):
-    """Mass, COM and inertia tensor about the COM (link frame axes)."""
-    M = sum(p.mass for p in prims)
-    frames = [prim_frame(p) for p in prims]
-    com = sum(p.mass * c for p, (c, _, _) in zip(prims, frames, strict=False)) / M
-    I = np.zeros((3, 3))
-    for p, (c, R, L) in zip(prims, frames, strict=False):
-        d = c - com
-        I += R @ prim_local_inertia(p, L) @ R.T                       # rotate into link frame
-        I += p.mass * (np.dot(d, d) * np.eye(3) - np.outer(d, d))     # parallel-axis theorem
-    I = (I + I.T) / 2
-    return M, com, I
-
-
-# ----------------------------------------------------------------------------
 # Frame helpers
 # ----------------------------------------------------------------------------
 
@@ -193,80 +132,9 @@ def xy_to_R(xaxis, yaxis):
     return np.column_stack([x, y, np.cross(x, y)])
 
 
-def rpy_to_R(r, p, y):
-    cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
-    Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
-    return Rz @ Ry @ Rx            # URDF convention (fixed axes X, then Y, then Z)
-
-
-def R_to_rpy(R):
-    R = np.asarray(R, float)
-    if abs(R[2, 0]) < 1 - 1e-9:
-        p = -math.asin(R[2, 0])
-        r = math.atan2(R[2, 1], R[2, 2])
-        y = math.atan2(R[1, 0], R[0, 0])
-    else:                                   # gimbal lock: choose yaw = 0
-        y = 0.0
-        if R[2, 0] < 0:                     # p = +pi/2
-            p = math.pi / 2
-            r = math.atan2(R[0, 1], R[0, 2])
-        else:                               # p = -pi/2
-            p = -math.pi / 2
-            r = math.atan2(-R[0, 1], -R[0, 2])
-    assert np.allclose(rpy_to_R(r, p, y), R, atol=1e-12), (R, (r, p, y))
-    return r, p, y
-
-
-def fmt(v, nd=8):
-    def one(x):
-        x = float(x)
-        s = f"{x:.{nd}g}" if abs(x) >= 1e-4 or x == 0 else f"{x:.6e}"
-        return "0" if s in ("-0", "0", "-0.0") else s
-    if np.ndim(v) == 0:
-        return one(v)
-    return " ".join(one(x) for x in v)
-
-
-def fmt_rad(v):
-    """Angles such as pi/2 are written with full precision."""
-    return " ".join(repr(float(round(x, 15))) if x != 0 else "0" for x in v)
-
-
 # ----------------------------------------------------------------------------
 # URDF
 # ----------------------------------------------------------------------------
-
-def urdf_shape(p: Prim, indent: str, tag: str) -> list[str]:
-    """URDF has no capsule: a capsule becomes a cylinder plus two end spheres."""
-    c, R, L = prim_frame(p)
-    out = []
-    count = [0]
-
-    def elem(origin_xyz, origin_R, geom):
-        rpy = R_to_rpy(origin_R)
-        suffix = f"_{count[0]}" if count[0] else ""
-        count[0] += 1
-        out.append(f'{indent}<{tag} name="{p.name}{suffix}">')
-        out.append(f'{indent}  <origin xyz="{fmt(origin_xyz)}" rpy="{fmt_rad(rpy)}"/>')
-        out.append(f'{indent}  <geometry>{geom}</geometry>')
-        if tag == "visual":
-            out.append(f'{indent}  <material name="{p.name}_mat"><color rgba="{fmt(p.rgba)}"/></material>')
-        out.append(f'{indent}</{tag}>')
-
-    if p.kind == "cylinder":
-        elem(c, R, f'<cylinder radius="{fmt(p.radius)}" length="{fmt(L)}"/>')
-    elif p.kind == "capsule":
-        elem(c, R, f'<cylinder radius="{fmt(p.radius)}" length="{fmt(L)}"/>')
-        for end in (np.array(p.fromto[:3], float), np.array(p.fromto[3:], float)):
-            elem(end, np.eye(3), f'<sphere radius="{fmt(p.radius)}"/>')
-    elif p.kind == "box":
-        elem(c, R, f'<box size="{fmt(2 * np.array(p.half))}"/>')
-    elif p.kind == "sphere":
-        elem(c, R, f'<sphere radius="{fmt(p.radius)}"/>')
-    return out
-
 
 def write_urdf(path):
     L = ['<?xml version="1.0"?>',
@@ -278,58 +146,20 @@ def write_urdf(path):
          '    <compiler angle="radian" fusestatic="false" discardvisual="true" balanceinertia="false"/>',
          '  </mujoco>']
     for link, prims in LINKS.items():
-        M, com, I = link_inertial(prims)
-        L.append(f'  <link name="{link}">')
-        L.append('    <inertial>')
-        L.append(f'      <origin xyz="{fmt(com)}" rpy="0 0 0"/>')
-        L.append(f'      <mass value="{fmt(M)}"/>')
-        L.append(f'      <inertia ixx="{fmt(I[0,0])}" ixy="{fmt(I[0,1])}" ixz="{fmt(I[0,2])}" '
-                 f'iyy="{fmt(I[1,1])}" iyz="{fmt(I[1,2])}" izz="{fmt(I[2,2])}"/>')
-        L.append('    </inertial>')
-        for p in prims:
-            L += urdf_shape(p, "    ", "visual")
-        for p in prims:
-            L += urdf_shape(p, "    ", "collision")
-        L.append('  </link>')
+        L += urdf_link(link, prims)
     for j in JOINTS:
         rpy = R_to_rpy(xy_to_R(j.xaxis, j.yaxis))
-        L.append(f'  <joint name="{j.name}" type="revolute">')
-        L.append(f'    <parent link="{j.parent}"/>')
-        L.append(f'    <child link="{j.child}"/>')
-        L.append(f'    <origin xyz="{fmt(j.xyz)}" rpy="{fmt_rad(rpy)}"/>')
-        L.append(f'    <axis xyz="{fmt(j.axis)}"/>')
-        L.append(f'    <limit lower="{fmt(j.lower)}" upper="{fmt(j.upper)}" '
-                 f'effort="{fmt(j.effort)}" velocity="{fmt(j.velocity)}"/>')
-        L.append(f'    <dynamics damping="{fmt(j.damping)}" friction="0"/>')
-        L.append('  </joint>')
+        L += urdf_joint(j.name, "revolute", j.parent, j.child, j.xyz, j.axis, j.effort, j.velocity, j.damping,
+                        rpy=fmt_rad(rpy), lower=j.lower, upper=j.upper)
     # tool frame as a fixed child link (massless frames are common in URDF)
-    L.append('  <link name="tool_link"/>')
-    L.append('  <joint name="tool_joint" type="fixed">')
-    L.append(f'    <parent link="{TOOL_SITE[0]}"/>')
-    L.append('    <child link="tool_link"/>')
-    L.append(f'    <origin xyz="{fmt(TOOL_SITE[1])}" rpy="0 0 0"/>')
-    L.append('  </joint>')
+    L += urdf_fixed_frame("tool", TOOL_SITE[0], TOOL_SITE[1])
     L.append('</robot>')
-    with open(path, "w") as f:
-        f.write("\n".join(L) + "\n")
+    write_lines(path, L)
 
 
 # ----------------------------------------------------------------------------
 # MJCF
 # ----------------------------------------------------------------------------
-
-def mjcf_geom(p: Prim):
-    a = f'name="{p.name}" type="{p.kind}"'
-    if p.kind in ("capsule", "cylinder"):
-        a += f' fromto="{fmt(p.fromto)}" size="{fmt(p.radius)}"'
-    elif p.kind == "box":
-        a += f' pos="{fmt(p.pos)}" size="{fmt(p.half)}"'
-    else:
-        a += f' pos="{fmt(p.pos)}" size="{fmt(p.radius)}"'
-    # `mass` is informative only: the explicit <inertial> wins (inertiafromgeom="auto");
-    # verify.py recompiles with inertiafromgeom="true" to cross-check the generator.
-    return f'<geom {a} mass="{fmt(p.mass)}" rgba="{fmt(p.rgba)}"/>'
-
 
 def write_mjcf(path):
     children = {j.parent: j for j in JOINTS}
@@ -353,7 +183,6 @@ def write_mjcf(path):
          '  <worldbody>']
 
     def body(link, indent, joint: Joint | None):
-        M, com, I = link_inertial(LINKS[link])
         attrs = f'name="{link}" childclass="arm"'
         if joint is not None:
             R = xy_to_R(joint.xaxis, joint.yaxis)
@@ -363,8 +192,7 @@ def write_mjcf(path):
         else:
             attrs += ' pos="0 0 0"'
         L.append(f'{indent}<body {attrs}>')
-        L.append(f'{indent}  <inertial pos="{fmt(com)}" mass="{fmt(M)}" '
-                 f'fullinertia="{fmt([I[0,0], I[1,1], I[2,2], I[0,1], I[0,2], I[1,2]])}"/>')
+        L.append(mjcf_inertial(LINKS[link], indent + "  "))
         if joint is not None:
             L.append(f'{indent}  <joint name="{joint.name}" axis="{fmt(joint.axis)}" '
                      f'range="{fmt(joint.lower)} {fmt(joint.upper)}" damping="{fmt(joint.damping)}" '
@@ -393,19 +221,11 @@ def write_mjcf(path):
                  f'ctrlrange="{fmt(-j.effort)} {fmt(j.effort)}"/>')
     L.append('  </actuator>')
     L.append('</mujoco>')
-    with open(path, "w") as f:
-        f.write("\n".join(L) + "\n")
+    write_lines(path, L)
 
 
 def main():
-    write_urdf(os.path.join(HERE, "arm.urdf"))
-    write_mjcf(os.path.join(HERE, "arm.xml"))
-    total = 0.0
-    for link, prims in LINKS.items():
-        M, com, I = link_inertial(prims)
-        total += M
-        print(f"{link:14s} m={M:.3f} com={np.round(com, 4)} Idiag={np.round(np.diag(I), 6)}")
-    print(f"total mass {total:.3f} kg -> wrote arm.urdf, arm.xml")
+    generate(HERE, "arm", write_urdf, write_mjcf, LINKS, width=14, decimals=6)
 
 
 if __name__ == "__main__":

@@ -3,7 +3,7 @@
 from dataclasses import dataclass, field
 
 from pycdr2 import IdlStruct
-from pycdr2.types import array, float32, float64, int8, sequence, uint8
+from pycdr2.types import array, float32, float64, int8, sequence, uint8, uint16
 
 from hilsim.core.msgs.builtin import Header
 from hilsim.core.msgs.geometry import Quaternion, Vector3
@@ -32,7 +32,7 @@ class Imu(IdlStruct, typename="sensor_msgs/msg/Imu"):
 @dataclass
 class NavSatStatus(IdlStruct, typename="sensor_msgs/msg/NavSatStatus"):
     status: int8 = 0
-    service: uint8 = 1
+    service: uint16 = 1  # uint16 in sensor_msgs (a GPS/GLONASS/… bit mask)
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """``hilsim plan evaluate`` for a mobile robot: every rover goal planned from the start, compared.
 
-The shape of :mod:`hilsim.tools.evaluate_arm` (the arm's Table III), with what matters for a base:
+The shape of :mod:`hilsim.tools.evaluate.arm` (the arm's Table III), with what matters for a base:
 for each goal, planned in turn from the previous goal's pose (the scenario's start pose for the
 first, as the task drives them) with the scenario's navigator settings, the table gives
 
@@ -25,12 +25,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from hilsim.core.config import ConfigError, Scenario
 from hilsim.navigation.planner import PlanResult, directions, path_length, smoothness
-
-CRITERIA = ("length", "smoothness", "weighted")
+from hilsim.tools.evaluate.common import choose, execute, output_csv, read_targets
 
 
 @dataclass
@@ -61,25 +59,13 @@ class GoalEvaluation:
 def load_goals(path: str | Path) -> tuple[list[str], list[tuple[float, float, float | None]],
                                           tuple[float, float, float] | None]:
     p = Path(path)
-    try:
-        data = yaml.safe_load(p.read_text())
-    except (OSError, yaml.YAMLError) as e:
-        raise ConfigError(f"{p}: cannot read goals: {e}") from None
-    if not isinstance(data, dict) or not isinstance(data.get("targets"), list) or not data["targets"]:
-        raise ConfigError(f"{p}: expected 'targets: [[x, y(, yaw)], …]'")
-    goals = []
-    for i, t in enumerate(data["targets"]):
-        if not isinstance(t, list) or len(t) not in (2, 3) or not all(isinstance(v, int | float) for v in t):
-            raise ConfigError(f"{p}: targets[{i}]: expected [x, y] or [x, y, yaw]")
-        goals.append((float(t[0]), float(t[1]), float(t[2]) if len(t) == 3 else None))
-    names = data.get("target_names") or [f"goal{i + 1}" for i in range(len(goals))]
-    if len(names) != len(goals):
-        raise ConfigError(f"{p}: target_names has {len(names)} names for {len(goals)} targets")
+    names, targets, data = read_targets(p, what="goals", form="[x, y(, yaw)]", lengths=(2, 3),
+                                        each="[x, y] or [x, y, yaw]", default_name="goal")
+    goals = [(t[0], t[1], t[2] if len(t) == 3 else None) for t in targets]
     start = data.get("start")
     if start is not None and (not isinstance(start, list) or len(start) != 3):
         raise ConfigError(f"{p}: start: expected [x, y, yaw]")
-    return [str(n) for n in names], goals, None if start is None else (float(start[0]), float(start[1]),
-                                                                        float(start[2]))
+    return names, goals, None if start is None else (float(start[0]), float(start[1]), float(start[2]))
 
 
 def evaluate_goals(
@@ -105,23 +91,6 @@ def evaluate_goals(
         if res.path is not None:
             here = (x, y, float(res.path[-1, 2]))
     return out
-
-
-def choose(evals: list[GoalEvaluation], criterion: str, w_length: float = 0.5) -> int | None:
-    if criterion not in CRITERIA:
-        raise ValueError(f"criterion must be one of {', '.join(CRITERIA)}")
-    ok = [i for i, e in enumerate(evals) if e.ok]
-    if not ok:
-        return None
-    p = np.array([evals[i].length for i in ok])
-    a = np.array([evals[i].smoothness for i in ok])
-    if criterion == "length":
-        score = p
-    elif criterion == "smoothness":
-        score = a
-    else:
-        score = w_length * p / max(p.min(), 1e-12) + (1 - w_length) * a / max(a.min(), 1e-12)
-    return ok[int(np.argmin(score))]
 
 
 def format_table(evals: list[GoalEvaluation], best: int | None) -> str:
@@ -155,7 +124,6 @@ def write_csv(path: str | Path, evals: list[GoalEvaluation], best: int | None) -
 def cmd_evaluate_goals(sc: Scenario, args: argparse.Namespace) -> int:
     """``hilsim plan evaluate --scenario rover [--targets FILE]``."""
     from hilsim.services.navigator import rover_targets
-    from hilsim.tools.evaluate_arm import output_csv
 
     if args.targets:
         names, goals, start = load_goals(args.targets)
@@ -176,33 +144,17 @@ def cmd_evaluate_goals(sc: Scenario, args: argparse.Namespace) -> int:
         return 1
     print(f"chosen: {evals[best].name}")
     if args.execute:
-        return execute(sc, evals[best])
+        return _execute(sc, evals[best])
     return 0 if all(e.ok for e in evals) else 1
 
 
-def execute(sc: Scenario, e: GoalEvaluation) -> int:
+def _execute(sc: Scenario, e: GoalEvaluation) -> int:
     """Send the chosen goal to the running rover's navigator and wait for its result."""
     from hilsim.core import msgs
-    from hilsim.core.keys import Keys
-    from hilsim.core.transport import open_session
-    from hilsim.planning.client import MoveClient
 
     x, y, yaw = e.goal
     pose = msgs.Pose(position=msgs.Point(x=x, y=y))
     if yaw is not None:
         pose.orientation = msgs.Quaternion(z=math.sin(yaw / 2), w=math.cos(yaw / 2))
-    session = open_session(sc.zenoh)
-    client = MoveClient(session, Keys(sc.prefix, sc.robot), service="navigator")
-    try:
-        gid = f"evaluate-{e.name}"
-        resp = client.send(msgs.MoveGoal(goal_id=gid, target_kind="pose", pose=pose, use_orientation=yaw is not None))
-        if not resp.accepted:
-            print(f"execute: rejected: {resp.reason}")
-            return 1
-        res = client.wait(gid, 300.0, on_feedback=lambda f: print(f"  {f.state:<10} {100 * f.progress:5.1f} %",
-                                                                    flush=True))
-        print(f"execute: {'succeeded' if res and res.success else 'failed'}: {res.message if res else 'no result'}")
-        return 0 if res is not None and res.success else 1
-    finally:
-        client.close()
-        session.close()
+    goal = msgs.MoveGoal(goal_id=f"evaluate-{e.name}", target_kind="pose", pose=pose, use_orientation=yaw is not None)
+    return execute(sc, goal, 300.0, service="navigator")

@@ -1,4 +1,4 @@
-"""Several targets, the best one (the paper's Table III), and ``hilsim plan evaluate``.
+"""Several targets, the best one (the paper's Table III): ``hilsim plan evaluate`` for an arm.
 
 For each target the scenario's planner plans from the start configuration, the path is timed
 with ruckig (:mod:`hilsim.planning.trajectory`), and per joint ``i``:
@@ -24,16 +24,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from hilsim.core.config import ConfigError, Scenario
-from hilsim.core.scenario import load_scenario
 from hilsim.planning.collision import ArmModel
 from hilsim.planning.library import PlannerLibrary, Problem
 from hilsim.planning.trajectory import TimedTrajectory, time_parameterize
-from hilsim.run.runs import new_run_dir
-
-CRITERIA = ("length", "smoothness", "weighted")
+from hilsim.tools.evaluate.common import choose, execute, output_csv, read_targets
 
 
 @dataclass
@@ -47,6 +43,16 @@ class Evaluation:
     P: np.ndarray | None = None  # per joint
     A: np.ndarray | None = None  # per joint
 
+    @property
+    def length(self) -> float:
+        """Σ_i P_i, what ``length`` minimises."""
+        return float(np.sum(self.P))
+
+    @property
+    def smoothness(self) -> float:
+        """Σ_i A_i, what ``smoothness`` minimises."""
+        return float(np.sum(self.A))
+
 
 def joint_path_lengths(q: np.ndarray) -> np.ndarray:
     """P_i = Σ_j |q_i^{j+1} − q_i^j| for each joint (columns of q)."""
@@ -59,42 +65,11 @@ def acceleration_variance(qdd: np.ndarray) -> np.ndarray:
     return np.var(np.asarray(qdd, float), axis=0)
 
 
-def choose(evals: list[Evaluation], criterion: str, w_length: float = 0.5) -> int | None:
-    """Index of the best successful evaluation by the criterion (None if none succeeded)."""
-    if criterion not in CRITERIA:
-        raise ValueError(f"criterion must be one of {', '.join(CRITERIA)}")
-    ok = [i for i, e in enumerate(evals) if e.ok]
-    if not ok:
-        return None
-    p = np.array([float(np.sum(evals[i].P)) for i in ok])
-    a = np.array([float(np.sum(evals[i].A)) for i in ok])
-    if criterion == "length":
-        score = p
-    elif criterion == "smoothness":
-        score = a
-    else:
-        score = w_length * p / max(p.min(), 1e-12) + (1 - w_length) * a / max(a.min(), 1e-12)
-    return ok[int(np.argmin(score))]
-
-
 def load_targets(path: str | Path, n: int) -> tuple[list[str], list[np.ndarray], np.ndarray | None]:
-    p = Path(path)
-    try:
-        data = yaml.safe_load(p.read_text())
-    except (OSError, yaml.YAMLError) as e:
-        raise ConfigError(f"{p}: cannot read targets: {e}") from None
-    if not isinstance(data, dict) or not isinstance(data.get("targets"), list) or not data["targets"]:
-        raise ConfigError(f"{p}: expected 'targets: [[q1 … q{n}], …]'")
-    targets = []
-    for i, t in enumerate(data["targets"]):
-        if not isinstance(t, list) or len(t) != n or not all(isinstance(v, int | float) for v in t):
-            raise ConfigError(f"{p}: targets[{i}]: expected {n} numbers")
-        targets.append(np.array(t, float))
-    names = data.get("target_names") or [f"target{i + 1}" for i in range(len(targets))]
-    if len(names) != len(targets):
-        raise ConfigError(f"{p}: target_names has {len(names)} names for {len(targets)} targets")
+    names, targets, data = read_targets(path, what="targets", form=f"[q1 … q{n}]", lengths=(n,),
+                                        each=f"{n} numbers", default_name="target")
     start = data.get("start", data.get("home"))
-    return [str(x) for x in names], targets, None if start is None else np.array(start, float)
+    return names, [np.array(t, float) for t in targets], None if start is None else np.array(start, float)
 
 
 def evaluate(
@@ -168,27 +143,8 @@ def log_rerun(path: Path, e: Evaluation, joint_names: list[str]) -> None:
     rec.flush()
 
 
-def output_csv(sc: Scenario, csv: str | None, out: str | None) -> Path:
-    """Where the CSV goes (the recording goes next to it): ``csv`` if given, else
-    ``plan_evaluate.csv`` in ``out`` or in a new ``runs/<timestamp>-plan-evaluate/``."""
-    if csv:
-        path = Path(csv)
-    else:
-        d = Path(out) if out else new_run_dir(sc.logger.out_dir, "plan-evaluate")
-        path = d / "plan_evaluate.csv"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return path
-
-
-def cmd_evaluate(args: argparse.Namespace) -> int:
-    from hilsim.planning import quiet_ompl_at_exit
-
-    quiet_ompl_at_exit()
-    sc = load_scenario(args.scenario)
-    if "navigator" in sc.services:  # a mobile robot: rover goals (hilsim.tools.evaluate_rover)
-        from hilsim.tools.evaluate_rover import cmd_evaluate_goals
-
-        return cmd_evaluate_goals(sc, args)
+def cmd_evaluate_targets(sc: Scenario, args: argparse.Namespace) -> int:
+    """``hilsim plan evaluate [--scenario arm] --targets FILE``."""
     if not args.targets:
         raise ConfigError("hilsim plan evaluate: --targets FILE is required for an arm scenario")
     arm = ArmModel(sc.world.model, sc.planner.clearance)
@@ -217,24 +173,6 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
 def _execute(sc: Scenario, e: Evaluation) -> int:
     from hilsim.core import msgs
-    from hilsim.core.keys import Keys
-    from hilsim.core.transport import open_session
-    from hilsim.planning.client import MoveClient
 
-    session = open_session(sc.zenoh)
-    client = MoveClient(session, Keys(sc.prefix, sc.robot))
-    try:
-        gid = f"evaluate-{e.name}"
-        resp = client.send(msgs.MoveGoal(goal_id=gid, joint_positions=[float(x) for x in e.target]))
-        if not resp.accepted:
-            print(f"execute: rejected: {resp.reason}")
-            return 1
-        res = client.wait(gid, sc.task.target_timeout + 60.0,
-                          on_feedback=lambda f: print(f"  {f.state:<10} {100 * f.progress:5.1f} %", flush=True))
-        print(f"execute: {'succeeded' if res and res.success else 'failed'}: {res.message if res else 'no result'}")
-        return 0 if res is not None and res.success else 1
-    finally:
-        client.close()
-        session.close()
-
-
+    goal = msgs.MoveGoal(goal_id=f"evaluate-{e.name}", joint_positions=[float(x) for x in e.target])
+    return execute(sc, goal, sc.task.target_timeout + 60.0, service="planner")

@@ -1,0 +1,189 @@
+"""``hilsim up`` following the run: what its services report, turned into its :class:`Outcome` as it goes.
+
+The :class:`Follower` prints each goal's result, every fault and the lockstep pauses as they happen,
+keeps every service's last health, and says when the run has ended (the task result of every robot,
+physics done, or a stalled lockstep). Only the services' own samples are believed
+(:mod:`hilsim.core.provenance`); the others are counted. The launcher (:mod:`hilsim.run.launcher`)
+supervises the processes and records their deaths and restarts in the same outcome;
+:mod:`hilsim.run.summary` prints it at the end.
+
+Reads: the ROS 2 graph ``@ros2_lv/<domain>/**`` (liveliness: who writes what), ``/<robot>/task/result``,
+``planner/result`` and ``navigator/result``, ``health/*``, ``log/*`` (faults); with ``robots: N``
+every robot's (``<domain>/*/…``). Writes nothing.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import zenoh
+
+from hilsim.core import fleet, msgs, transport
+from hilsim.core.config import Scenario
+from hilsim.core.keys import Keys, topic_name
+from hilsim.core.provenance import Provenance
+
+
+@dataclass
+class Restart:
+    """One restart of a service, for the summary."""
+
+    name: str
+    rc: int
+    sim_time: str  # physics' sim time when the death was noticed (its last health)
+    back_after: float | None = None  # wall seconds from the death to its liveliness token
+
+
+@dataclass
+class Outcome:
+    task: msgs.MoveResult | None = None
+    tasks: dict[str, msgs.MoveResult] = field(default_factory=dict)  # per robot (robots > 1)
+    results: list[msgs.MoveResult] = field(default_factory=list)
+    result_robots: list[str] = field(default_factory=list)  # the robot of each of results
+    health: dict[str, dict[str, str]] = field(default_factory=dict)
+    physics_done: bool = False
+    died: list[tuple[str, int]] = field(default_factory=list)
+    faults: list[str] = field(default_factory=list)
+    stalled: str = ""  # physics waited longer than clock.ack_timeout for a lockstep participant
+    interrupted: bool = False
+    restarts: list[Restart] = field(default_factory=list)
+
+
+class Follower:
+    """The run's results, health and faults, followed into :attr:`outcome` (under ``lock``, shared
+    with the launcher; ``changed`` is set at each news)."""
+
+    def __init__(self, sc: Scenario, follow_keys: Keys, robots: list[str], prov: Provenance, *,
+                 lock: threading.Lock, changed: threading.Event, say: Callable[[str], None]) -> None:
+        self.sc = sc
+        self.keys = Keys.of(sc)
+        self.follow_keys = follow_keys  # the robot's, or with robots > 1 every robot's (<domain>/*/…)
+        self.robots = robots
+        self.prov = prov
+        self.lock = lock
+        self.changed = changed
+        self.say = say
+        self.outcome = Outcome()
+        self.untrusted = 0  # samples on the keys it follows from writers other than the services
+        self.paused_for = ""  # lockstep: the services physics waits for to come back (its health)
+
+    def subscribe(self, session: zenoh.Session) -> list[Any]:
+        """Declare its subscribers on ``session`` (the caller undeclares them)."""
+        fk = self.follow_keys
+        return [
+            # first: who writes what, so that only the services' own samples are believed
+            session.liveliness().declare_subscriber(self.keys.all_writers, self.prov.on_token, history=True),
+            session.declare_subscriber(fk.topic("planner/result"), self._on_result),
+            session.declare_subscriber(fk.topic("navigator/result"), self._on_result),
+            session.declare_subscriber(fk.topic("task/result"), self._on_result),
+            session.declare_subscriber(fk.health("*"), self._on_health),
+            session.declare_subscriber(fk.log("*"), self._on_log),
+        ]
+
+    def ended(self) -> bool:
+        """The run is over as far as its services say: the task (of every robot) ended, physics is
+        done (the duration), or the lockstep stalled (said here)."""
+        with self.lock:
+            if self.outcome.task is not None or self.outcome.physics_done:
+                return True
+            if len(self.robots) > 1 and len(self.outcome.tasks) == len(self.robots):
+                return True  # every robot's task ended
+            if self.outcome.stalled:
+                self.say(f"error: the simulation stalled: {self.outcome.stalled}; stopping")
+                return True
+        return False
+
+    def progress(self) -> None:
+        """Say where the run is (physics' last health)."""
+        ph = self.outcome.health.get("physics", {})
+        self.say(f"  … sim time {ph.get('sim_time', '?')} s, real-time factor {ph.get('real_time_factor', '?')}")
+
+    def _trusted(self, sample: zenoh.Sample) -> bool:
+        """A sample from the key's announced writer (not a stranger's, nor a duplicate)."""
+        why, _ = self.prov.check(str(sample.key_expr), transport.read_attachment(sample))
+        if why is not None:
+            self.untrusted += 1
+        return why is None
+
+    def _on_result(self, sample: zenoh.Sample) -> None:
+        """``planner/result``: one goal ended (progress); ``task/result``: the task ended (the run ends)."""
+        if not self._trusted(sample):
+            return
+        try:
+            res = msgs.decode(msgs.MoveResult, sample.payload.to_bytes())
+        except msgs.BadMessage as e:
+            self.say(f"warning: unreadable result on {sample.key_expr}: {e}")
+            return
+        key = str(sample.key_expr)
+        name = topic_name(key)  # /<robot>/task/result, /<robot>/planner/result …
+        robot = name.split("/")[1]
+        with self.lock:
+            if name.endswith("/task/result"):
+                self.outcome.tasks[robot] = res
+                if len(self.robots) == 1:
+                    self.outcome.task = res
+            elif res.goal_id != "task":  # the planner repeats the task's result on planner/result
+                self.outcome.results.append(res)
+                self.outcome.result_robots.append(robot)
+                err = max((abs(e) for e in res.execution_error), default=float("nan"))
+                status = "reached" if res.success else f"FAILED ({res.message})"
+                if key.endswith("/navigator/result"):  # a rover goal: [m, rad]
+                    pos, yaw = (*res.execution_error, float("nan"), float("nan"))[:2]
+                    what = f"position error {pos:.3f} m, yaw error {yaw:.3f} rad (odometry)"
+                else:
+                    what = f"max joint error {err:.4f} rad"
+                who = f"{robot}: " if len(self.robots) > 1 else ""
+                self.say(f"  {who}{res.goal_id}: {status} at t={msgs.seconds(res.header.stamp):.2f}s sim, "
+                         f"planning {res.planning_time:.2f}s, {what}")
+        self.changed.set()
+
+    def _on_log(self, sample: zenoh.Sample) -> None:
+        """Faults of any service (a silent joint server, a stalled lockstep) as they happen."""
+        if not self._trusted(sample):
+            return
+        try:
+            m = msgs.decode(msgs.Log, sample.payload.to_bytes())
+        except msgs.BadMessage:
+            return
+        if m.level >= 40:
+            with self.lock:
+                self.outcome.faults.append(f"{m.name}: {m.msg}")
+            self.say(f"  fault: {m.name}: {m.msg}")
+
+    def _on_health(self, sample: zenoh.Sample) -> None:
+        if not self._trusted(sample):
+            return
+        try:
+            h = msgs.decode(msgs.DiagnosticArray, sample.payload.to_bytes())
+        except msgs.BadMessage:
+            return
+        # a robot's service (robots > 1) by <service>@<robot>: the robots' health apart
+        sid = fleet.service_id(self.sc, str(sample.key_expr), "health")
+        for st in h.status:
+            vals = {kv.key: kv.value for kv in st.values}
+            with self.lock:
+                self.outcome.health[sid if st.name == sid.split("@")[0] else st.name] = vals
+                if st.name == "physics" and vals.get("state") == "done":
+                    self.outcome.physics_done = True
+                if st.name == "physics" and vals.get("state") == "stalled" and not self.outcome.stalled:
+                    self.outcome.stalled = vals.get("last_error", "lockstep stalled")
+                if st.name == "physics":
+                    self._paused(vals)
+        self.changed.set()
+
+    def _paused(self, vals: dict[str, str]) -> None:
+        """Lockstep physics pauses sim time while a service is gone (under self.lock): say so once
+        per pause. Physics also says at which sim time each service left: the restarts' time."""
+        for r in self.outcome.restarts:
+            left = f"left:{r.name.split('+')[0]}"  # a composed process: its first service
+            if r.back_after is None and left in vals:
+                r.sim_time = vals[left]
+        gone = vals.get("paused_for", "")
+        if gone and gone != self.paused_for:
+            self.say(f"  physics: sim time paused at t={vals.get('sim_time', '?')} s until {gone} is back")
+        elif not gone and self.paused_for:
+            self.say(f"  physics: sim time runs again from t={vals.get('sim_time', '?')} s")
+        self.paused_for = gone

@@ -1,0 +1,195 @@
+"""``hilsim up``'s summary: what the run came to, printed at its end, and its exit code.
+
+:func:`summarise` judges the :class:`~hilsim.run.follow.Outcome` the launcher followed (the task's
+result per robot, the final errors, dead or restarted services, a stalled lockstep, faults) and, where
+this host ran the recorder, the recording: the counts the logger wrote to
+``<run dir>/record_summary.json`` (received, recorded, lost, dropped per key) against what every service
+says it published (``published:<key>`` in its final health); a recorder that died has its
+``recording.rrd`` parts recovered (:mod:`hilsim.core.recording`). The result is ``OK`` (exit code 0) or
+``FAILED`` (1).
+
+Reads and writes no Zenoh key: only the outcome and the run directory.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Protocol
+
+from hilsim.core.config import Scenario
+from hilsim.core.keys import UnknownKey, topic_name
+from hilsim.run.follow import Outcome
+
+
+class FinishedRun(Protocol):
+    """What the summary reads of a run (a :class:`hilsim.run.launcher.Launcher` once stopped)."""
+
+    @property
+    def sc(self) -> Scenario: ...
+    @property
+    def outcome(self) -> Outcome: ...
+    @property
+    def robots(self) -> list[str]: ...
+    @property
+    def local(self) -> list[str]: ...  # the launch units started on this host
+    @property
+    def run_dir(self) -> Path: ...
+    @property
+    def untrusted(self) -> int: ...  # samples ignored: not from the services
+
+
+def summarise(la: FinishedRun) -> int:
+    """Print the summary of a stopped run; its exit code: 0 (``result: OK``) or 1 (``FAILED``)."""
+    o, sc = la.outcome, la.sc
+    # with no task and no duration, Ctrl-C is how a run ends: not a failure
+    open_ended = not sc.task.targets and sc.duration is None
+    ok = not o.died and not o.stalled and (not o.interrupted or open_ended)
+    n_targets = len(sc.task.targets)
+    print("summary:")
+    if n_targets and len(la.robots) > 1:  # robots > 1: each robot's own task
+        for robot in la.robots:
+            reached = sum(1 for r, who in zip(o.results, o.result_robots, strict=True)
+                          if who == robot and r.success and r.goal_id.startswith("task-"))
+            task = o.tasks.get(robot)
+            if task is None:
+                print(f"  {robot}: targets reached {reached}/{n_targets}, task not finished")
+                ok = ok and sc.duration is not None and o.physics_done
+                continue
+            err = max((abs(e) for e in task.execution_error), default=float("nan"))
+            print(f"  {robot}: targets reached {reached}/{n_targets}, final max joint error {err:.4f} rad")
+            ok = ok and task.success and reached == n_targets
+    elif n_targets:
+        reached = sum(1 for r in o.results if r.success and r.goal_id.startswith("task-"))
+        print(f"  targets reached: {reached}/{n_targets}")
+        if o.task is not None:
+            # the joints as the planner named them in its trajectories (index if it sent none)
+            named = next((list(r.trajectory.joint_names) for r in o.results if r.trajectory.joint_names), [])
+            err = o.task.execution_error
+            names = named if len(named) == len(err) else [f"#{i}" for i in range(len(err))]
+            errs = ", ".join(f"{n} {e:+.4f}" for n, e in zip(names, err, strict=True))
+            if "navigator" in sc.services and len(err) == 2:  # the rover: [position m, yaw rad]
+                print(f"  final error: position {err[0]:.3f} m, yaw {err[1]:.3f} rad (odometry)")
+            else:
+                print(f"  final error per joint [rad]: {errs}")
+            ok = ok and o.task.success and reached == n_targets
+        else:
+            print("  task: not finished")
+            ok = ok and sc.duration is not None and o.physics_done
+    ph = o.health.get("physics", {})
+    if ph:
+        print(f"  sim time {ph.get('sim_time', '?')} s, real-time factor {ph.get('real_time_factor', '?')}, "
+              f"clock {sc.clock.mode}, seed {sc.seed}")
+    for name, h in sorted(o.health.items()):
+        bad = _num(h.get("rejected")) + _num(h.get("errors"))
+        if bad:
+            print(f"  {name}: {h.get('rejected')} rejected, {h.get('errors')} errors (last: {h.get('last_error', '')})")
+    rrd = la.run_dir / "recording.rrd"
+    if any("logger" in u.split("+") for u in la.local):  # a recorder on another host summarises there
+        # a recorder that died left no footer (and no counts): make its file whole, say what it holds
+        logger_restarted = any(r.name == "logger" for r in o.restarts)
+        if logger_restarted or any(n == "logger" for n, _ in o.died):
+            ok = _recover_recordings(la.run_dir) and ok
+        summary = la.run_dir / "record_summary.json"
+        if summary.exists():
+            counts = json.loads(summary.read_text())
+            rec = sum(v.get("recorded", 0) for v in counts.values())
+            recv = sum(v.get("received", 0) for v in counts.values())
+            mismatch = sorted(k for k, v in counts.items() if v.get("received") != v.get("recorded"))
+            lost = {k: v["lost"] for k, v in counts.items() if v.get("lost")}
+            n_lost, n_full = sum(lost.values()), sum(v.get("dropped", 0) for v in counts.values())
+            realtime = sc.clock.mode == "realtime"
+
+            def short(key: str) -> str:  # keys as the user names them: clock, truth/joint_states, …
+                try:
+                    name = topic_name(key)
+                except UnknownKey:
+                    return key
+                own = f"/{sc.robot}/"
+                return name[len(own):] if name.startswith(own) else name.lstrip("/")
+
+            line = f"  recorded {rec} of {recv} received messages on {len(counts)} keys"
+            if n_lost:
+                where = "in transport"
+                if n_full:
+                    where = f"({n_lost - n_full} in transport, {n_full} dropped by the recorder)"
+                why = "realtime: the recorder could not keep up" if realtime else "lockstep, where nothing may be lost"
+                top = sorted(lost.items(), key=lambda kv: (-kv[1], kv[0]))
+                keys = ", ".join(f"{short(k)} {n}" for k, n in top[:8]) + (", …" if len(top) > 8 else "")
+                line += f"; lost {n_lost} {where} ({why}): {keys}"
+            if mismatch:
+                line += f"; MISMATCH (received but not recorded) on {mismatch}"
+            print(line)
+            # Samples sent after the last one of their writer that reached the recorder (dropped, or
+            # still in flight when the run stopped) leave no gap it could count: compare with what
+            # every service says it published per key (final health).
+            published: dict[str, int] = {}
+            for h in o.health.values():
+                for k, v in h.items():
+                    if k.startswith("published:"):
+                        published[k[10:]] = published.get(k[10:], 0) + _num(v)
+            unseen = {}
+            for k, v in counts.items():
+                seen = v["received"] + v.get("lost", 0) + v.get("before_first", 0)
+                if published.get(k, 0) > seen:
+                    unseen[k] = published[k] - seen
+            if unseen:
+                top = sorted(unseen.items(), key=lambda kv: (-kv[1], kv[0]))
+                keys = ", ".join(f"{short(k)} {n}" for k, n in top[:8]) + (", …" if len(top) > 8 else "")
+                print(f"  {sum(unseen.values())} published samples never reached the recorder: {keys}")
+                n_lost += sum(unseen.values())
+            if logger_restarted:
+                # what the killed recorder had received is in its part of the recording, but its
+                # counts died with it, and what it had not flushed yet is lost: reported, not
+                # judged (the restart policy asked for the run to go on)
+                print("  (the recorder was restarted: these counts are its last process's; samples the killed "
+                      "one had not written yet are lost)")
+                n_lost = 0
+            # realtime: a loss is reported, not a failure; lockstep promises that nothing is lost
+            ok = ok and not mismatch and (realtime or not n_lost)
+        else:
+            print("  recording summary missing")
+            ok = False
+        print(f"  recording: {rrd}")
+    print(f"  logs: {la.run_dir}/")
+    for name, rc in o.died:
+        print(f"  service {name} died (exit code {rc})")
+    if o.stalled:
+        print(f"  stalled: {o.stalled}")
+    if o.faults:
+        print(f"  faults reported: {len(o.faults)} (first: {o.faults[0]})")
+    for r in o.restarts:
+        back = f"back after {r.back_after:.1f} s" if r.back_after is not None else "not back"
+        print(f"  restarted {r.name} (exit code {r.rc} at sim time {r.sim_time} s; {back})")
+    if la.untrusted:
+        print(f"  ignored {la.untrusted} samples on results, health and logs from writers other than the services")
+    print("result: " + ("OK" if ok else "FAILED"))
+    return 0 if ok else 1
+
+
+def _num(v: str | None) -> int:
+    """A count from a health value (0 when absent or not a number)."""
+    try:
+        return int(v or 0)
+    except ValueError:
+        return 0
+
+
+def _recover_recordings(run_dir: Path) -> bool:
+    """After a recorder died: make each part of the run's recording complete (a SIGKILL leaves no
+    RRD footer) and say what it holds; False if a part could not be recovered."""
+    from hilsim.core.recording import RecordingError, contents, recording_parts, recover_rrd
+
+    ok = True
+    for part in recording_parts(run_dir):
+        try:
+            rewritten = recover_rrd(part)
+            c = contents(part)
+        except RecordingError as e:
+            print(f"  recording {part}: NOT RECOVERED: {str(e).splitlines()[0]}")
+            ok = False
+            continue
+        upto = f"up to t={c.last_sim_ns / 1e9:.3f} s sim" if c.last_sim_ns is not None else "no sim time"
+        how = "the recorder was killed: recovered, verified" if rewritten else "complete, verified"
+        print(f"  recording {part}: {sum(c.rows.values())} rows on {len(c.rows)} entities {upto} ({how})")
+    return ok

@@ -1,0 +1,25 @@
+"""``hilsim plan evaluate``: plan several targets of a scenario and compare them.
+
+An arm scenario (joint targets, the paper's Table III): :mod:`hilsim.tools.evaluate.arm`; a mobile
+robot (a scenario with a navigator; the rover's goals): :mod:`hilsim.tools.evaluate.rover`. What both
+share (the criteria and the choice of the best, where the CSV goes): :mod:`hilsim.tools.evaluate.common`.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def cmd_evaluate(args: argparse.Namespace) -> int:
+    from hilsim.core.scenario import load_scenario
+    from hilsim.planning import quiet_ompl_at_exit
+
+    quiet_ompl_at_exit()
+    sc = load_scenario(args.scenario)
+    if "navigator" in sc.services:  # a mobile robot: rover goals
+        from hilsim.tools.evaluate.rover import cmd_evaluate_goals
+
+        return cmd_evaluate_goals(sc, args)
+    from hilsim.tools.evaluate.arm import cmd_evaluate_targets
+
+    return cmd_evaluate_targets(sc, args)
