@@ -12,8 +12,11 @@ Writes (every step, stamped with the step's sim time):
   ``<prefix>/<robot>/truth/imu``          sensor_msgs/Imu at ``physics.truth_imu_site`` (if set)
   ``<prefix>/<robot>/truth/odom``         nav_msgs/Odometry of the chassis, world frame (mobile
                                           robots only: a model whose root body has a free joint)
-  ``<prefix>/<robot>/tf``                 tf2_msgs/TFMessage: world → chassis → its sensor sites
-                                          (mobile robots only)
+  ``/tf``                                 tf2_msgs/TFMessage: world → chassis → its sensor sites
+                                          (mobile robots, every step); the URDF's moving joints
+                                          (``physics.tf_rate_hz``, from the true joint positions)
+  ``/tf_static``, ``<ns>/robot_description`` the URDF's fixed joints, the URDF (std_msgs/String);
+                                          once, transient-local (kept for late subscribers)
   ``<prefix>/<robot>/truth/joint_states`` sensor_msgs/JointState (position, velocity, applied effort)
   ``<prefix>/clock``                      rosgraph_msgs/Clock
   ``<prefix>/<robot>/truth/contacts``     hilsim_msgs/Contacts: every contact, published at step 0
@@ -49,6 +52,7 @@ from hilsim.core.keys import Keys, topic_name
 from hilsim.core.service import LEVEL_ERROR, Publisher, Service
 from hilsim.core.transport import Attachment
 from hilsim.sim.fleet_world import FleetWorld
+from hilsim.sim.tf import UrdfFrames
 from hilsim.sim.world import World
 
 SPIN_NS = 80_000  # realtime: busy-wait at most this long before a deadline
@@ -77,12 +81,19 @@ class Participant:
 class Robot:
     """One robot's part of the world and its truth publishers (a fleet has one per robot)."""
 
-    def __init__(self, svc: Service, keys: Keys, world: World) -> None:
+    def __init__(self, svc: Service, keys: Keys, world: World, fleet_robot: str | None = None) -> None:
         self.keys, self.world = keys, world
         self.pub_imu = svc.publisher(keys.truth("imu")) if world.imu_site else None
-        # a mobile base (free joint) also has truth/odom and tf; a fixed-base robot has neither
+        # a mobile base (free joint) also has truth/odom; its pose in the world goes on /tf every step
         self.pub_odom = svc.publisher(keys.truth("odom")) if world.base else None
-        self.pub_tf = svc.publisher(keys.topic("tf")) if world.base else None
+        # the URDF's frames (robot_state_publisher's job): fixed joints once on /tf_static, moving ones
+        # on /tf at physics.tf_rate_hz, the URDF itself on robot_description (both transient-local)
+        urdf = svc.sc.world.urdf
+        self.frames = UrdfFrames(urdf, f"{fleet_robot}/" if fleet_robot else "") if urdf is not None else None
+        self.pub_tf = svc.publisher(keys.tf) if world.base or self.frames else None
+        if self.frames is not None:
+            svc.publisher(keys.tf_static, latched=True).put(self.frames.static(world.time_ns))
+            svc.publisher(keys.topic("robot_description"), latched=True).put(msgs.String(data=self.frames.urdf_text))
         self.pub_js = svc.publisher(keys.truth("joint_states"))
         # contacts: published when the set of touching geom pairs changes (and once at start), so
         # every contact is in the record without a message per step
@@ -131,7 +142,10 @@ class PhysicsService(Service):
         self.last_progress = time.monotonic()
         self.waiting_reported = False
         robot_keys = [Keys.of(sc, r) for r in fleet.robot_names(sc)]
-        self.robots = [Robot(self, k, v) for k, v in zip(robot_keys, views, strict=True)]
+        self.robots = [Robot(self, k, v, k.robot if sc.robots > 1 else None)
+                       for k, v in zip(robot_keys, views, strict=True)]
+        rate = sc.physics.tf_rate_hz
+        self.tf_period = max(1, round(1.0 / (rate * sc.clock.dt))) if rate > 0 else 0
         self.pub_clock = self.publisher(self.keys.clock)
         self.contact_steps = 0
         for r in self.robots:
@@ -307,6 +321,10 @@ class PhysicsService(Service):
                 # before truth/joint_states: the sensors' step is complete once they handled that one
                 r.pub_odom.put(w.base.odometry(w.time_ns))
                 r.pub_tf.put(w.base.transforms(w.time_ns))
+            if r.frames is not None and self.tf_period and w.step_index % self.tf_period == 0:
+                assert r.pub_tf is not None
+                q = dict(zip(w.joint_names, w.positions().tolist(), strict=True))
+                r.pub_tf.put(msgs.TFMessage(transforms=r.frames.moving_transforms(w.time_ns, q)))
             if w.data.ncon or r.contact_pairs:  # the arm: nothing to look at on almost every step
                 pairs = w.contact_pairs()
                 self.contact_steps += bool(pairs)

@@ -22,6 +22,7 @@ from typing import Any
 
 import xxhash
 import zenoh
+import zenoh.ext
 from rosbags.typesys import Stores, get_typestore
 from zenoh.ext import Int64, z_deserialize, z_serialize
 
@@ -50,6 +51,7 @@ class Ros2Node:
         conf.insert_json5("mode", '"client"')
         conf.insert_json5("connect/endpoints", f'["{endpoint}"]')
         conf.insert_json5("scouting/multicast/enabled", "false")
+        conf.insert_json5("timestamping/enabled", "{router: true, peer: true, client: true}")  # as rmw_zenoh's
         self.session = zenoh.open(conf)
         self.domain, self.name, self.namespace = domain, name, namespace
         self.zid = str(self.session.info.zid())
@@ -93,6 +95,16 @@ class Ros2Node:
             cb(STORE.deserialize_cdr(s.payload.to_bytes(), ros_type), (int(seq), int(ts), bytes(gid)))
 
         self._decl.append(self.session.declare_subscriber(topic_key(self.domain, topic, ros_type), on_sample))
+
+    def subscribe_latched(self, topic: str, ros_type: str, cb: Callable[[Any], None]) -> None:
+        """A transient-local subscription, as rmw_zenoh makes one: an advanced subscriber that asks
+        the publishers' caches for what they sent before it came."""
+        def on_sample(s: zenoh.Sample) -> None:
+            cb(STORE.deserialize_cdr(s.payload.to_bytes(), ros_type))
+
+        self._decl.append(zenoh.ext.declare_advanced_subscriber(
+            self.session, topic_key(self.domain, topic, ros_type), on_sample,
+            history=zenoh.ext.HistoryConfig(detect_late_publishers=True)))
 
     def publisher(self, topic: str, ros_type: str) -> Callable[[Any], None]:
         eid = next(self._ids)

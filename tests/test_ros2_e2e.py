@@ -106,6 +106,7 @@ def test_a_ros2_node_sees_the_arm_and_moves_it_with_a_joint_trajectory(router: s
                             ("/arm/truth/joint_states", "sensor_msgs/msg/JointState"),
                             ("/arm/joint_commands", "sensor_msgs/msg/JointState"), ("/arm/imu", "sensor_msgs/msg/Imu")):
         node.subscribe(topic, ros_type, seen.on(topic))
+    node.subscribe("/tf", "tf2_msgs/msg/TFMessage", seen.on("/tf"))
     run = Run(["arm", "--set", "services=[physics,sensors,controller]", "--duration", "60"], router, tmp_path)
     out = ""
     try:
@@ -144,6 +145,25 @@ def test_a_ros2_node_sees_the_arm_and_moves_it_with_a_joint_trajectory(router: s
         assert clocks == sorted(clocks) and clocks[-1] > 1e9
         for topic in ("/clock", "/arm/joint_states", "/arm/truth/joint_states"):
             check_attachments(node, seen, topic)
+        # /tf from the URDF's moving joints: joint_1 turns shoulder_link about z by its angle
+        tf = {tr.child_frame_id: tr for m in seen.msgs["/tf"][-5:] for tr in m.transforms}
+        assert {"shoulder_link", "arm_link", "elbow_link", "forearm_link", "wrist_link", "hand_link"} <= set(tf), tf
+        r = tf["shoulder_link"].transform.rotation
+        assert tf["shoulder_link"].header.frame_id == "base_link"
+        assert abs(2 * math.atan2(r.z, r.w) - target[0]) < 0.02, r
+        # transient-local, as rviz2 gets them however late it comes: /tf_static and the URDF
+        late = Ros2Node(router, name="rviz2", namespace="/")
+        statics: list[Any] = []
+        description: list[Any] = []
+        late.subscribe_latched("/tf_static", "tf2_msgs/msg/TFMessage", statics.append)
+        late.subscribe_latched("/arm/robot_description", "std_msgs/msg/String", description.append)
+        try:
+            assert wait_until(lambda: bool(statics) and bool(description), 15), (statics, description)
+        finally:
+            late.close()
+        assert any(tr.child_frame_id == "tool_link" and tr.header.frame_id == "hand_link"
+                   for tr in statics[0].transforms), statics[0]
+        assert "<robot" in description[0].data and 'joint name="joint_1"' in description[0].data
     finally:
         out = run.stop()
         node.close()

@@ -123,6 +123,7 @@ class PhysicsConfig(_Model):
     server_timeout: float = Field(
         0.25, gt=0, description="wall seconds without state from an external joint server before it is a fault"
     )
+    tf_rate_hz: float = Field(50.0, ge=0, description="/tf of the URDF's moving joints (0: off)")
 
 
 class SensorConfig(BaseModel):
@@ -182,6 +183,8 @@ class LoggerConfig(_Model):
     run_dir: Path | None = Field(None, description="write here instead of <out_dir>/<timestamp> (set by `hilsim up`)")
     record: list[str] = Field(default_factory=lambda: ["**"],
                               description="key expressions under <domain id>/, e.g. arm/** (hilsim.core.keys)")
+    bag: bool = Field(True, description="also write <run dir>/bag/, a rosbag2 bag (MCAP) of every sample's raw CDR "
+                      "(docs/recording.md)")
 
 
 class Ros2Config(_Model):

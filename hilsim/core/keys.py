@@ -41,7 +41,7 @@ TOPICS: dict[str, type] = {
     "scan": msgs.LaserScan,
     "cmd_vel": msgs.Twist,
     "odom": msgs.Odometry,
-    "tf": msgs.TFMessage,
+    "robot_description": msgs.String,  # the URDF, transient-local (a late joiner gets it)
     "truth/joint_states": msgs.JointState,
     "truth/imu": msgs.Imu,
     "truth/odom": msgs.Odometry,
@@ -64,7 +64,8 @@ PER_SERVICE_TOPICS: dict[str, type] = {
 # Keys <prefix>/<robot>/hw/<server>/<topic>: what an external joint server (a bridge, the motor
 # model) publishes. One key per server, so each has exactly one writer.
 SERVER_TOPICS: dict[str, type] = {"joint_states": msgs.JointState}
-GLOBAL_TOPICS: dict[str, type] = {"clock": msgs.Clock}
+# /tf and /tf_static are global, as tf2 and rviz2 expect (a fleet prefixes its frames with the robot name)
+GLOBAL_TOPICS: dict[str, type] = {"clock": msgs.Clock, "tf": msgs.TFMessage, "tf_static": msgs.TFMessage}
 
 # Queryables (request/reply): topic -> (request type, reply type).
 SERVICES: dict[str, tuple[type, type]] = {
@@ -184,6 +185,14 @@ class Keys:
     def clock(self) -> str:
         return self._data("/clock", GLOBAL_TOPICS["clock"])
 
+    @property
+    def tf(self) -> str:
+        return self._data("/tf", GLOBAL_TOPICS["tf"])
+
+    @property
+    def tf_static(self) -> str:
+        return self._data("/tf_static", GLOBAL_TOPICS["tf_static"])
+
     def truth(self, name: str) -> str:
         return self.topic(f"truth/{name}")
 
@@ -247,6 +256,77 @@ class Keys:
     def scoped(self, expr: str) -> str:
         """A key expression under this simulation's domain, e.g. ``scoped("**")``, ``scoped("arm/**")``."""
         return f"{self.domain}/{expr}"
+
+    # ================================================================ ROS 2 services and actions (rmw_zenoh)
+    # (the block below is about ROS 2 request/reply services and actions only; ACTION_TOPICS below the class)
+    def ros2_name(self, name: str) -> str:
+        """A ROS 2 name of this robot: ``follow_joint_trajectory`` -> ``/arm/follow_joint_trajectory``;
+        an absolute name (``/move_group``) stays as it is."""
+        return "/" + name.strip("/") if name.startswith("/") else self.topic_name(name.strip("/"))
+
+    def ros2_service(self, name: str, srv_type: str) -> str:
+        """The key of ROS 2 service ``name`` (relative to the namespace, or absolute) of type ``srv_type``,
+        as rmw_zenoh's server declares its queryable and its client queries it:
+        ``<domain>/<service name>/<pkg>::srv::dds_::<Srv>_/<RIHS01 hash of the service type>``. The type is
+        the service's (``action_msgs/srv/CancelGoal``; an action's ``…/action/<A>_SendGoal``): rmw_zenoh
+        cuts ``Request_``/``Response_`` off its request's or response's type name, and the hash is the
+        service type support's (request, response and event), not the request's."""
+        return ros2wire.service_key(self.domain, self.ros2_name(name), ros2types.dds_type_name(srv_type),
+                                    ros2types.type_hash(srv_type))
+
+    def action(self, name: str, action_type: str) -> ActionKeys:
+        """The keys of ROS 2 action ``name`` (relative or absolute) of type ``action_type``
+        (``control_msgs/action/FollowJointTrajectory``): three services and two topics under
+        ``<name>/_action/`` (rcl_action's names)."""
+        full = self.ros2_name(name)
+        return ActionKeys(
+            name=full,
+            action_type=action_type,
+            send_goal=self.ros2_service(f"{full}/_action/send_goal", f"{action_type}_SendGoal"),
+            cancel_goal=self.ros2_service(f"{full}/_action/cancel_goal", CANCEL_GOAL_SERVICE),
+            get_result=self.ros2_service(f"{full}/_action/get_result", f"{action_type}_GetResult"),
+            feedback=self._ros2_topic(f"{full}/_action/feedback", f"{action_type}_FeedbackMessage"),
+            status=self._ros2_topic(f"{full}/_action/status", GOAL_STATUS_ARRAY),
+        )
+
+    def _ros2_topic(self, full_name: str, msg_type: str) -> str:
+        return ros2wire.topic_key(self.domain, full_name, ros2types.dds_type_name(msg_type),
+                                  ros2types.type_hash(msg_type))
+
+
+# ==================================================================== ROS 2 services and actions (rmw_zenoh)
+# An action <name> of type <pkg>/action/<A> is, as rcl_action names its parts and rmw_zenoh keys them:
+#   services <name>/_action/send_goal (<A>_SendGoal), <name>/_action/cancel_goal (action_msgs/srv/CancelGoal),
+#            <name>/_action/get_result (<A>_GetResult): queryables, Keys.ros2_service;
+#   topics   <name>/_action/feedback (<A>_FeedbackMessage), <name>/_action/status (action_msgs/msg/GoalStatusArray).
+CANCEL_GOAL_SERVICE = "action_msgs/srv/CancelGoal"
+GOAL_STATUS_ARRAY = "action_msgs/msg/GoalStatusArray"
+
+
+@dataclass(frozen=True)
+class ActionKeys:
+    """The keys of one ROS 2 action (:meth:`Keys.action`); ``name`` is its full ROS 2 name."""
+
+    name: str
+    action_type: str
+    send_goal: str
+    cancel_goal: str
+    get_result: str
+    feedback: str
+    status: str
+
+
+# The topics of the robot's own actions under their default names, so that keys.topic() builds them and
+# message_type() (the recorder, `hilsim topic echo`) reads them: the controller's FollowJointTrajectory
+# (controller.params.action_ns) and the planner's move action. A key is read by its type chunk, so
+# renamed actions are read all the same.
+ACTION_TOPICS: dict[str, type] = {
+    "follow_joint_trajectory/_action/feedback": msgs.FollowJointTrajectoryFeedbackMessage,
+    "follow_joint_trajectory/_action/status": msgs.GoalStatusArray,
+    "move/_action/feedback": msgs.MoveFeedbackMessage,
+    "move/_action/status": msgs.GoalStatusArray,
+}
+TOPICS.update(ACTION_TOPICS)
 
 
 def topic_name(key: str) -> str:

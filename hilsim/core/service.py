@@ -51,18 +51,21 @@ LEVEL_OK, LEVEL_WARN, LEVEL_ERROR = 0, 1, 2
 class Publisher:
     """Encodes, sends and counts messages on one key."""
 
-    def __init__(self, service: Service, key: str) -> None:
+    def __init__(self, service: Service, key: str, *, latched: bool = False) -> None:
         self.key = key
         self._svc = service
-        # realtime: a subscriber that cannot keep up loses samples rather than delaying us
-        self._pub = transport.publisher(service.session, key, drop_when_congested=service.sc.clock.mode == "realtime")
+        if latched:  # transient-local: the last sample kept for subscribers that come later
+            self._pub = transport.latched_publisher(service.session, key)
+        else:  # realtime: a subscriber that cannot keep up loses samples rather than delaying us
+            self._pub = transport.publisher(service.session, key,
+                                            drop_when_congested=service.sc.clock.mode == "realtime")
         self.seq = 0
         self._lock = threading.Lock()
         # composed (hilsim.run.compose): also handed, unencoded, to the subscribers in this process
         self._local = getattr(self._pub, "deliver", None)
         # announce as a ROS 2 publisher does (its gid is its token's hash): receivers accept this key
         # only from announced writers (hilsim.core.provenance), and `ros2 topic list` sees it
-        token = service.graph_token("MP", key)
+        token = service.graph_token("MP", key, wire.QOS_LATCHED if latched else None)
         self.gid = wire.entity_gid(token)
         self._token = service.session.liveliness().declare_token(token)
 
@@ -207,11 +210,12 @@ class Service:
         """This service as a ROS 2 node: ``controller`` (``motor-model`` is ``motor_model``)."""
         return self.name.split("@")[0].replace("-", "_")
 
-    def graph_token(self, kind: str, key: str) -> str:
+    def graph_token(self, kind: str, key: str, qos: wire.Qos | None = None) -> str:
         """The rmw_zenoh liveliness token of this node's publisher (``MP``) or subscription (``MS``) on a
         concrete data key, as a ROS 2 node on rmw_zenoh_cpp declares it (:mod:`hilsim.core.ros2.wire`)."""
         parts = key.split("/")
-        qos = wire.QOS_CLOCK if key == self.keys.clock else wire.QOS_DEFAULT
+        if qos is None:
+            qos = wire.QOS_CLOCK if key == self.keys.clock else wire.QOS_DEFAULT
         return wire.entity_token(kind, self.keys.domain, self._zid, self._node_id, next(_ENTITY_IDS),
                                  self.sc.ros2.enclave, self.keys.namespace, self.node_name,
                                  "/" + "/".join(parts[1:-2]), parts[-2], parts[-1], qos)
@@ -224,9 +228,10 @@ class Service:
             self.keys.domain, self._zid, self._node_id, self.sc.ros2.enclave, self.keys.namespace, self.node_name)))
 
     # ------------------------------------------------------------------ declarations
-    def publisher(self, key: str) -> Publisher:
+    def publisher(self, key: str, *, latched: bool = False) -> Publisher:
+        """A publisher of ``key``; ``latched``: transient-local (its last sample kept for late subscribers)."""
         assert self.session is not None
-        p = Publisher(self, key)
+        p = Publisher(self, key, latched=latched)
         self._declared.append(p)
         return p
 
@@ -343,6 +348,70 @@ class Service:
                 query.reply_err(f"{type(e).__name__}: {e}")
 
         self._declared.append(self.session.declare_queryable(key, on_query))
+
+    def ros2_service(
+        self,
+        name: str,
+        srv_type: str,
+        req_cls: type[T],
+        handler: Callable[[T, Callable[[Any], None]], Any],
+    ) -> str:
+        """Serve ROS 2 service ``name`` (below the robot's namespace, or absolute) of type ``srv_type``
+        (``action_msgs/srv/CancelGoal``, ``control_msgs/action/FollowJointTrajectory_SendGoal``) as a
+        node on rmw_zenoh_cpp does: a complete queryable on :meth:`Keys.ros2_service`, a service
+        server's graph token (``SS``); each reply carries the response's CDR and an attachment with the
+        request's sequence number and client gid (:func:`hilsim.core.ros2.wire.reply_attachment`).
+
+        ``handler(request, reply)`` runs under :attr:`lock` and returns the response message, or None to
+        answer later by calling ``reply(response)`` once (an action's get_result waits for its goal's
+        end; the query stays open until then). A request that does not decode is answered with an
+        error reply. Returns the key."""
+        assert self.session is not None
+        key = self.keys.ros2_service(name, srv_type)
+
+        def on_query(query: zenoh.Query) -> None:
+            self.counts_in[key] += 1
+            payload = query.payload.to_bytes() if query.payload is not None else b""
+            request_att = query.attachment.to_bytes() if query.attachment is not None else b""
+            try:
+                req = msgs.decode(req_cls, payload)
+            except msgs.BadMessage as e:
+                self.rejected[key] += 1
+                self.warn(f"rejected request on {key}: {e}")
+                query.reply_err(str(e))
+                return
+            answered = threading.Lock()
+
+            def reply(rep: Any) -> None:
+                if not answered.acquire(blocking=False):
+                    return  # answered already
+                try:
+                    att = wire.reply_attachment(request_att, time.time_ns())
+                    kw = {} if att is None else {"attachment": att}
+                    query.reply(key, msgs.encode(rep), **kw)
+                    self.counts_out[key] += 1
+                except zenoh.ZError as e:  # the client or the session went away meanwhile
+                    self.log.debug("reply on %s not sent: %s", key, e)
+                finally:
+                    query.drop()  # the query's end: the client stops waiting for more replies
+
+            try:
+                with self.lock:
+                    rep = handler(req, reply)
+            except Exception as e:
+                self.fault(f"error answering {key}: {type(e).__name__}: {e}", exc=e)
+                query.reply_err(f"{type(e).__name__}: {e}")
+                return
+            if rep is not None:
+                reply(rep)
+
+        try:
+            qable = self.session.declare_queryable(key, on_query, complete=True)
+        except TypeError:  # the in-process bus (hilsim.core.inproc) knows no options
+            qable = self.session.declare_queryable(key, on_query)
+        self._declared.append(qable)
+        self._declared.append(self.session.liveliness().declare_token(self.graph_token("SS", key)))
+        return key
 
     def reject(self, key: str, reason: str) -> bool:
         """A sample that cannot be used: counted per key, logged with the key; returns False."""

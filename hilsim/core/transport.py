@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any, NamedTuple
 
 import zenoh
+import zenoh.ext as zenoh_ext
 
 from hilsim.core.config import ConfigError, TlsConfig, ZenohConfig, tls_from_env
 from hilsim.core.keys import DEFAULT_PREFIX, Keys
@@ -44,6 +45,9 @@ def zenoh_config(zc: ZenohConfig, *, mode: str | None = None, listen: list[str] 
         conf.insert_json5("scouting/gossip/enabled", "false")
     conf.insert_json5("mode", json.dumps(mode or zc.mode))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(zc.multicast_scouting))
+    # as rmw_zenoh's default config: transient-local publishers (robot_description, tf_static) are
+    # Zenoh advanced publishers, which need timestamps
+    conf.insert_json5("timestamping/enabled", "{router: true, peer: true, client: true}")
     if zc.connect and (mode or zc.mode) != "router":
         conf.insert_json5("connect/endpoints", json.dumps(zc.connect))
     ls = listen if listen is not None else zc.listen
@@ -130,6 +134,17 @@ def publisher(session: zenoh.Session, key: str, *, drop_when_congested: bool = F
         drop_when_congested = False
     cc = zenoh.CongestionControl.DROP if drop_when_congested else zenoh.CongestionControl.BLOCK
     return session.declare_publisher(key, congestion_control=cc, reliability=zenoh.Reliability.RELIABLE, express=False)
+
+
+def latched_publisher(session: Any, key: str) -> Any:
+    """A transient-local publisher, as rmw_zenoh makes one: a Zenoh advanced publisher keeping its last
+    sample for subscribers that come later (``/robot_description``, ``/tf_static``). On an in-process
+    bus (tests, benchmarks) an ordinary publisher."""
+    real = session if isinstance(session, zenoh.Session) else getattr(session, "session", None)
+    if not isinstance(real, zenoh.Session):
+        return publisher(session, key)
+    return zenoh_ext.declare_advanced_publisher(real, key, cache=zenoh_ext.CacheConfig(max_samples=1),
+                                                publisher_detection=True)
 
 
 # ---------------------------------------------------------------- sample attachment

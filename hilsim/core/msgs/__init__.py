@@ -18,7 +18,8 @@ split them by concern:
 - :mod:`~hilsim.core.msgs.diagnostics` — diagnostic_msgs and the service log;
 - :mod:`~hilsim.core.msgs.contact` — contacts in the physics truth;
 - :mod:`~hilsim.core.msgs.parameters` — live parameters; :mod:`~hilsim.core.msgs.action` — the move action
-  and its error codes;
+  and its error codes; :mod:`~hilsim.core.msgs.control` — ROS 2 actions on the wire (action_msgs,
+  unique_identifier_msgs) and control_msgs' FollowJointTrajectory;
 - :mod:`~hilsim.core.msgs.validation` — :class:`BadMessage`, :func:`validate`;
   :mod:`~hilsim.core.msgs.codec` — :func:`encode`, :func:`decode`, :func:`to_dict`, :func:`type_name`;
   :mod:`~hilsim.core.msgs.fastcdr` — the hand-unrolled codec of the per-step types.
@@ -40,12 +41,40 @@ from hilsim.core.msgs.action import (
     CancelRequest,
     GoalResponse,
     MoveFeedback,
+    MoveFeedbackMessage,
+    MoveGetResultEvent,
+    MoveGetResultRequest,
+    MoveGetResultResponse,
     MoveGoal,
     MoveResult,
+    MoveSendGoalEvent,
+    MoveSendGoalRequest,
+    MoveSendGoalResponse,
 )
-from hilsim.core.msgs.builtin import Clock, Duration, Header, Time, duration, header, ns_of, seconds, stamp
+from hilsim.core.msgs.builtin import Clock, Duration, Header, String, Time, duration, header, ns_of, seconds, stamp
 from hilsim.core.msgs.codec import decode, encode, encode_reference, prepare, to_dict, type_name
 from hilsim.core.msgs.contact import Contact, Contacts
+from hilsim.core.msgs.control import (
+    UUID,
+    CancelGoalRequest,
+    CancelGoalResponse,
+    FollowJointTrajectoryFeedback,
+    FollowJointTrajectoryFeedbackMessage,
+    FollowJointTrajectoryGetResultRequest,
+    FollowJointTrajectoryGetResultResponse,
+    FollowJointTrajectoryGoal,
+    FollowJointTrajectoryResult,
+    FollowJointTrajectorySendGoalRequest,
+    FollowJointTrajectorySendGoalResponse,
+    GoalInfo,
+    GoalStatus,
+    GoalStatusArray,
+    JointComponentTolerance,
+    JointTolerance,
+    MultiDOFJointTrajectory,
+    MultiDOFJointTrajectoryPoint,
+    ServiceEventInfo,
+)
 from hilsim.core.msgs.diagnostics import DiagnosticArray, DiagnosticStatus, KeyValue, Log
 from hilsim.core.msgs.geometry import (
     MapMetaData,
@@ -80,7 +109,10 @@ __all__ = [
     "PLANNING_FAILED",
     "SUCCESS",
     "TIMED_OUT",
+    "UUID",
     "BadMessage",
+    "CancelGoalRequest",
+    "CancelGoalResponse",
     "CancelRequest",
     "Clock",
     "Contact",
@@ -88,11 +120,24 @@ __all__ = [
     "DiagnosticArray",
     "DiagnosticStatus",
     "Duration",
+    "FollowJointTrajectoryFeedback",
+    "FollowJointTrajectoryFeedbackMessage",
+    "FollowJointTrajectoryGetResultRequest",
+    "FollowJointTrajectoryGetResultResponse",
+    "FollowJointTrajectoryGoal",
+    "FollowJointTrajectoryResult",
+    "FollowJointTrajectorySendGoalRequest",
+    "FollowJointTrajectorySendGoalResponse",
+    "GoalInfo",
     "GoalResponse",
+    "GoalStatus",
+    "GoalStatusArray",
     "Header",
     "IdlStruct",
     "Imu",
+    "JointComponentTolerance",
     "JointState",
+    "JointTolerance",
     "JointTrajectory",
     "JointTrajectoryPoint",
     "KeyValue",
@@ -100,8 +145,17 @@ __all__ = [
     "Log",
     "MapMetaData",
     "MoveFeedback",
+    "MoveFeedbackMessage",
+    "MoveGetResultEvent",
+    "MoveGetResultRequest",
+    "MoveGetResultResponse",
     "MoveGoal",
     "MoveResult",
+    "MoveSendGoalEvent",
+    "MoveSendGoalRequest",
+    "MoveSendGoalResponse",
+    "MultiDOFJointTrajectory",
+    "MultiDOFJointTrajectoryPoint",
     "NavSatFix",
     "NavSatStatus",
     "OccupancyGrid",
@@ -113,8 +167,10 @@ __all__ = [
     "PoseStamped",
     "PoseWithCovariance",
     "Quaternion",
+    "ServiceEventInfo",
     "SetParameters",
     "SetParametersResult",
+    "String",
     "TFMessage",
     "Time",
     "Transform",

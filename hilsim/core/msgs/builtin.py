@@ -29,6 +29,11 @@ class Header(IdlStruct, typename="std_msgs/msg/Header"):
 
 
 @dataclass
+class String(IdlStruct, typename="std_msgs/msg/String"):
+    data: str = ""
+
+
+@dataclass
 class Clock(IdlStruct, typename="rosgraph_msgs/msg/Clock"):
     clock: Time = field(default_factory=Time)
 

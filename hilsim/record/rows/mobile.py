@@ -111,7 +111,7 @@ class MobileRows(GenericRows):
 
     model: RobotModel | None
     scene: Scene | None
-    _last_tf_ns: int | None
+    _last_tf_ns: dict[str, int]
     _tf_last: dict[str, tuple[Any, ...]]
     _tf_rows: dict[str, list[tuple[Any, ...]]]
     _tf_times: dict[str, list[int]]
@@ -149,11 +149,12 @@ class MobileRows(GenericRows):
     def _tf(self, root: str, robot: str, msg: msgs.TFMessage) -> None:
         if not msg.transforms:
             return
-        t = msgs.ns_of(msg.transforms[0].header.stamp)
-        last = self._last_tf_ns
+        first = msg.transforms[0]
+        t = msgs.ns_of(first.header.stamp)
+        last = self._last_tf_ns.get(first.child_frame_id)
         if last is not None and 0 <= t - last < MODEL_PERIOD_NS:
             return  # the cheap path: four of five physics steps
-        self._last_tf_ns = t
+        self._last_tf_ns[first.child_frame_id] = t
         for tr in msg.transforms:
             tt, r = tr.transform.translation, tr.transform.rotation
             child = self._frame(root, robot, tr.child_frame_id)

@@ -53,7 +53,7 @@ class RowWriter(FastRows, JointRows, ImuRows, MobileRows, StatusRows, TaskRows, 
         self._model_rows: dict[str, tuple[list[int], list[float]]] = {}
         self._last_model_ns: int | None = None
         # tf: the latest transform written per child frame, and the rows waiting for flush()
-        self._last_tf_ns: int | None = None
+        self._last_tf_ns: dict[str, int] = {}  # per message kind (its first frame): the chassis, the URDF's joints
         self._tf_last: dict[str, tuple[Any, ...]] = {}
         self._tf_rows: dict[str, list[tuple[Any, ...]]] = {}
         self._tf_times: dict[str, list[int]] = {}
@@ -81,8 +81,11 @@ class RowWriter(FastRows, JointRows, ImuRows, MobileRows, StatusRows, TaskRows, 
             self.clock_ns = max(self.clock_ns, t)
             self._scalar("clock", t, t * 1e-9)
             return
-        if len(parts) < 3:  # a global topic of another ROS 2 node (/tf_static, /robot_description …)
-            self._generic("", "/".join(parts[1:]), msg)
+        if len(parts) < 3:  # a global topic: /tf, /tf_static, or another ROS 2 node's
+            if isinstance(msg, msgs.TFMessage):
+                self._tf("", self.robot, msg)
+            else:
+                self._generic("", "/".join(parts[1:]), msg)
             return
         robot, topic = parts[1], "/".join(parts[2:])
         root = "" if robot == self.robot else f"robots/{part(robot)}/"
