@@ -4,6 +4,9 @@
     hilsim run SERVICE --config FILE
     hilsim topic list | echo KEY [--count N] [--json] | hz KEY
     hilsim view [RRD]
+    hilsim play BAG [--rate R] [--keys PATTERN] [--loop] [--clock]
+    hilsim bag info|recover BAG
+    hilsim export RUN --to mcap|csv [--out DIR]
     hilsim goal ROBOT --joints J1 … | --pose X Y Z [R P Y] | --xy X Y [--yaw THETA]
     hilsim gains ROBOT JOINT.GAIN=VALUE …
     hilsim plan evaluate --targets FILE [--criterion length|smoothness|weighted]
@@ -141,6 +144,37 @@ def build_parser() -> argparse.ArgumentParser:
     view.add_argument("rrd", nargs="?")
     view.add_argument("--runs", default="runs")
     view.set_defaults(func=_lazy("hilsim.core.recording", "cmd_view"))
+
+    play = sub.add_parser("play", help="publish a recorded bag again on its keys, in sim time (like ros2 bag play)")
+    play.add_argument("bag", help="a run directory, its bag/ directory or an .mcap file")
+    play.add_argument("--rate", type=float, default=1.0, help="sim seconds per wall second (0: as fast as possible)")
+    play.add_argument("--keys", help="only these: ROS 2 topic globs (/arm/joint_states, /arm/*) or Zenoh key "
+                      "expressions (0/arm/**), comma-separated")
+    play.add_argument("--loop", action="store_true", help="play again from the start until interrupted")
+    play.add_argument("--clock", action="store_true", help="publish /clock from the stamps (the recorded one is "
+                      "not played)")
+    play.add_argument("--delay", type=float, default=0.5, help="seconds between announcing the publishers and "
+                      "the first sample (default 0.5)")
+    play.add_argument("--domain", type=int, default=None, help="ROS 2 domain to play into (default: the recorded one)")
+    play.add_argument("--connect", help="Zenoh endpoint(s), comma-separated (default: HILSIM_ZENOH_CONNECT, "
+                      "else tcp/127.0.0.1:7447)")
+    play.set_defaults(func=_lazy("hilsim.tools.play", "cmd_play"))
+
+    bag = sub.add_parser("bag", help="a recorded bag (rosbag2, MCAP): what it holds, or make it whole")
+    bsub_ = bag.add_subparsers(dest="bag_cmd", required=True)
+    for name, text in (("info", "topics, types, counts, duration, start and end (like ros2 bag info)"),
+                       ("recover", "rewrite the bag of a killed recorder from what reached the disk whole, and "
+                                   "its metadata.yaml")):
+        b = bsub_.add_parser(name, help=text)
+        b.add_argument("bag", help="a run directory, its bag/ directory or an .mcap file")
+        b.set_defaults(func=_lazy("hilsim.tools.bagtool", f"cmd_{name}"))
+
+    export = sub.add_parser("export", help="a run's Rerun recording as an MCAP bag or CSV files (runs recorded "
+                            "before the bag existed)")
+    export.add_argument("run", help="a run directory or its recording.rrd")
+    export.add_argument("--to", choices=["mcap", "csv"], required=True)
+    export.add_argument("--out", help="output directory (default: <run>/export-mcap or <run>/export-csv)")
+    export.set_defaults(func=_lazy("hilsim.tools.export", "cmd_export"))
 
     goal = sub.add_parser("goal", help="send a move goal to a running planner and print feedback")
     goal.add_argument("robot")

@@ -18,6 +18,22 @@ Serves:
   → SetParametersResult): all-or-nothing, effective at the next control step; the gains in
   force are in its health (``gains:<joint>`` = ``kp=… ki=… kd=… i_limit=… …``).
 
+Serves the ROS 2 action ``control_msgs/action/FollowJointTrajectory`` at
+``/<robot>/<controller.params.action_ns>`` (default ``follow_joint_trajectory``, what MoveIt's
+controller manager calls with ``action_ns: follow_joint_trajectory``; ``""`` serves none), as a node on
+rmw_zenoh does (:mod:`hilsim.services.ros2_action`). A goal's trajectory is followed exactly as a
+``joint_trajectory`` message; feedback (desired, actual, error of the goal's joints) at
+``controller.params.action_feedback_hz`` of sim time; the result is SUCCESSFUL once every joint of the
+goal is within its goal tolerance (else ``task.tolerance``) of the last point after its time,
+GOAL_TOLERANCE_VIOLATED if that has not happened ``goal_time_tolerance`` (else
+``controller.params.goal_time_tolerance``) later, PATH_TOLERANCE_VIOLATED as soon as a joint with a
+path tolerance strays further from the reference (the arm then holds where it is), INVALID_JOINTS for
+joint names that are not the controller's, INVALID_GOAL for a trajectory it cannot follow (no points,
+times not increasing, outside the limits, multi-DOF), OLD_HEADER_TIMESTAMP for one that has ended before
+it arrived. Invalid goals are accepted and aborted with that code (so the client reads why); a cancel
+holds the current position; a new goal, or a trajectory on ``joint_trajectory``, aborts the goal
+being followed.
+
 Setpoint: the first measured position until a trajectory arrives; a trajectory replaces the
 current one at its start time (``header.stamp``; zero = on receipt) and its last point is held
 after its end; an empty trajectory means hold the current measured position.
@@ -25,15 +41,48 @@ after its end; an empty trajectory means hold the current measured position.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from hilsim.core import msgs, registry
-from hilsim.core.config import ConfigError, Scenario
+from hilsim.core.config import ConfigError, Scenario, format_error
+from hilsim.core.msgs import control as cm
 from hilsim.core.restart import keep, kept
 from hilsim.core.service import Publisher, Service
+from hilsim.services.ros2_action import ActionServer, goal_text
 from hilsim.sim import control
+
+FOLLOW_JOINT_TRAJECTORY = "control_msgs/action/FollowJointTrajectory"
+
+
+class Params(BaseModel):
+    """``controller.params`` of the joint_trajectory controller."""
+
+    model_config = ConfigDict(extra="forbid")
+    action_ns: str = Field("follow_joint_trajectory", description="name of the FollowJointTrajectory action below "
+                           "the robot's namespace (absolute if it starts with '/'); empty: no action")
+    action_feedback_hz: float = Field(20.0, gt=0, description="feedback rate of the action [1/s of sim time]")
+    goal_time_tolerance: float = Field(1.0, gt=0, description="how long after a goal's last point the joints "
+                                       "may take to be within tolerance, when the goal gives no time [s]")
+
+
+@dataclass
+class _FjtGoal:
+    """The FollowJointTrajectory goal being followed."""
+
+    goal_id: bytes
+    names: list[str]
+    cols: list[int]  # model index of each of the goal's joints
+    sampler: control.TrajectorySampler
+    target: np.ndarray  # the last point, the goal's joints
+    path_tol: np.ndarray  # position, per goal joint; inf: none
+    goal_tol: np.ndarray
+    goal_vel_tol: np.ndarray
+    deadline_ns: int  # the end plus the goal time tolerance
+    next_feedback_ns: int = 0
 
 
 class ControllerService(Service):
@@ -96,6 +145,13 @@ class ControllerService(Service):
         self.max_tracking_error = 0.0
         self.gaps = 0
         self.steps = 0
+        try:
+            self.params = Params.model_validate(scenario.controller.params)
+        except ValidationError as e:
+            raise ConfigError(format_error(where or "scenario", e, prefix="controller.params")) from None
+        self.fjt: ActionServer | None = None
+        self.fjt_goal: _FjtGoal | None = None
+        self.fjt_goals = 0
         # live gain changes, kept for a restarted controller (hilsim.core.restart): scenario + these
         self.live_gains: dict[str, float] = dict(kept(scenario, self.name).get("gains", {}))
         if self.live_gains:
@@ -118,6 +174,9 @@ class ControllerService(Service):
             self.on_set_parameters,
             reject=lambda reason: msgs.SetParametersResult(successful=False, reason=reason),
         )
+        if self.params.action_ns.strip("/"):
+            self.fjt = ActionServer(self, self.params.action_ns, FOLLOW_JOINT_TRAJECTORY,
+                                    self.on_fjt_goal, self.on_fjt_cancel)
 
     # ------------------------------------------------------------------ control step
     def _measure(self, msg: msgs.JointState, key: str, stamp: int) -> bool:
@@ -159,6 +218,8 @@ class ControllerService(Service):
                 self._accept(*self._pending)
                 self._pending = None
         self._reference(stamp)
+        if self.fjt_goal is not None:
+            self._follow_goal(stamp)
         err = self.ref_pos - self.pos
         self.tracking_error = float(np.max(np.abs(err)))
         if self.traj is not None or self.next_traj is not None:
@@ -203,12 +264,13 @@ class ControllerService(Service):
             return
         self._accept(msg, key)
 
-    def _accept(self, msg: msgs.JointTrajectory, key: str) -> None:
+    def _accept(self, msg: msgs.JointTrajectory, key: str) -> str | None:
+        """Follow ``msg`` from its start; None, or why it cannot be followed (a rejected payload of ``key``)."""
         if not msg.points:
             # ROS convention: an empty trajectory stops the motion where the arm is now.
             self.traj = self.next_traj = None
             self.hold = self.pos.copy()
-            return
+            return None
         start = msgs.ns_of(msg.header.stamp) or self.sim_ns
         # Continue from where the current reference will be when the new one starts.
         base = self.traj.sample(start)[0] if self.traj is not None else self.hold
@@ -216,12 +278,135 @@ class ControllerService(Service):
             t = control.TrajectorySampler(msg, self.names, start, base, self.joints.lower, self.joints.upper)
         except control.TrajectoryError as e:
             self.reject(key, str(e))
-            return
+            return str(e)
         self.next_traj = t
         self.max_tracking_error = 0.0
         if self.traj is None:
             # Before its start, hold the current setpoint; afterwards the last point (see _reference).
             self.hold = np.array(base, float)
+        return None
+
+    # ------------------------------------------------------------------ FollowJointTrajectory (ROS 2 action)
+    def on_fjt_goal(self, goal_id: bytes, goal: cm.FollowJointTrajectoryGoal) -> bool:
+        """A goal is accepted; one that cannot be followed is aborted at once with its error code, and
+        leaves the motion under way alone."""
+        assert self.fjt is not None
+        self.fjt_goals += 1
+        tr = goal.trajectory
+        names = list(tr.joint_names)
+        why: tuple[int, str] | None = None
+        if len(set(names)) != len(names) or any(n not in self.names for n in names) or not names:
+            why = cm.FJT_INVALID_JOINTS, f"joint names {names} are not among the controller's joints {self.names}"
+        elif goal.multi_dof_trajectory.points or goal.multi_dof_trajectory.joint_names:
+            why = cm.FJT_INVALID_GOAL, "multi-DOF trajectories are not supported"
+        elif not tr.points:
+            why = cm.FJT_INVALID_GOAL, "the trajectory has no points"
+        elif self.hold is None:
+            why = cm.FJT_INVALID_GOAL, "no joint_states measured yet"
+        else:
+            try:
+                msgs.validate(tr)  # sizes, times strictly increasing, finite values
+            except msgs.BadMessage as e:
+                why = cm.FJT_INVALID_GOAL, str(e)
+        if why is None:
+            stamp = msgs.ns_of(tr.header.stamp)
+            if stamp and stamp + msgs.ns_of(tr.points[-1].time_from_start) < self.sim_ns:
+                why = cm.FJT_OLD_HEADER_TIMESTAMP, "the trajectory ended before it arrived"
+        if why is None:
+            strangers = [t.name for t in [*goal.path_tolerance, *goal.goal_tolerance] if t.name not in names]
+            if strangers:
+                why = cm.FJT_INVALID_JOINTS, f"tolerances for {strangers}, joints the goal does not move"
+        if why is None and (reason := self._accept(tr, self.fjt.keys.send_goal)) is not None:
+            why = cm.FJT_INVALID_GOAL, reason
+        if why is not None:
+            self.warn(f"{self.fjt.name}: goal {goal_text(goal_id)} aborted: {why[1]}")
+            self.fjt.finish(goal_id, cm.FollowJointTrajectoryResult(error_code=why[0], error_string=why[1]), False)
+            return True
+        sampler = self.next_traj
+        assert sampler is not None
+        if self.fjt_goal is not None:
+            self._end_goal(False, cm.FJT_INVALID_GOAL, f"preempted by goal {goal_text(goal_id)}")
+        cols = [self.names.index(n) for n in names]
+        gtt = msgs.ns_of(goal.goal_time_tolerance) or round(self.params.goal_time_tolerance * 1e9)
+        self.fjt_goal = _FjtGoal(goal_id, names, cols, sampler, sampler.pos[-1][cols],
+                                 *self._tolerances(names, goal), deadline_ns=sampler.end_ns + gtt,
+                                 next_feedback_ns=sampler.start_ns)
+        return True
+
+    def _tolerances(self, names: list[str], goal: cm.FollowJointTrajectoryGoal) -> tuple[np.ndarray, ...]:
+        """(path position, goal position, goal velocity) tolerance per goal joint. In a JointTolerance 0
+        means the default (none on the path, ``task.tolerance`` at the goal, none for the velocity) and a
+        negative value none."""
+        path = np.full(len(names), np.inf)
+        pos = np.full(len(names), float(self.sc.task.tolerance))
+        vel = np.full(len(names), np.inf)
+
+        def put(into: np.ndarray, name: str, value: float) -> None:
+            if value:
+                into[names.index(name)] = np.inf if value < 0 else value
+
+        for t in goal.path_tolerance:
+            put(path, t.name, t.position)
+        for t in goal.goal_tolerance:
+            put(pos, t.name, t.position)
+            put(vel, t.name, t.velocity)
+        return path, pos, vel
+
+    def on_fjt_cancel(self, goal_id: bytes) -> bool:
+        g = self.fjt_goal
+        if g is None or g.goal_id != goal_id:
+            return False
+        self._accept(msgs.JointTrajectory(), "")  # hold where the arm is now
+        self._end_goal(False, cm.FJT_SUCCESSFUL, "canceled")
+        return True
+
+    def _end_goal(self, success: bool, code: int, text: str) -> None:
+        g, self.fjt_goal = self.fjt_goal, None
+        if g is not None and self.fjt is not None:
+            self.fjt.finish(g.goal_id, cm.FollowJointTrajectoryResult(error_code=code, error_string=text), success)
+
+    def _follow_goal(self, now: int) -> None:
+        """Once per control step, after the reference: tolerances, feedback, the end of the goal."""
+        g = self.fjt_goal
+        assert g is not None and self.fjt is not None
+        if g.sampler is not self.traj and g.sampler is not self.next_traj:
+            self._end_goal(False, cm.FJT_INVALID_GOAL, "replaced by a trajectory on joint_trajectory")
+            return
+        if now < g.sampler.start_ns:
+            return
+        desired, actual = self.ref_pos[g.cols], self.pos[g.cols]
+        error = desired - actual
+        if now >= g.next_feedback_ns:
+            g.next_feedback_ns = now + round(1e9 / self.params.action_feedback_hz)
+            elapsed = now - g.sampler.start_ns
+
+            def point(p: np.ndarray, v: np.ndarray) -> msgs.JointTrajectoryPoint:
+                return msgs.JointTrajectoryPoint(positions=p.tolist(), velocities=v.tolist(),
+                                                 time_from_start=msgs.Duration(sec=elapsed // 1_000_000_000,
+                                                                               nanosec=elapsed % 1_000_000_000))
+
+            desired_vel, actual_vel = self.ref_vel[g.cols], self.vel[g.cols]
+            self.fjt.feedback(g.goal_id, cm.FollowJointTrajectoryFeedback(
+                header=msgs.header(now), joint_names=g.names, desired=point(desired, desired_vel),
+                actual=point(actual, actual_vel), error=point(error, desired_vel - actual_vel)))
+        if now < g.sampler.end_ns:
+            bad = np.nonzero(np.abs(error) > g.path_tol)[0]
+            if bad.size:
+                j = int(bad[0])
+                self._accept(msgs.JointTrajectory(), "")  # hold where the arm is
+                self._end_goal(False, cm.FJT_PATH_TOLERANCE_VIOLATED,
+                               f"{g.names[j]} is {abs(error[j]):.4f} from its reference (path tolerance "
+                               f"{g.path_tol[j]:g})")
+            return
+        off = np.abs(actual - g.target)
+        if np.all(off <= g.goal_tol) and np.all(np.abs(self.vel[g.cols]) <= g.goal_vel_tol):
+            self._end_goal(True, cm.FJT_SUCCESSFUL, "")
+        elif now > g.deadline_ns:
+            j = int(np.argmax(off - g.goal_tol))
+            self._accept(msgs.JointTrajectory(), "")
+            self._end_goal(False, cm.FJT_GOAL_TOLERANCE_VIOLATED,
+                           f"{g.names[j]} is {off[j]:.4f} from the goal (tolerance {g.goal_tol[j]:g}) "
+                           f"{(now - g.sampler.end_ns) * 1e-9:.3f} s after the trajectory's end")
 
     # ------------------------------------------------------------------ live gains
     def on_set_parameters(self, req: msgs.SetParameters) -> msgs.SetParametersResult:
@@ -245,6 +430,8 @@ class ControllerService(Service):
             "tracking_error": f"{self.tracking_error:.6f}",
             "max_tracking_error": f"{self.max_tracking_error:.6f}",
             "control_steps": self.steps,
+            "fjt_goals": self.fjt_goals,
+            "fjt_goal": goal_text(self.fjt_goal.goal_id) if self.fjt_goal is not None else "",
             "joint_states_gaps": self.gaps,
             "interfaces": ",".join(sorted(set(self.interfaces))),
             # the gains in force (scenario + live changes), so a client (the panel) reads what it set

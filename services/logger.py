@@ -1,4 +1,5 @@
-"""The logger service: records every message of the simulation into a Rerun ``.rrd`` file.
+"""The logger service: records every message of the simulation into a Rerun ``.rrd`` file and a
+rosbag2 bag (MCAP) of the raw samples.
 
 Reads: everything under ``<prefix>/`` (``logger.record`` key expressions, ``**`` by default),
 including each sample's attachment (sequence number and writer id, ``hilsim.core.transport``).
@@ -8,9 +9,14 @@ Writes: only its own health and log keys (``<prefix>/<robot>/health/logger``,
 
 - ``recording.rrd``       the Rerun recording, timeline ``sim_time`` (message stamps), with a
   default viewer layout (``hilsim.record.viewer``);
+- ``bag/``                a rosbag2 bag (``metadata.yaml``, ``bag_0.mcap``; ``hilsim.record.bag``): every
+  sample of every key as the raw CDR bytes that arrived (a composed service's message: the bytes
+  the worker encoded it to, the same the rows are read from), stamped with its receive time,
+  sim-time stamp, sequence number and writer gid; ``logger.bag: false`` turns it off;
 - ``scenario.yaml``       the scenario of the run (written unless already there);
-- ``record_summary.json`` ``{key: {received, recorded, rejected, lost, dropped, before_first,
-  unannounced}}`` (``unannounced``: samples from a writer that did not announce itself for the key,
+- ``record_summary.json`` ``{key: {received, recorded, bagged, rejected, lost, dropped, before_first,
+  unannounced}}`` (``bagged``: messages of the key written to the bag, counted as the batches
+  reached the file; ``unannounced``: samples from a writer that did not announce itself for the key,
   recorded all the same; their sequence numbers are not ours to count losses by)
   written at exit.
 
@@ -23,15 +29,19 @@ it takes their samples as message objects in the process (none of them crosses Z
 rest over Zenoh; the worker encodes a message object once, so both are recorded from the same
 bytes, the same way.
 
-The Zenoh callback only appends ``(key, payload)`` to a queue; a worker thread decodes
+The Zenoh callback only appends ``(key, payload, attachment, receive time)`` to a queue; a worker
+thread hands the payload to the bag (``BagWriter.add``: a tuple appended, the chunk built with numpy
+at the batch), decodes
 (``hilsim.core.msgs.decode``), turns messages into rows (``RowWriter``) and sends them with
 ``send_columns`` every 0.5 s or every 20,000 rows. The per-step keys (clock, joint states, IMU)
 take a fast path once one of their messages decoded: a payload laid out like it (same size, same
 bytes but stamp and values) is kept as bytes and read into columns with numpy at the batch, its
 values checked there (``RowWriter.raw``/``drain``). A payload that does not decode or validate
 (on either path) is counted as rejected and still recorded, as a text row under
-``rejected/…``. Every sample taken in is recorded: ``received == recorded``; a sample counts
-as recorded once its batch reached the file.
+``rejected/…``. Every sample taken in is recorded: ``received == recorded == bagged``; a sample
+counts as recorded once its batch reached the file (the bag's chunk is written and flushed with the
+same batch, so a recorder killed with SIGKILL leaves both files holding the same samples up to its
+last flush; ``hilsim bag recover`` or ``hilsim up`` make the bag whole).
 
 Losses. Lockstep: publishers block when the logger is slow (Zenoh congestion control BLOCK)
 and the queue is unbounded, so nothing is lost (``lost`` is 0; anything else is a fault).
@@ -77,6 +87,8 @@ from hilsim.core.service import LEVEL_WARN, Service
 disable_analytics()  # before rerun is imported: its SDK reads the analytics config at start-up
 import rerun as rr  # noqa: E402
 
+from hilsim.record.bag import TIME_NOTE, BagError, BagWriter  # noqa: E402
+from hilsim.record.bag_read import BAG_DIR, bag_paths, recover_file, write_metadata  # noqa: E402
 from hilsim.record.rows import RowWriter  # noqa: E402
 from hilsim.record.viewer import default_blueprint  # noqa: E402
 from hilsim.sim.kinematics import RobotModel  # noqa: E402
@@ -108,9 +120,13 @@ class LoggerService(Service):
             # makes it readable); this process records the rest of the run in a part of its own
             self.rrd_path = self.run_dir / part_name(restarted())
         self.rec: rr.RecordingStream | None = None
+        self.bag_dir = self.run_dir / BAG_DIR
+        self.bag: BagWriter | None = None  # None: logger.bag is false, or the bag failed (a fault)
+        self.bagged: Counter[str] = Counter()  # messages per key written to the bag
         self.rows: RowWriter | None = None
         self.model: RobotModel | None = None
-        self._queue: deque[tuple[str, Any]] = deque()  # payload bytes, or a composed service's message
+        # (key, payload bytes or a composed service's message, attachment, receive time ns)
+        self._queue: deque[tuple[str, Any, transport.Attachment | None, int]] = deque()
         self.realtime = scenario.clock.mode == "realtime"
         self.queue_limit: int | None = REALTIME_QUEUE_LIMIT if self.realtime else None
         self._key_names: dict[str, str] = {}
@@ -170,6 +186,8 @@ class LoggerService(Service):
         self.rec.save(self.rrd_path, default_blueprint=default_blueprint(m, scene))
         self.rec.send_recording_name(f"{self.sc.name} {self.run_dir.name}")
         self.rows = RowWriter(self.rec, self.sc.robot, m, self.fault, scene)
+        if self.sc.logger.bag:
+            self.bag = self._open_bag()
         try:
             self.rows.log_model()
         except Exception as e:  # a model rerun cannot log must not stop the recording
@@ -198,6 +216,27 @@ class LoggerService(Service):
             self.sc.clock.mode,
             limit,
         )
+
+    def _open_bag(self) -> BagWriter:
+        """The bag's file of this process: ``bag_0.mcap``; a restarted recorder (hilsim up) first
+        makes its predecessors' files whole (a SIGKILL leaves no footer), then writes the next one."""
+        index = 0
+        if self.bag_dir.is_dir():
+            try:
+                _, files = bag_paths(self.bag_dir)
+            except BagError:
+                files = []
+            for f in files:
+                try:
+                    got = recover_file(f)
+                    if got.rewritten:
+                        self.log.info("bag file %s of the killed recorder recovered: %d messages", f, got.messages)
+                except BagError as e:
+                    self.warn(f"bag file {f} of the killed recorder not recovered: {e}")
+            index = len(files)
+            while (self.bag_dir / f"bag_{index}.mcap").exists():
+                index += 1
+        return BagWriter(self.bag_dir, index, custom={"scenario": self.sc.name, "robot": self.sc.robot})
 
     def _load_model(self) -> None:
         urdf = self.sc.world.urdf
@@ -244,7 +283,7 @@ class LoggerService(Service):
                 self.dropped[k] += 1
                 return
             self.counts_in[k] += 1
-            self._queue.append((k, payload))
+            self._queue.append((k, payload, att, time.time_ns()))
 
     def _sequence(self, key: str, att: transport.Attachment) -> None:
         """Count the samples of this sample's writer that never arrived (under self.lock)."""
@@ -274,7 +313,7 @@ class LoggerService(Service):
         last_flush = time.monotonic()
         while True:
             try:
-                key, payload = q.popleft()
+                key, payload, att, t = q.popleft()
             except IndexError:
                 if self._worker_stop.is_set():
                     break
@@ -283,12 +322,12 @@ class LoggerService(Service):
                     last_flush = time.monotonic()
                 time.sleep(0.002)
                 continue
-            self._handle(key, payload)
+            self._handle(key, payload, att, t)
             if rows.buffered >= FLUSH_ROWS or time.monotonic() - last_flush >= FLUSH_PERIOD_S:
                 self._flush()
                 last_flush = time.monotonic()
 
-    def _handle(self, key: str, payload: Any) -> None:
+    def _handle(self, key: str, payload: Any, att: transport.Attachment | None = None, t_ns: int = 0) -> None:
         rows = self.rows
         assert rows is not None
         if not isinstance(payload, bytes):  # a message object of this process (_on_local)
@@ -298,7 +337,12 @@ class LoggerService(Service):
                 self.fault(f"cannot encode {key} from this process: {type(e).__name__}: {e}", exc=e)
                 rows.error(key, e, payload)
                 self._pending[key] += 1
-                return
+                return  # no bytes: nothing for the bag (bagged < recorded for this key)
+        if self.bag is not None:  # every payload as it arrived, valid or not
+            if att is None:
+                self.bag.add(key, payload, t_ns)
+            else:
+                self.bag.add(key, payload, t_ns, att.seq, att.gid)
         if rows.raw(key, payload):  # a clock, joint state or IMU sample of a layout seen before
             self.sim_ns = rows.clock_ns
             self._pending[key] += 1
@@ -346,6 +390,16 @@ class LoggerService(Service):
             with self.lock:
                 self.recorded.update(self._pending)
         self._pending.clear()
+        if self.bag is not None:
+            try:
+                wrote = self.bag.flush()
+            except (OSError, BagError) as e:  # a full disk: the .rrd goes on, the bag stops here
+                self.fault(f"the bag {self.bag.path} stopped: {type(e).__name__}: {e}", exc=e)
+                self.bag.abandon()
+                self.bag = None
+                return
+            with self.lock:
+                self.bagged.update(wrote)
 
     # ------------------------------------------------------------------ health
     def publish_health(self) -> None:
@@ -371,6 +425,7 @@ class LoggerService(Service):
             "lost": sum(lost.values()),
             "dropped": sum(self.dropped.values()),
             "rrd": str(self.rrd_path),
+            **({"bagged": sum(self.bagged.values()), "bag": str(self.bag.path)} if self.bag is not None else {}),
             **{f"lost:{k}": v for k, v in sorted(lost.items())},
         }
 
@@ -407,7 +462,18 @@ class LoggerService(Service):
         self._flush()
         self.rec.flush()
         self.rec.disconnect()
+        self._close_bag()
         self._report()
+
+    def _close_bag(self) -> None:
+        """Write the bag's summary and footer, then its ``metadata.yaml`` over all its files."""
+        if self.bag is None:
+            return
+        try:
+            self.bag.close()
+            write_metadata(self.bag_dir, {"scenario": self.sc.name, "robot": self.sc.robot, "times": TIME_NOTE})
+        except (OSError, BagError) as e:
+            self.fault(f"the bag {self.bag_dir} was not closed: {type(e).__name__}: {e}", exc=e)
 
     def _await_quiet(self) -> None:
         """Before closing: keep receiving what is still in flight (samples a realtime publisher's
@@ -426,6 +492,7 @@ class LoggerService(Service):
         with self.lock:
             received = Counter(self.counts_in)
             recorded = Counter(self.recorded)
+            bagged = Counter(self.bagged)
             dropped, before = Counter(self.dropped), Counter(self.before_first)
             unannounced = Counter(self.unannounced)
         lost = self.lost()
@@ -434,6 +501,7 @@ class LoggerService(Service):
             k: {
                 "received": received[k],
                 "recorded": recorded[k],
+                **({"bagged": bagged[k]} if self.sc.logger.bag else {}),
                 "rejected": self.rejected[k],
                 "lost": lost[k],
                 "dropped": dropped[k],
@@ -446,13 +514,16 @@ class LoggerService(Service):
         tmp.write_text(json.dumps(summary, indent=1, sort_keys=True) + "\n")
         tmp.replace(self.summary_path)
         total_in, total_rec, total_lost = sum(received.values()), sum(recorded.values()), sum(lost.values())
+        bag = self.sc.logger.bag
         lines = [
-            f"recorded {k}: received {received[k]} recorded {recorded[k]}" + (f" lost {lost[k]}" if lost[k] else "")
+            f"recorded {k}: received {received[k]} recorded {recorded[k]}" + (f" bagged {bagged[k]}" if bag else "")
+            + (f" lost {lost[k]}" if lost[k] else "")
             for k in keys
         ]
         lines.append(
             f"recorded total: received {total_in} recorded {total_rec} rejected {sum(self.rejected.values())} "
             f"lost {total_lost} in {len(keys)} keys -> {self.rrd_path}"
+            + (f"; bagged {sum(bagged.values())} -> {self.bag_dir}" if bag else "")
         )
         if total_lost:
             n_drop = sum(dropped.values())
@@ -467,6 +538,8 @@ class LoggerService(Service):
             self.log.warning("stdout closed; per-key counts are in %s", self.summary_path)
         if total_in != total_rec:
             self.fault(f"received {total_in} messages but recorded {total_rec}")
+        if bag and sum(bagged.values()) != total_rec:
+            self.fault(f"recorded {total_rec} messages but bagged {sum(bagged.values())}")
         if total_lost and not self.realtime:
             self.fault(f"lost {total_lost} samples in lockstep, where nothing may be lost")
         elif total_lost:

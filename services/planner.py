@@ -19,6 +19,15 @@ Writes:
 Serves ``planner/goal`` (MoveGoal → GoalResponse, accepted or rejected with the reason) and
 ``planner/cancel`` (CancelRequest → GoalResponse). A new goal preempts the active one.
 
+Serves the same goals as the ROS 2 action ``hilsim_msgs/action/Move`` at ``/<robot>/move``
+(:mod:`hilsim.services.ros2_action`): a goal (a MoveGoal; its ``goal_id`` string, if empty, becomes the
+action goal's UUID) goes through :meth:`PlannerService.on_goal`, a cancel through the same cancel as
+``planner/cancel``; the action's feedback is the MoveFeedback and its result the MoveResult published
+on ``planner/feedback`` / ``planner/result``. A goal ``on_goal`` refuses is accepted and aborted at
+once with its error code (INVALID_GOAL, NO_IK_SOLUTION, GOAL_OUT_OF_LIMITS …), as move_group
+reports a bad request in its result. The result's status is SUCCEEDED for a successful MoveResult,
+CANCELED when a cancel request ended it, ABORTED otherwise (a failure, or preempted by another goal).
+
 The scenario task (``task.targets``) is a :class:`hilsim.sim.tasks.TaskRunner` hosted here: goals
 ``task-1`` … ``task-N`` in order, each starting on the tick after the previous result, then a
 MoveResult ``task`` saying how many targets were reached, on ``planner/result`` and on
@@ -56,10 +65,13 @@ from hilsim.planning.trajectory import (
     time_parameterize,
     to_msg,
 )
+from hilsim.services.ros2_action import ActionServer, goal_text
 from hilsim.sim.tasks import TaskGoal, TaskRunner, is_reserved
 
 START_DELAY_NS = 20_000_000  # trajectory starts 20 ms (sim) after the tick it was planned on
 FEEDBACK_PERIOD_NS = 100_000_000  # 10 Hz sim
+MOVE_ACTION = "move"  # /<robot>/move
+MOVE_ACTION_TYPE = "hilsim_msgs/action/Move"
 
 
 @dataclass
@@ -132,6 +144,8 @@ class PlannerService(Service):
         self._planning = False  # a job is queued or being planned
         self._deferred: deque[tuple[int, np.ndarray]] = deque()  # lockstep ticks that came meanwhile
         self._worker: threading.Thread | None = None
+        self.move: ActionServer | None = None
+        self.action_goals: dict[str, bytes] = {}  # hilsim goal id -> action goal id, while the goal runs
 
     # ------------------------------------------------------------------ setup
     def setup(self) -> None:
@@ -147,6 +161,7 @@ class PlannerService(Service):
             k.alive("controller"), self._on_controller, history=True))
         self.queryable(k.topic("planner/goal"), msgs.MoveGoal, self.on_goal, n_joints=self.n, reject=self._reject)
         self.queryable(k.topic("planner/cancel"), msgs.CancelRequest, self.on_cancel, reject=self._reject)
+        self.move = ActionServer(self, MOVE_ACTION, MOVE_ACTION_TYPE, self.on_move_goal, self.on_move_cancel)
         self._worker = threading.Thread(target=self._work, daemon=True, name="planner-worker")
         self._worker.start()
 
@@ -243,6 +258,30 @@ class PlannerService(Service):
                 return msgs.GoalResponse(goal_id=goal.goal_id, accepted=True, reason="canceling")
         return msgs.GoalResponse(goal_id=req.goal_id, accepted=False, reason=f"no active goal {req.goal_id!r}")
 
+    # ------------------------------------------------------------------ the same, as a ROS 2 action
+    def on_move_goal(self, action_id: bytes, g: msgs.MoveGoal) -> bool:
+        """An action goal: accepted, then run as :meth:`on_goal` runs a goal of ``planner/goal``, or
+        aborted at once with the code of the reason it refuses it."""
+        assert self.move is not None
+        g.goal_id = g.goal_id or goal_text(action_id)
+        try:
+            msgs.validate(g, n_joints=self.n)  # what decoding checks of a goal on planner/goal
+            resp = self.on_goal(g) if g.goal_id not in self.action_goals else self._reject(
+                f"INVALID_GOAL: goal id {g.goal_id!r} is running already", g.goal_id)
+        except msgs.BadMessage as e:
+            resp = self._reject(f"INVALID_GOAL: {e}", g.goal_id)
+        if not resp.accepted:
+            code = getattr(msgs, resp.reason.split(":", 1)[0], msgs.INVALID_GOAL)
+            self.move.finish(action_id, msgs.MoveResult(header=msgs.header(self.sim_ns), goal_id=g.goal_id,
+                                                        error_code=code, message=resp.reason), False)
+            return True
+        self.action_goals[resp.goal_id] = action_id
+        return True
+
+    def on_move_cancel(self, action_id: bytes) -> bool:
+        gid = next((k for k, v in self.action_goals.items() if v == action_id), None)
+        return gid is not None and self.on_cancel(msgs.CancelRequest(goal_id=gid)).accepted
+
     def _preempt(self, why: str) -> None:
         for goal in [*self.pending, *([self.active] if self.active else [])]:
             self._cancel(goal, why)
@@ -274,19 +313,21 @@ class PlannerService(Service):
         if success and goal.execute:
             self.last_target = goal.target
         err = self._error(goal)
-        self.pub_result.put(
-            msgs.MoveResult(
-                header=msgs.header(self.sim_ns),
-                goal_id=goal.goal_id,
-                success=success,
-                error_code=code,
-                message=message,
-                trajectory=goal.traj_msg,
-                planning_time=goal.planning_wall,
-                execution_error=err,
-                planner=goal.planner,
-            )
+        result = msgs.MoveResult(
+            header=msgs.header(self.sim_ns),
+            goal_id=goal.goal_id,
+            success=success,
+            error_code=code,
+            message=message,
+            trajectory=goal.traj_msg,
+            planning_time=goal.planning_wall,
+            execution_error=err,
+            planner=goal.planner,
         )
+        self.pub_result.put(result)
+        action_id = self.action_goals.pop(goal.goal_id, None)
+        if action_id is not None and self.move is not None:
+            self.move.finish(action_id, result, success)
         if self.active is goal:
             self.active = None
         if goal.task:
@@ -332,9 +373,11 @@ class PlannerService(Service):
 
     def _feedback(self, goal: Goal, progress: float, now_ns: int) -> None:
         goal.last_feedback_ns = now_ns
-        self.pub_feedback.put(
-            msgs.MoveFeedback(header=msgs.header(now_ns), goal_id=goal.goal_id, state=goal.state, progress=progress)
-        )
+        fb = msgs.MoveFeedback(header=msgs.header(now_ns), goal_id=goal.goal_id, state=goal.state, progress=progress)
+        self.pub_feedback.put(fb)
+        action_id = self.action_goals.get(goal.goal_id)
+        if action_id is not None and self.move is not None:
+            self.move.feedback(action_id, fb)
 
     # ------------------------------------------------------------------ inputs
     def on_joint_states(self, js: msgs.JointState, _key: str) -> None:

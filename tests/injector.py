@@ -6,7 +6,7 @@ message with a NaN in it, and well-formed copies of real samples from an unannou
 no attachment, and with an attachment of its own). It prints how many of each it sent, as JSON,
 when stopped (SIGINT/SIGTERM) or after ``--seconds``.
 
-    python tests/injector.py --connect tcp/127.0.0.1:7447 [--prefix hilsim] [--rate 300] [--seconds 30]
+    python tests/injector.py --connect tcp/127.0.0.1:7447 [--domain 0] [--rate 300] [--seconds 30]
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ def poison(msg: object) -> bool:
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--connect", required=True)
-    ap.add_argument("--prefix", default="hilsim")
+    ap.add_argument("--domain", type=int, default=0, help="ROS 2 domain id of the simulation")
     ap.add_argument("--rate", type=float, default=300.0, help="bad samples per second, all keys together")
     ap.add_argument("--seconds", type=float, default=600.0)
     args = ap.parse_args()
@@ -65,7 +65,7 @@ def main() -> int:
         with lock:
             latest[str(s.key_expr)] = s.payload.to_bytes()
 
-    sub = session.declare_subscriber(f"{args.prefix}/**", on_sample)
+    sub = session.declare_subscriber(f"{args.domain}/**", on_sample)  # every data key of the ROS 2 domain
     pubs: dict[str, zenoh.Publisher] = {}
     sent: Counter[str] = Counter()
     seqs: Counter[str] = Counter()

@@ -15,6 +15,7 @@ from util import LEAN, Observer, finish, up, wait_until
 
 from hilsim.core import msgs, transport
 from hilsim.core.config import ConfigError, ZenohConfig
+from hilsim.core.keys import Keys
 from hilsim.core.scenario import load_scenario
 from hilsim.run.compose import ComposedSession
 
@@ -137,10 +138,10 @@ def test_a_composed_recorder_records_every_sample_as_it_was_published(tmp_path: 
         router.close()
     summary = json.loads((run / "record_summary.json").read_text())
     steps = 2001  # t = 0 and 2000 steps of 1 ms
-    for key in ("hilsim/clock", "hilsim/arm/truth/joint_states", "hilsim/arm/joint_states",
-                "hilsim/arm/joint_commands", "hilsim/arm/truth/imu"):
+    k = Keys()
+    for key in (k.clock, k.truth("joint_states"), k.topic("joint_states"), k.topic("joint_commands"), k.truth("imu")):
         assert summary[key]["received"] == summary[key]["recorded"] == steps, (key, summary[key])
-    assert summary["hilsim/arm/sync/planner"]["recorded"] > 100, summary  # from the process outside
+    assert summary[k.sync("planner")]["recorded"] > 100, summary  # from the process outside
     assert all(v["received"] == v["recorded"] and v["lost"] == 0 for v in summary.values()), summary
     recorded: dict[int, float] = {}
     for chunk in RrdReader(run / "recording.rrd").stream().to_chunks():

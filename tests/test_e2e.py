@@ -96,7 +96,7 @@ def test_arm_scenario_end_to_end(tmp_path: Path) -> None:
     # nothing recorded was lost
     counts = json.loads((out / "record_summary.json").read_text())
     assert counts and all(v["received"] == v["recorded"] for v in counts.values()), counts
-    assert counts["hilsim/arm/truth/joint_states"]["received"] > 1000
+    assert counts[Keys().truth("joint_states")]["received"] > 1000
     # the recording verifies and holds every joint and the robot model
     from hilsim.core.recording import entity_paths, verify_rrd
 
@@ -162,14 +162,16 @@ def test_killed_service_is_reported_and_nothing_hangs(tmp_path: Path) -> None:
         procs = [psutil.Process(pid) for pid in pids.values()]
 
         # topic tools against the running system
-        echo = subprocess.run([*HILSIM, "topic", "echo", "hilsim/arm/joint_states", "--count", "2", "--json",
+        echo = subprocess.run([*HILSIM, "topic", "echo", "/arm/joint_states", "--count", "2", "--json",
                                "--connect", ep, "--duration", "20"], capture_output=True, text=True, timeout=60)
         assert echo.returncode == 0, echo.stdout + echo.stderr
         m = json.loads(echo.stdout.splitlines()[0])
         assert m["name"] == [f"joint_{i}" for i in range(1, 7)] and len(m["position"]) == 6
-        lst = subprocess.run([*HILSIM, "topic", "list", "--connect", ep], capture_output=True, text=True, timeout=60)
-        assert "hilsim/arm/alive/controller" in lst.stdout and "hilsim/arm/truth/joint_states" in lst.stdout
-        hz = subprocess.run([*HILSIM, "topic", "hz", "hilsim/clock", "--connect", ep, "--duration", "2"],
+        lst = subprocess.run([*HILSIM, "topic", "list", "-t", "--connect", ep], capture_output=True, text=True,
+                             timeout=60)
+        assert "/arm/truth/joint_states [sensor_msgs/msg/JointState]" in lst.stdout, lst.stdout
+        assert "/arm/health/controller" not in lst.stdout and "internal topics hidden" in lst.stdout, lst.stdout
+        hz = subprocess.run([*HILSIM, "topic", "hz", "/clock", "--connect", ep, "--duration", "2"],
                             capture_output=True, text=True, timeout=60)
         assert "average rate" in hz.stdout, hz.stdout + hz.stderr
 
@@ -215,8 +217,8 @@ def test_killed_service_is_reported_and_nothing_hangs(tmp_path: Path) -> None:
             if int(health.get("rejected", 0)) >= 3:
                 ev.set()
 
-        sub = ses.declare_subscriber("hilsim/arm/health/physics", on_health)
-        pub = ses.declare_publisher("hilsim/arm/joint_commands")
+        sub = ses.declare_subscriber(Keys().health("physics"), on_health)
+        pub = ses.declare_publisher(Keys().topic("joint_commands"))
         # a fresh session first learns who subscribes; a put before that reaches nobody
         assert connected.wait(10)
         assert wait_until(lambda: pub.matching_status.matching, 10), "physics never subscribed to joint_commands"

@@ -18,6 +18,7 @@ import pytest
 from util import Observer
 
 from hilsim.core import recording, transport
+from hilsim.core.keys import Keys
 from hilsim.core.scenario import load_scenario
 
 pytestmark = pytest.mark.e2e
@@ -78,9 +79,9 @@ def test_the_arm_reaches_its_targets_while_every_key_is_attacked(tmp_path: Path)
     # recorder's counts, and what it could not decode is kept too (rejected/<key>, its bytes' story)
     counts = json.loads((run / "record_summary.json").read_text())
     rows = recording.entity_rows(run / "recording.rrd")
-    clock = counts["hilsim/clock"]
+    clock = counts[Keys().clock]
     assert clock["rejected"] > 0, clock  # the injector's garbage on the clock
-    rejected_clock = rows["/rejected/hilsim\\/clock"]  # the whole key, as one entity path part
+    rejected_clock = rows["/rejected/" + Keys().clock.replace("/", "\\/")]  # the whole key, as one entity path part
     assert rejected_clock == clock["rejected"], (rejected_clock, clock)
     assert rows["/clock"] + rejected_clock == clock["recorded"] == clock["received"], (rows["/clock"], clock)
     rejected_rows = sum(n for e, n in rows.items() if e.startswith("/rejected/"))

@@ -280,7 +280,8 @@ def test_logger_counts_lost_samples_per_key(
     assert hv[f"lost:{keys.clock}"] == 3 and hv[f"lost:{truth}"] == hv["dropped"] >= 6, hv
     summary = json.loads((run_dir / "record_summary.json").read_text())
     assert summary[keys.clock] == {
-        "received": 9, "recorded": 9, "rejected": 0, "lost": 3, "dropped": 0, "before_first": 4, "unannounced": 0
+        "received": 9, "recorded": 9, "bagged": 9, "rejected": 0, "lost": 3, "dropped": 0, "before_first": 4,
+        "unannounced": 0,
     }, summary[keys.clock]
     t = summary[truth]
     assert t["received"] == t["recorded"] and t["received"] + t["lost"] == 10 and t["lost"] == t["dropped"] >= 6, t
@@ -323,15 +324,16 @@ def test_launcher_summary_reports_losses(scenario: Any, tmp_path: Path, capsys: 
     from hilsim.run.launcher import Launcher, summarise
 
     sc = scenario("arm", {"clock.mode": mode, "duration": 1.0, "task.targets": []})
+    keys = Keys.of(sc)
+    clock, imu, health = keys.clock, keys.truth("imu"), keys.health("physics")
     la = Launcher(sc, tmp_path)
     la.outcome.physics_done = True
     la.outcome.health["physics"] = {"steps": "1000", "sim_time": "1.000", "real_time_factor": "1.000",
-                                    "published:hilsim/clock": "1001", "published:hilsim/arm/truth/imu": "1001"}
+                                    f"published:{clock}": "1001", f"published:{imu}": "1001"}
     counts = {
-        "hilsim/clock": {"received": 700, "recorded": 700, "rejected": 0, "lost": 250, "dropped": 50,
-                         "before_first": 0},
-        "hilsim/arm/truth/imu": {"received": 900, "recorded": 900, "rejected": 0, "lost": 101, "dropped": 0},
-        "hilsim/arm/health/physics": {"received": 1, "recorded": 1, "rejected": 0},  # an older summary
+        clock: {"received": 700, "recorded": 700, "rejected": 0, "lost": 250, "dropped": 50, "before_first": 0},
+        imu: {"received": 900, "recorded": 900, "rejected": 0, "lost": 101, "dropped": 0},
+        health: {"received": 1, "recorded": 1, "rejected": 0},  # an older summary
     }
     (tmp_path / "record_summary.json").write_text(json.dumps(counts))
     rc = summarise(la)
@@ -343,7 +345,7 @@ def test_launcher_summary_reports_losses(scenario: Any, tmp_path: Path, capsys: 
     assert "51 published samples never reached the recorder: clock 51\n" in out, out
     assert rc == (0 if mode == "realtime" else 1) and out.rstrip().endswith("OK" if rc == 0 else "FAILED"), out
     # received but not recorded fails either way
-    counts["hilsim/clock"]["recorded"] = 699
+    counts[clock]["recorded"] = 699
     (tmp_path / "record_summary.json").write_text(json.dumps(counts))
     assert summarise(la) == 1
-    assert "MISMATCH (received but not recorded) on ['hilsim/clock']" in capsys.readouterr().out
+    assert f"MISMATCH (received but not recorded) on ['{clock}']" in capsys.readouterr().out

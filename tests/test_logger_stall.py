@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from hilsim.core import transport
+from hilsim.core.keys import Keys
 
 pytestmark = pytest.mark.e2e
 REPO = Path(__file__).resolve().parent.parent
@@ -53,7 +54,7 @@ def test_slow_recorder_loses_samples_but_never_slows_realtime_physics(tmp_path: 
     # the recorder could not keep up, and every sample of physics' clock is accounted for
     counts = json.loads((out / "record_summary.json").read_text())
     assert all(c["received"] == c["recorded"] for c in counts.values()), counts
-    clock = counts["hilsim/clock"]
+    clock = counts[Keys().clock]
     published = steps + 1  # step 0, then one per step
     assert clock["before_first"] == 0, clock  # the logger heard physics from its first sample on
     assert clock["received"] < 0.8 * published, clock
@@ -67,5 +68,5 @@ def test_slow_recorder_loses_samples_but_never_slows_realtime_physics(tmp_path: 
     if lost:
         assert f"; lost {sum(lost.values())} " in stdout and "the recorder could not keep up" in stdout, stdout
     logger_out = (out / "logger.out").read_text()
-    assert f"recorded hilsim/clock: received {clock['received']} recorded {clock['received']}" in logger_out
+    assert f"recorded {Keys().clock}: received {clock['received']} recorded {clock['received']}" in logger_out
     assert f"lost {sum(lost.values())} in {len(counts)} keys" in logger_out, logger_out

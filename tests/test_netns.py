@@ -29,6 +29,7 @@ from util import LEAN, REPO, Observer, sim_rate
 
 from hilsim.core import transport
 from hilsim.core.config import ZenohConfig
+from hilsim.core.keys import Keys
 from hilsim.core.scenario import load_scenario
 
 pytestmark = pytest.mark.e2e
@@ -231,7 +232,7 @@ def test_arm_across_three_hosts_in_lockstep(hosts: Hosts, tmp_path: Path) -> Non
     assert "recorded" in out["b"] and "recording summary missing" not in out["b"], out["b"]
     assert "recording" not in out["a"] and "recording" not in out["c"], out["a"]
     counts = json.loads((tmp_path / "b" / "record_summary.json").read_text())
-    assert counts["hilsim/arm/truth/joint_states"]["received"] > 500
+    assert counts[Keys().truth("joint_states")]["received"] > 500
     assert all(v["received"] == v["recorded"] for v in counts.values()), counts
     # the planner's host saw the others only through the router (no route from c to b exists)
     assert "remote: " in out["c"], out["c"]

@@ -31,6 +31,7 @@ from hilsim.core import keys as hilsim_keys
 from hilsim.core import msgs, registry, transport
 from hilsim.core.config import ZenohConfig
 from hilsim.core.keys import Keys
+from hilsim.core.ros2 import types as ros2types
 from hilsim.core.scenario import load_scenario
 
 REPO = Path(__file__).resolve().parent.parent
@@ -309,7 +310,9 @@ def test_plugin_sensor_and_service_run_under_hilsim_up(plugin_site: Path, router
     counts = json.loads((out / "record_summary.json").read_text())
     assert counts[keys.topic("imu")]["received"] == expected, counts[keys.topic("imu")]
     # the plug-in's own topic, recorded (the recorder decodes it with the plug-in's type)
-    mine = counts[f"{keys.prefix}/{keys.robot}/{TOPIC}"]  # spelled here: this process has no plug-in
+    # spelled here: this process has no plug-in (its topic carries sensor_msgs/Imu)
+    mine = counts[f"{keys.domain}/{keys.robot}/{TOPIC}/{msgs.type_name(msgs.Imu).replace('/msg/', '::msg::dds_::')}_/"
+                  f"{ros2types.type_hash('sensor_msgs/msg/Imu')}"]
     assert mine["received"] == mine["recorded"] == expected and mine["rejected"] == 0, mine
 
     # the plug-in lives only in the test's directory: no file of the repository names it (but this

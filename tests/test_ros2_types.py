@@ -246,7 +246,9 @@ EXTRA_MSGS = [
 ]
 
 
-@pytest.mark.parametrize("name", OWN_MSGS + EXTRA_MSGS)
+# a service's _Event message holds service_msgs/ServiceEventInfo, whose char[16] rosbags hashes apart
+# from rosidl (see above): those are checked through the service hashes against published values
+@pytest.mark.parametrize("name", [n for n in OWN_MSGS if not n.endswith("_Event")] + EXTRA_MSGS)
 def test_definitions_round_trip_through_rosbags(name: str) -> None:
     """rosbags parses our text into the same fields and hashes it to the same RIHS01."""
     deps = [n for n in [*types.REGISTRY.dependencies(name), name] if n not in JAZZY.fielddefs]

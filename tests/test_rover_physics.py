@@ -12,7 +12,7 @@ import numpy as np
 import zenoh
 
 from hilsim.core import msgs
-from hilsim.core.keys import Keys
+from hilsim.core.keys import Keys, topic_name
 from hilsim.services.physics import PhysicsService
 from hilsim.sim.world import World
 
@@ -60,8 +60,11 @@ def _order(sc: Any, session: zenoh.Session, run_service: Any) -> list[tuple[str,
     seen: list[tuple[str, int]] = []
     lock = threading.Lock()
 
+    def name(s: zenoh.Sample) -> str:  # /rover/truth/odom -> truth/odom; /tf -> tf
+        return topic_name(str(s.key_expr)).removeprefix(f"/{sc.robot}/").lstrip("/")
+
     def on(s: zenoh.Sample) -> None:
-        k = str(s.key_expr).split(f"{sc.robot}/", 1)[1]
+        k = name(s)
         m = msgs.decode(keys_type[k], s.payload.to_bytes())
         stamp = m.transforms[0].header.stamp if isinstance(m, msgs.TFMessage) else m.header.stamp
         with lock:
@@ -70,11 +73,11 @@ def _order(sc: Any, session: zenoh.Session, run_service: Any) -> list[tuple[str,
     keys_type = {"truth/odom": msgs.Odometry, "tf": msgs.TFMessage, "truth/joint_states": msgs.JointState,
                  "truth/imu": msgs.Imu}
     def on_any(s: zenoh.Sample) -> None:
-        if str(s.key_expr).split(f"{sc.robot}/", 1)[1] in keys_type:
+        if name(s) in keys_type:
             on(s)
 
     # one subscriber for every key: it sees them in the order they were sent
-    subs = [session.declare_subscriber(keys.scoped(f"{sc.robot}/**"), on_any)]
+    subs = [session.declare_subscriber(keys.everything, on_any)]
     time.sleep(0.3)
     with run_service(PhysicsService(sc)) as svc:
         t0 = time.monotonic()
@@ -94,14 +97,18 @@ def test_physics_publishes_odom_and_tf_before_joint_states(scenario: Any, sessio
     for k, t in seen:
         by_stamp.setdefault(t, []).append(k)
     assert len(by_stamp) == 11, by_stamp  # steps 0..10 at 2 ms
+    urdf_every = round(1 / (sc.physics.tf_rate_hz * sc.clock.dt))  # the URDF's moving joints on /tf too
     for t, ks in by_stamp.items():
-        assert ks == ["truth/imu", "truth/odom", "tf", "truth/joint_states"], (t, ks)
+        urdf = ["tf"] if (t // sc.dt_ns) % urdf_every == 0 else []
+        assert ks == ["truth/imu", "truth/odom", "tf", *urdf, "truth/joint_states"], (t, ks)
 
 
 def test_fixed_base_publishes_no_odom(scenario: Any, session: zenoh.Session, run_service: Any) -> None:
     sc = scenario("arm", {"services": ["physics"], "duration": 0.005})
     seen = _order(sc, session, run_service)
-    assert {k for k, _ in seen} == {"truth/imu", "truth/joint_states"}
+    # no odometry; /tf only with the URDF's joints, at step 0 (50 Hz), not a base every step
+    assert {k for k, _ in seen} == {"truth/imu", "truth/joint_states", "tf"}
+    assert [t for k, t in seen if k == "tf"] == [0], seen
 
 
 def test_lockstep_steps_through_steps_nobody_is_due_at(scenario: Any, session: zenoh.Session,

@@ -142,7 +142,7 @@ def test_a_read_only_identity_reads_but_cannot_move_the_robot(pki: Path, secure_
         truth = Truth(observer)
         assert wait_until(lambda: len(truth.positions) > 200, 120), "no physics truth reached the observer"
         # reads: hilsim topic echo as the observer
-        echo = _tool(pki, "observer", ep, "topic", "echo", "hilsim/arm/joint_states", "--count", "2", "--json")
+        echo = _tool(pki, "observer", ep, "topic", "echo", "/arm/joint_states", "--count", "2", "--json")
         assert echo.returncode == 0 and echo.stdout.count("position") >= 2, echo.stdout + echo.stderr
         before = truth.now()
         n_before = len(truth.positions)
@@ -171,7 +171,7 @@ def test_a_read_only_identity_reads_but_cannot_move_the_robot(pki: Path, secure_
         # refused by the router: physics never received the observer's commands (a sample from an
         # unannounced writer that reached it would be counted as rejected there)
         assert wait_until(lambda: "msgs_in" in truth.physics, 10)
-        assert truth.physics.get("rejected:hilsim/arm/joint_commands", "0") == "0", truth.physics
+        assert truth.physics.get(f"rejected:{keys.topic('joint_commands')}", "0") == "0", truth.physics
 
         # the control: the same goal from the operator identity is accepted and moves the arm
         ok = _tool(pki, "operator", ep, "goal", "arm", "--joints", *map(str, TARGET), "--timeout", "120",

@@ -22,8 +22,8 @@ HZ = re.compile(r"average rate: ([\d.]+) Hz \(wall\).*?\|  ([\d.]+) Hz \(sim tim
 
 
 def hz(ep: str, *extra: str) -> list[tuple[float, float, int]]:
-    """The figures ``hilsim topic hz hilsim/clock`` printed over 3 s: (wall Hz, sim-time Hz, ignored)."""
-    r = subprocess.run([sys.executable, "-m", "hilsim.cli", "topic", "hz", "hilsim/clock", "--connect", ep,
+    """The figures ``hilsim topic hz /clock`` printed over 3 s: (wall Hz, sim-time Hz, ignored)."""
+    r = subprocess.run([sys.executable, "-m", "hilsim.cli", "topic", "hz", "/clock", "--connect", ep,
                         "--duration", "3", "--window", "400", *extra],
                        capture_output=True, text=True, timeout=60, cwd=REPO)
     found = [(float(m[1]), float(m[2]), int(m[3] or 0)) for m in HZ.finditer(r.stdout)]

@@ -42,6 +42,7 @@ BUILTIN: dict[str, dict[str, str]] = {
         "drive-emulator": "hilsim.bridges.drive_emulator:DriveEmulatorService",
         "bridge-mavlink": "hilsim.bridges.mavlink_bridge:MavlinkBridgeService",
         "gps-emulator": "hilsim.bridges.gps_emulator:GpsEmulatorService",
+        "bridge-ros2-dds": "hilsim.bridges.ros2_dds:Ros2DdsBridgeService",
     },
     # sensor kinds register themselves in hilsim.sim.sensing (imported when a sensor is built)
     "sensors": {

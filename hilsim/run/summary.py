@@ -4,9 +4,10 @@
 result per robot, the final errors, dead or restarted services, a stalled lockstep, faults) and, where
 this host ran the recorder, the recording: the counts the logger wrote to
 ``<run dir>/record_summary.json`` (received, recorded, lost, dropped per key) against what every service
-says it published (``published:<key>`` in its final health); a recorder that died has its
-``recording.rrd`` parts recovered (:mod:`hilsim.core.recording`). The result is ``OK`` (exit code 0) or
-``FAILED`` (1).
+says it published (``published:<key>`` in its final health), and the bag (``<run dir>/bag/``): the
+messages per key counted in its files against what the recorder received; a recorder that died has its
+``recording.rrd`` parts recovered (:mod:`hilsim.core.recording`) and its bag made whole
+(:func:`hilsim.record.bag_read.recover_bag`). The result is ``OK`` (exit code 0) or ``FAILED`` (1).
 
 Reads and writes no Zenoh key: only the outcome and the run directory.
 """
@@ -14,6 +15,7 @@ Reads and writes no Zenoh key: only the outcome and the run directory.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import Protocol
 
@@ -120,6 +122,9 @@ def summarise(la: FinishedRun) -> int:
             if mismatch:
                 line += f"; MISMATCH (received but not recorded) on {mismatch}"
             print(line)
+            if any("bagged" in v for v in counts.values()):  # logger.bag: count what the bag's files hold
+                # a restarted recorder's counts are its last process's: the bag is shown, not judged
+                ok = _check_bag(la.run_dir, counts, short, judge=not logger_restarted) and ok
             # Samples sent after the last one of their writer that reached the recorder (dropped, or
             # still in flight when the run stopped) leave no gap it could count: compare with what
             # every service says it published per key (final health).
@@ -175,6 +180,32 @@ def _num(v: str | None) -> int:
         return 0
 
 
+def _check_bag(run_dir: Path, counts: dict[str, dict[str, int]], short: Callable[[str], str],
+               judge: bool = True) -> bool:
+    """The bag's messages per key, counted in its files, against what the recorder received; False
+    (FAILED) if they differ (``judge``), or the bag cannot be read."""
+    from hilsim.record.bag import BagError
+    from hilsim.record.bag_read import BAG_DIR, key_counts
+
+    bag = run_dir / BAG_DIR
+    try:
+        held = key_counts(bag)
+    except BagError as e:
+        print(f"  bag {bag}: NOT READABLE: {str(e).splitlines()[0]}")
+        return False
+    recv = sum(v.get("received", 0) for v in counts.values())
+    differ = sorted(k for k in set(counts) | set(held) if held.get(k, 0) != counts.get(k, {}).get("received", 0))
+    line = f"  bag: recorded {sum(held.values())} of {recv} received messages on {len(held)} topics -> {bag}"
+    if not judge:
+        print(line)
+        return True
+    if differ:
+        line += "; MISMATCH (bag against received) on " + ", ".join(
+            f"{short(k)} {held.get(k, 0)} of {counts.get(k, {}).get('received', 0)}" for k in differ[:8])
+    print(line)
+    return not differ
+
+
 def _recover_recordings(run_dir: Path) -> bool:
     """After a recorder died: make each part of the run's recording complete (a SIGKILL leaves no
     RRD footer) and say what it holds; False if a part could not be recovered."""
@@ -192,4 +223,15 @@ def _recover_recordings(run_dir: Path) -> bool:
         upto = f"up to t={c.last_sim_ns / 1e9:.3f} s sim" if c.last_sim_ns is not None else "no sim time"
         how = "the recorder was killed: recovered, verified" if rewritten else "complete, verified"
         print(f"  recording {part}: {sum(c.rows.values())} rows on {len(c.rows)} entities {upto} ({how})")
+    from hilsim.record.bag import BagError
+    from hilsim.record.bag_read import BAG_DIR, recover_bag
+
+    if (run_dir / BAG_DIR).is_dir():
+        try:
+            for r in recover_bag(run_dir / BAG_DIR):
+                how = "the recorder was killed: recovered" if r.rewritten else "complete"
+                print(f"  bag {r.path}: {r.messages} messages ({how})")
+        except BagError as e:
+            print(f"  bag {run_dir / BAG_DIR}: NOT RECOVERED: {str(e).splitlines()[0]}")
+            ok = False
     return ok

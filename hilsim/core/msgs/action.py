@@ -1,11 +1,18 @@
-"""The planner's move action (``hilsim_msgs/action/Move_…``) and its MoveIt-like error codes."""
+"""The planner's move action (``hilsim_msgs/action/Move_…``) and its MoveIt-like error codes.
+
+MoveGoal, MoveResult and MoveFeedback are the goal, result and feedback of the ROS 2 action
+``hilsim_msgs/action/Move`` (the planner serves it as ``/<robot>/move``); the parts rosidl derives
+from them (``Move_SendGoal_Request`` …) follow. MoveGoal also travels alone, with GoalResponse and
+CancelRequest, in hilsim's own goal protocol (``planner/goal``, ``planner/cancel``).
+"""
 
 from dataclasses import dataclass, field
 
 from pycdr2 import IdlStruct
-from pycdr2.types import float64, int32, sequence
+from pycdr2.types import float64, int8, int32, sequence
 
-from hilsim.core.msgs.builtin import Header
+from hilsim.core.msgs.builtin import Header, Time
+from hilsim.core.msgs.control import STATUS_UNKNOWN, UUID, ServiceEventInfo
 from hilsim.core.msgs.geometry import Pose
 from hilsim.core.msgs.trajectory import JointTrajectory
 
@@ -71,3 +78,47 @@ CONTROL_FAILED = -4
 GOAL_IN_COLLISION = -10
 GOAL_OUT_OF_LIMITS = -11
 NO_IK_SOLUTION = -31
+
+
+# ------------------------------------------------------------------ hilsim_msgs/action/Move as rosidl derives it
+@dataclass
+class MoveSendGoalRequest(IdlStruct, typename="hilsim_msgs/action/Move_SendGoal_Request"):
+    goal_id: UUID = field(default_factory=UUID)
+    goal: MoveGoal = field(default_factory=MoveGoal)
+
+
+@dataclass
+class MoveSendGoalResponse(IdlStruct, typename="hilsim_msgs/action/Move_SendGoal_Response"):
+    accepted: bool = False
+    stamp: Time = field(default_factory=Time)
+
+
+@dataclass
+class MoveSendGoalEvent(IdlStruct, typename="hilsim_msgs/action/Move_SendGoal_Event"):
+    info: ServiceEventInfo = field(default_factory=ServiceEventInfo)
+    request: sequence[MoveSendGoalRequest, 1] = field(default_factory=list)
+    response: sequence[MoveSendGoalResponse, 1] = field(default_factory=list)
+
+
+@dataclass
+class MoveGetResultRequest(IdlStruct, typename="hilsim_msgs/action/Move_GetResult_Request"):
+    goal_id: UUID = field(default_factory=UUID)
+
+
+@dataclass
+class MoveGetResultResponse(IdlStruct, typename="hilsim_msgs/action/Move_GetResult_Response"):
+    status: int8 = STATUS_UNKNOWN
+    result: MoveResult = field(default_factory=MoveResult)
+
+
+@dataclass
+class MoveGetResultEvent(IdlStruct, typename="hilsim_msgs/action/Move_GetResult_Event"):
+    info: ServiceEventInfo = field(default_factory=ServiceEventInfo)
+    request: sequence[MoveGetResultRequest, 1] = field(default_factory=list)
+    response: sequence[MoveGetResultResponse, 1] = field(default_factory=list)
+
+
+@dataclass
+class MoveFeedbackMessage(IdlStruct, typename="hilsim_msgs/action/Move_FeedbackMessage"):
+    goal_id: UUID = field(default_factory=UUID)
+    feedback: MoveFeedback = field(default_factory=MoveFeedback)

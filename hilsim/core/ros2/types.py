@@ -131,11 +131,13 @@ class Field:
         return _VALUE_TYPE_ID[value] + _CONTAINER_OFFSET[self.container]
 
     def msg_type(self) -> str:
-        """The type as written in a ``.msg`` line (nested types as ``pkg/Name``)."""
+        """The type as written in a ``.msg`` line (nested messages as ``pkg/Name``; a part of a service or
+        action, e.g. ``pkg/action/A_Goal`` in ``A_SendGoal_Request``, keeps its full name: ``pkg/A_Goal``
+        would name ``pkg/msg/A_Goal``)."""
         base = self.type
         if self.is_nested:
-            pkg, _, name = base.split("/")
-            base = f"{pkg}/{name}"
+            pkg, kind_, name = base.split("/")
+            base = f"{pkg}/{name}" if kind_ == "msg" else base
         elif self.string_bound:
             base = f"{base}<={self.string_bound}"
         suffix = {"": "", "array": f"[{self.size}]", "bounded_sequence": f"[<={self.size}]", "sequence": "[]"}
@@ -776,20 +778,10 @@ trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_error
 }
 
 # hilsim's own types, field for field after the pycdr2 classes of hilsim.core.msgs (same order, same
-# types). The move action's parts are messages of hilsim's own protocol (goal / response / cancel /
-# feedback / result on plain keys), not a ROS action, so no hilsim_msgs/action/Move is synthesised.
+# types). Move_GoalResponse and Move_Cancel belong to hilsim's own goal protocol (the planner's
+# planner/goal and planner/cancel queryables); the goal, result and feedback are also the parts of
+# the ROS 2 action hilsim_msgs/action/Move (_HILSIM_ACTIONS), which the planner serves as /<robot>/move.
 _HILSIM_MSGS: Final[dict[str, str]] = {
-    "hilsim_msgs/action/Move_Goal": """
-string goal_id
-string target_kind
-string[] joint_names
-float64[] joint_positions
-geometry_msgs/Pose pose
-bool use_orientation
-string planner
-float64 planning_time
-bool execute
-""",
     "hilsim_msgs/action/Move_GoalResponse": """
 string goal_id
 bool accepted
@@ -797,33 +789,6 @@ string reason
 """,
     "hilsim_msgs/action/Move_Cancel": """
 string goal_id
-""",
-    "hilsim_msgs/action/Move_Feedback": """
-std_msgs/Header header
-string goal_id
-string state
-float64 progress
-""",
-    "hilsim_msgs/action/Move_Result": """
-int32 SUCCESS=1
-int32 FAILURE=99999
-int32 PLANNING_FAILED=-1
-int32 INVALID_GOAL=-2
-int32 CONTROL_FAILED=-4
-int32 TIMED_OUT=-6
-int32 CANCELED=-7
-int32 GOAL_IN_COLLISION=-10
-int32 GOAL_OUT_OF_LIMITS=-11
-int32 NO_IK_SOLUTION=-31
-std_msgs/Header header
-string goal_id
-bool success
-int32 error_code
-string message
-trajectory_msgs/JointTrajectory trajectory
-float64 planning_time
-float64[] execution_error
-string planner
 """,
     "hilsim_msgs/msg/Contact": """
 string body1
@@ -846,6 +811,48 @@ hilsim_msgs/Parameter[] parameters
 """,
 }
 
+# hilsim's own actions (.action text: goal --- result --- feedback), with every part rosidl derives
+# (Move_SendGoal, Move_GetResult, Move_FeedbackMessage …), so their hashes are those a ROS 2 build of
+# hilsim_msgs would give. hilsim's pycdr2 classes of the parts: hilsim.core.msgs.action.
+_HILSIM_ACTIONS: Final[dict[str, str]] = {
+    "hilsim_msgs/action/Move": """
+string goal_id
+string target_kind
+string[] joint_names
+float64[] joint_positions
+geometry_msgs/Pose pose
+bool use_orientation
+string planner
+float64 planning_time
+bool execute
+---
+int32 SUCCESS=1
+int32 FAILURE=99999
+int32 PLANNING_FAILED=-1
+int32 INVALID_GOAL=-2
+int32 CONTROL_FAILED=-4
+int32 TIMED_OUT=-6
+int32 CANCELED=-7
+int32 GOAL_IN_COLLISION=-10
+int32 GOAL_OUT_OF_LIMITS=-11
+int32 NO_IK_SOLUTION=-31
+std_msgs/Header header
+string goal_id
+bool success
+int32 error_code
+string message
+trajectory_msgs/JointTrajectory trajectory
+float64 planning_time
+float64[] execution_error
+string planner
+---
+std_msgs/Header header
+string goal_id
+string state
+float64 progress
+""",
+}
+
 #: hilsim's own packages (their types are not in any ROS distribution)
 HILSIM_PACKAGES: Final[frozenset[str]] = frozenset({"hilsim_msgs"})
 
@@ -857,8 +864,9 @@ def _default_registry() -> TypeRegistry:
             reg.add_msg(name, text)
     for name, text in _ROS_SRVS.items():
         reg.add_srv(name, text)
-    for name, text in _ROS_ACTIONS.items():
-        reg.add_action(name, text)
+    for table in (_ROS_ACTIONS, _HILSIM_ACTIONS):
+        for name, text in table.items():
+            reg.add_action(name, text)
     missing = {dep for n in reg.names() for f in reg.fields(n) if f.is_nested for dep in [f.type] if dep not in reg}
     if missing:
         raise RuntimeError(f"types referenced but not defined: {sorted(missing)}")

@@ -1,0 +1,257 @@
+"""``hilsim play BAG``: publish a recorded bag's samples again, on their original keys, in sim time.
+
+    hilsim play runs/<run>[/bag] [--rate R] [--keys PATTERN[,PATTERN…]] [--loop] [--clock] [--delay S]
+
+- Keys: each channel's ``hilsim_key`` (the Zenoh key it was recorded from), else the rmw_zenoh key
+  rebuilt from its topic and type (:func:`hilsim.core.ros2.wire.topic_key`, domain 0); ``--domain D``
+  moves every key to ROS domain D (default: the recorded one).
+- Order and pace: sim-time order, ties in the order the recorder received them, paced by the stamps
+  at ``--rate`` (1: as fast as the recorded sim time went; 0: as fast as possible). A sample's sim
+  time is its publish time (its stamp), except for a sample whose stamp does not say when it was
+  sent: a type without a stamp (``cmd_vel``) and a ``JointTrajectory``, whose ``header.stamp`` is
+  when it is to start (ROS convention; hilsim's planner stamps it ahead), take the latest stamp
+  the recorder had received before them. So a trajectory reaches its controller as many steps
+  before its start as it did in the run: played at its start stamp instead, it raced the joint
+  states of that step (another key, another publisher: Zenoh keeps no order between them) and
+  lost, by up to 10 steps, in one play of three at ``--rate 1``.
+- As a ROS 2 node would: node ``hilsim_play`` in the graph (``NN`` token), one publisher per key with
+  its ``MP`` token and the gid derived from it (rmw_zenoh's rule), rmw_zenoh attachments with its own
+  sequence numbers from 1, so receivers' provenance checks (:mod:`hilsim.core.provenance`) accept it.
+- ``--clock``: the recorded ``/clock`` is not played; the player publishes its own ``/clock`` at each
+  new stamp, before the samples of that stamp.
+- ``--keys``: ROS 2 topic globs (``/arm/joint_states``, ``/arm/*``) or Zenoh key expressions
+  (``0/arm/**``), comma-separated; a sample is played if any of them matches.
+- ``--delay``: seconds between announcing the publishers and the first sample, so that subscribers'
+  routes exist (a sample put before Zenoh knows a subscriber reaches nobody).
+
+A progress line on standard error while playing; a missing or unreadable bag is one line and exit
+code 1. Reads the bag whole into memory first.
+"""
+
+from __future__ import annotations
+
+import argparse
+import fnmatch
+import sys
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import zenoh
+
+from hilsim.core import msgs, transport
+from hilsim.core.keys import Keys
+from hilsim.core.ros2 import types as ros2types
+from hilsim.core.ros2 import wire
+from hilsim.record.bag import BagError, offered_qos, stamp_offset
+from hilsim.record.bag_read import Bag, BagMessage, open_bag
+
+NODE = "hilsim_play"
+# types whose header.stamp says when they take effect, not when they were sent
+STARTS_AT_STAMP = frozenset({"trajectory_msgs/msg/JointTrajectory"})
+
+
+@dataclass
+class Item:
+    sim_ns: int
+    key: str
+    topic: str
+    data: bytes
+
+
+def key_of(m: BagMessage, domain: int | None) -> str:
+    """The Zenoh key to play a message on (see the module docstring)."""
+    key = m.key
+    if not key:
+        if m.type == "unknown" or not ros2types.is_known(m.type):
+            raise BagError(f"{m.topic}: no hilsim_key and an unknown type {m.type!r}: cannot build its key")
+        key = wire.topic_key(0, m.topic, wire.dds_type_name(m.type), ros2types.type_hash(m.type))
+    if domain is not None:
+        key = f"{int(domain)}/{key.split('/', 1)[1]}"
+    return key
+
+
+class Selector:
+    """``--keys``: ROS 2 topic globs and Zenoh key expressions."""
+
+    def __init__(self, text: str | None) -> None:
+        parts = [p.strip() for p in (text or "").split(",") if p.strip()]
+        self.globs = [p for p in parts if p.startswith("/")]
+        self.exprs = [zenoh.KeyExpr.autocanonize(p) for p in parts if not p.startswith("/")]
+        self.all = not parts
+
+    def __call__(self, topic: str, key: str) -> bool:
+        if self.all:
+            return True
+        if any(fnmatch.fnmatchcase(topic, g) for g in self.globs):
+            return True
+        return any(e.intersects(zenoh.KeyExpr(key)) for e in self.exprs)
+
+
+def schedule(bag: Bag, select: Selector, domain: int | None, skip_clock: bool) -> list[Item]:
+    """The messages to play, in sim-time order (see the module docstring)."""
+    out: list[tuple[int, int, Item]] = []
+    latest = 0
+    stamped: dict[str, bool] = {}
+    for i, m in enumerate(bag.messages()):
+        s = stamped.get(m.type)
+        if s is None:
+            s = stamped[m.type] = stamp_offset(m.type) >= 0 and m.type not in STARTS_AT_STAMP
+        if s:
+            latest = max(latest, m.pub_ns)
+            t = m.pub_ns
+        else:
+            t = latest
+        if skip_clock and m.topic == "/clock":
+            continue
+        key = key_of(m, domain)
+        if select(m.topic, key):
+            out.append((t, i, Item(t, key, m.topic, m.data)))
+    out.sort(key=lambda x: (x[0], x[1]))
+    return [x[2] for x in out]
+
+
+class Player:
+    """The publishers of one play: a ROS 2 node with a publisher per key (graph tokens, gids, attachments)."""
+
+    def __init__(self, session: zenoh.Session, domain: int) -> None:
+        self.session = session
+        self.domain = domain
+        self.zid = str(session.info.zid())
+        self._ids = iter(range(1, 1 << 30))
+        self.node_id = next(self._ids)
+        self._declared: list[Any] = [session.liveliness().declare_token(
+            wire.node_token(domain, self.zid, self.node_id, "/", "/", NODE))]
+        self.pubs: dict[str, tuple[Any, bytes, list[int]]] = {}  # key -> (publisher, gid, [seq])
+
+    def publisher(self, key: str) -> tuple[Any, bytes, list[int]]:
+        p = self.pubs.get(key)
+        if p is None:
+            parts = key.split("/")
+            topic = "/" + "/".join(parts[1:-2])
+            token = wire.entity_token("MP", int(parts[0]), self.zid, self.node_id, next(self._ids), "/", "/", NODE,
+                                      topic, parts[-2], parts[-1], offered_qos(topic))
+            self._declared.append(self.session.liveliness().declare_token(token))
+            pub = transport.publisher(self.session, key)
+            self._declared.append(pub)
+            p = self.pubs[key] = (pub, wire.entity_gid(token), [0])
+        return p
+
+    def put(self, key: str, data: bytes) -> None:
+        pub, gid, seq = self.publisher(key)
+        seq[0] += 1
+        pub.put(data, attachment=wire.encode_attachment(seq[0], time.time_ns(), gid))
+
+    def close(self) -> None:
+        for d in reversed(self._declared):
+            try:
+                d.undeclare()
+            except zenoh.ZError:
+                pass
+
+
+class Progress:
+    def __init__(self, total: int, span: tuple[int, int], quiet: bool = False) -> None:
+        self.total, self.span, self.quiet = total, span, quiet
+        self.tty = sys.stderr.isatty()
+        self.last = 0.0
+
+    def show(self, n: int, sim_ns: int, loop: int, force: bool = False) -> None:
+        now = time.monotonic()
+        if self.quiet or (not force and now - self.last < (0.25 if self.tty else 1.0)):
+            return
+        self.last = now
+        t0, t1 = self.span
+        again = f" (loop {loop + 1})" if loop else ""
+        text = (f"playing: sim {(sim_ns - t0) / 1e9:8.3f} / {(t1 - t0) / 1e9:.3f} s, "
+                f"{n}/{self.total} messages{again}")
+        sys.stderr.write(("\r" + text + "\033[K") if self.tty else text + "\n")
+        sys.stderr.flush()
+
+    def done(self) -> None:
+        if self.tty and not self.quiet:
+            sys.stderr.write("\n")
+
+
+def play(session: zenoh.Session, items: list[Item], *, domain: int, rate: float = 1.0, loop: bool = False,
+         clock: bool = False, delay: float = 0.5, quiet: bool = False, stop: Any = None) -> dict[str, Any]:
+    """Publish ``items`` (see :func:`schedule`); returns what was played. ``stop``: an Event that
+    ends the play early (tests)."""
+    player = Player(session, domain)
+    clock_key = Keys(domain=domain).clock if clock else ""
+    keys = sorted({it.key for it in items})
+    for k in keys:  # every publisher announced before the first sample
+        player.publisher(k)
+    if clock:
+        player.publisher(clock_key)
+    if delay > 0:
+        time.sleep(delay)
+    span = (items[0].sim_ns, items[-1].sim_ns) if items else (0, 0)
+    prog = Progress(len(items), span, quiet)
+    played = 0
+    loops = 0
+    wall0 = time.monotonic()
+    try:
+        while True:
+            t_start = time.monotonic()
+            last_clock = -1
+            for n, it in enumerate(items):
+                if stop is not None and stop.is_set():
+                    break
+                if rate > 0:
+                    wait = t_start + (it.sim_ns - span[0]) / 1e9 / rate - time.monotonic()
+                    if wait > 0.0005:
+                        time.sleep(wait)
+                if clock and it.sim_ns > last_clock:
+                    player.put(clock_key, msgs.encode(msgs.Clock(clock=msgs.stamp(it.sim_ns))))
+                    last_clock = it.sim_ns
+                player.put(it.key, it.data)
+                played += 1
+                prog.show(n + 1, it.sim_ns, loops)
+            else:
+                prog.show(len(items), span[1], loops, force=True)
+                loops += 1
+                if loop and items and not (stop is not None and stop.is_set()):
+                    continue
+            break
+    finally:
+        prog.done()
+        player.close()
+    return {"messages": played, "keys": len(keys), "loops": loops, "sim_s": (span[1] - span[0]) / 1e9,
+            "wall_s": time.monotonic() - wall0}
+
+
+def cmd_play(args: argparse.Namespace) -> int:
+    if args.rate < 0:
+        print("hilsim play: --rate must be 0 (as fast as possible) or more", file=sys.stderr)
+        return 2
+    try:
+        bag = open_bag(args.bag)
+        items = schedule(bag, Selector(args.keys), args.domain, skip_clock=args.clock)
+    except BagError as e:
+        print(f"hilsim play: {str(e).splitlines()[0]}", file=sys.stderr)
+        return 1
+    if not bag.complete:
+        print(f"hilsim play: {args.bag}: incomplete (its recorder was killed?): playing the {bag.message_count} "
+              f"messages that are whole; `hilsim bag recover {args.bag}` makes it whole", file=sys.stderr)
+    if not items:
+        print(f"hilsim play: {args.bag}: no message matches --keys {args.keys!r}", file=sys.stderr)
+        return 1
+    domain = args.domain if args.domain is not None else int(items[0].key.split("/", 1)[0])
+    try:
+        session = transport.open_tool_session(args.connect)
+    except ConnectionError as e:
+        print(f"hilsim play: {e}", file=sys.stderr)
+        return 1
+    pace = "as fast as possible" if args.rate == 0 else f"at {args.rate:g}x"
+    print(f"hilsim play: {len(items)} messages on {len({i.key for i in items})} keys, {pace}"
+          + (", publishing /clock" if args.clock else ""), file=sys.stderr)
+    try:
+        res = play(session, items, domain=domain, rate=args.rate, loop=args.loop, clock=args.clock, delay=args.delay)
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        session.close()
+    print(f"hilsim play: played {res['messages']} messages on {res['keys']} keys, {res['sim_s']:.3f} s of sim time "
+          f"in {res['wall_s']:.3f} s", file=sys.stderr)
+    return 0
