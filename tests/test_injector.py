@@ -20,6 +20,7 @@ from util import Observer
 from hilsim.core import recording, transport
 from hilsim.core.keys import Keys
 from hilsim.core.scenario import load_scenario
+from hilsim.record.rows import part
 
 pytestmark = pytest.mark.e2e
 REPO = Path(__file__).resolve().parent.parent
@@ -81,7 +82,7 @@ def test_the_arm_reaches_its_targets_while_every_key_is_attacked(tmp_path: Path)
     rows = recording.entity_rows(run / "recording.rrd")
     clock = counts[Keys().clock]
     assert clock["rejected"] > 0, clock  # the injector's garbage on the clock
-    rejected_clock = rows["/rejected/" + Keys().clock.replace("/", "\\/")]  # the whole key, as one entity path part
+    rejected_clock = rows["/rejected/" + part(Keys().clock)]  # the whole key, as one entity path part
     assert rejected_clock == clock["rejected"], (rejected_clock, clock)
     assert rows["/clock"] + rejected_clock == clock["recorded"] == clock["received"], (rows["/clock"], clock)
     rejected_rows = sum(n for e, n in rows.items() if e.startswith("/rejected/"))

@@ -71,3 +71,31 @@ def test_an_impostor_on_the_clock_changes_neither_hz_nor_the_summary() -> None:
     assert p.returncode == 0, out
     assert re.search(r"^  sim time 9\.000 s", out, re.M), out
     assert re.search(r"^  ignored \d+ samples on results, health and logs", out, re.M), out
+
+
+def test_echo_says_when_nobody_publishes_the_topic(router: str) -> None:
+    """``hilsim topic echo`` on a topic nobody publishes says so after a second (the ROS 2 graph has
+    no publisher token for it) instead of waiting in silence; with a publisher announced, it waits
+    for its samples quietly."""
+    from hilsim.core.config import ZenohConfig
+    from hilsim.core.keys import Keys
+    from hilsim.core.ros2 import wire
+
+    def echo(name: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([sys.executable, "-m", "hilsim.cli", "topic", "echo", name, "--connect", router,
+                               "--duration", "1.8"], capture_output=True, text=True, timeout=60, cwd=REPO)
+
+    nope = echo("/arm/nope")
+    assert "no publisher on /arm/nope yet (waiting; Ctrl-C to stop)" in nope.stderr, nope
+    key = Keys().topic("joint_states")  # /arm/joint_states: announced by a publisher's graph token, no sample
+    dds_type, type_hash = key.split("/")[-2:]
+    ses = transport.open_session(ZenohConfig(connect=[router]))
+    try:
+        token = ses.liveliness().declare_token(wire.entity_token(
+            "MP", 0, str(ses.info.zid()), 1, 2, "/", "/arm", "joint_state_publisher", "/arm/joint_states",
+            dds_type, type_hash, wire.QOS_DEFAULT))
+        announced = echo("/arm/joint_states")
+        token.undeclare()
+    finally:
+        ses.close()
+    assert announced.returncode == 0 and "no publisher" not in announced.stderr, announced
