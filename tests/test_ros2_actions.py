@@ -23,9 +23,6 @@ stops the arm short of the goal.
 from __future__ import annotations
 
 import itertools
-import os
-import signal
-import subprocess
 import sys
 import threading
 import time
@@ -42,7 +39,7 @@ from ros2_node import DEFAULT_QOS, STORE, Ros2Node, dds_name, mangle
 from rosbags.interfaces import Nodetype
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.msg import get_types_from_msg
-from util import wait_until
+from util import UpRun, wait_until
 from zenoh.ext import Int64, z_deserialize, z_serialize
 
 from hilsim.core.keys import Keys
@@ -315,25 +312,6 @@ class Truth:
         return float(np.max(np.abs(self.position() - np.array(target))))
 
 
-class Run:
-    """``hilsim up`` as its own process group, stopped with SIGINT like Ctrl-C (as tests/test_ros2_e2e.py)."""
-
-    def __init__(self, args: list[str], router: str, tmp_path: Path) -> None:
-        self.p = subprocess.Popen([*HILSIM, "up", *args, "--router", router, "--out", str(tmp_path / "run")],
-                                  stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=tmp_path,
-                                  start_new_session=True)
-
-    def stop(self) -> str:
-        if self.p.poll() is None:
-            os.killpg(self.p.pid, signal.SIGINT)
-        try:
-            out, _ = self.p.communicate(timeout=60)
-        except subprocess.TimeoutExpired:
-            os.killpg(self.p.pid, signal.SIGKILL)
-            out, _ = self.p.communicate()
-        return out
-
-
 # ------------------------------------------------------------------ without processes
 def test_the_clients_keys_agree_with_published_hashes_and_with_hilsim() -> None:
     """The client's own service hashes hit the values published for ROS 2 Jazzy (action_msgs' CancelGoal
@@ -369,7 +347,7 @@ def test_follow_joint_trajectory(router: str, tmp_path: Path) -> None:
     node = Ros2Node(router, name="moveit_controller_manager", namespace="/")
     client = ActionClient(node, "/arm/follow_joint_trajectory", FJT)
     truth = Truth(node)
-    run = Run(["arm", "--set", "services=[physics,sensors,controller]", "--duration", "120"], router, tmp_path)
+    run = UpRun(["arm", "--set", "services=[physics,sensors,controller]", "--duration", "120"], router, tmp_path)
     try:
         assert wait_until(client.server_ready, 30), sorted({p[9] for p in node.tokens() if p[5] == "SS"})
         assert wait_until(lambda: truth.count > 50, 30)
@@ -445,7 +423,7 @@ def test_move_action(router: str, tmp_path: Path) -> None:
     node = Ros2Node(router, name="operator", namespace="/")
     client = ActionClient(node, "/arm/move", MOVE)
     truth = Truth(node)
-    run = Run(["arm", "--set", "services=[physics,sensors,controller,planner]", "--set", "task.targets=[]",
+    run = UpRun(["arm", "--set", "services=[physics,sensors,controller,planner]", "--set", "task.targets=[]",
                "--duration", "120"], router, tmp_path)
     try:
         assert wait_until(client.server_ready, 60), sorted({p[9] for p in node.tokens() if p[5] == "SS"})

@@ -11,10 +11,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import os
-import signal
-import subprocess
-import sys
 import threading
 import time
 from collections import defaultdict
@@ -25,29 +21,9 @@ import numpy as np
 import pytest
 import xxhash
 from ros2_node import STORE, Ros2Node, dds_name, msg
-from util import wait_until
+from util import UpRun, wait_until
 
-HILSIM = [sys.executable, "-m", "hilsim.cli"]
 ARM_JOINTS = [f"joint_{i}" for i in range(1, 7)]
-
-
-class Run:
-    """``hilsim up`` as its own process group, stopped with SIGINT like Ctrl-C."""
-
-    def __init__(self, args: list[str], router: str, tmp_path: Path) -> None:
-        self.p = subprocess.Popen([*HILSIM, "up", *args, "--router", router, "--out", str(tmp_path / "run")],
-                                  stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=tmp_path,
-                                  start_new_session=True)
-
-    def stop(self) -> str:
-        if self.p.poll() is None:
-            os.killpg(self.p.pid, signal.SIGINT)
-        try:
-            out, _ = self.p.communicate(timeout=60)
-        except subprocess.TimeoutExpired:
-            os.killpg(self.p.pid, signal.SIGKILL)
-            out, _ = self.p.communicate()
-        return out
 
 
 class Seen:
@@ -107,7 +83,7 @@ def test_a_ros2_node_sees_the_arm_and_moves_it_with_a_joint_trajectory(router: s
                             ("/arm/joint_commands", "sensor_msgs/msg/JointState"), ("/arm/imu", "sensor_msgs/msg/Imu")):
         node.subscribe(topic, ros_type, seen.on(topic))
     node.subscribe("/tf", "tf2_msgs/msg/TFMessage", seen.on("/tf"))
-    run = Run(["arm", "--set", "services=[physics,sensors,controller]", "--duration", "60"], router, tmp_path)
+    run = UpRun(["arm", "--set", "services=[physics,sensors,controller]", "--duration", "60"], router, tmp_path)
     out = ""
     try:
         check_graph(node, {"/arm/physics", "/arm/sensors", "/arm/controller", "/lab/lab_node"}, {
@@ -177,8 +153,8 @@ def test_a_ros2_node_drives_the_rover_with_cmd_vel(router: str, tmp_path: Path) 
     for topic, ros_type in (("/rover/truth/odom", "nav_msgs/msg/Odometry"), ("/rover/odom", "nav_msgs/msg/Odometry"),
                             ("/rover/scan", "sensor_msgs/msg/LaserScan"), ("/rover/imu", "sensor_msgs/msg/Imu")):
         node.subscribe(topic, ros_type, seen.on(topic))
-    run = Run(["rover", "--set", "services=[physics,sensors,controller]", "--set", "controller.params.cmd_timeout=100",
-               "--duration", "60"], router, tmp_path)
+    run = UpRun(["rover", "--set", "services=[physics,sensors,controller]", "--set",
+                 "controller.params.cmd_timeout=100", "--duration", "60"], router, tmp_path)
     try:
         check_graph(node, {"/rover/physics", "/rover/sensors", "/rover/controller", "/teleop"}, {
             "/rover/odom": "nav_msgs/msg/Odometry", "/rover/scan": "sensor_msgs/msg/LaserScan",

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+import shutil
 import signal
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -127,6 +129,36 @@ def up(*args: str) -> subprocess.Popen[str]:
                             stderr=subprocess.STDOUT, text=True, cwd=REPO, start_new_session=True)
 
 
+@contextlib.contextmanager
+def network_namespace(tag: str, *, ipv6: bool = True) -> Iterator[str]:
+    """A fresh network namespace with only ``lo`` (up; ``ipv6=False``: IPv6 off), removed with
+    every process in it afterwards; the test is skipped where there are none (root and ``ip``).
+    Run a command in it with ``["ip", "netns", "exec", ns, …]``."""
+    import pytest
+
+    if shutil.which("ip") is None or os.geteuid() != 0:
+        pytest.skip("ip netns unavailable (needs root and iproute2)")
+    ns = f"hs{tag}{os.getpid() % 100000}"
+
+    def ip(*args: str, check: bool = True) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(["ip", *args], capture_output=True, text=True, check=check, timeout=20)
+
+    try:
+        ip("netns", "add", ns)
+    except subprocess.CalledProcessError as e:
+        pytest.skip(f"ip netns unavailable here: {e.stderr.strip()}")
+    try:
+        ip("-n", ns, "link", "set", "lo", "up")
+        if not ipv6:
+            ip("netns", "exec", ns, "sysctl", "-qw", "net.ipv6.conf.all.disable_ipv6=1")
+        yield ns
+    finally:
+        for pid in ip("netns", "pids", ns, check=False).stdout.split():
+            with contextlib.suppress(ProcessLookupError, ValueError):
+                os.kill(int(pid), signal.SIGKILL)
+        ip("netns", "del", ns, check=False)
+
+
 def finish(p: subprocess.Popen[str], timeout: float) -> str:
     """Wait for ``hilsim up`` to end; past ``timeout`` kill its process group and fail with
     everything it printed (a hang on a slow machine must say where it got to)."""
@@ -173,3 +205,24 @@ class Capture:
         for s in self.subs:
             s.undeclare()
         self.session.close()
+
+
+class UpRun:
+    """``hilsim up ARGS --router ROUTER`` as its own process group, stopped with SIGINT like Ctrl-C."""
+
+    def __init__(self, args: list[str], router: str, tmp_path: Path) -> None:
+        self.p = subprocess.Popen([sys.executable, "-m", "hilsim.cli", "up", *args, "--router", router,
+                                   "--out", str(tmp_path / "run")], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                  text=True, cwd=tmp_path, start_new_session=True)
+
+    def stop(self) -> str:
+        """Ctrl-C (SIGKILL after a minute); everything it printed."""
+        if self.p.poll() is None:
+            os.killpg(self.p.pid, signal.SIGINT)
+        try:
+            out, _ = self.p.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            os.killpg(self.p.pid, signal.SIGKILL)
+            out, _ = self.p.communicate()
+        return out
+
