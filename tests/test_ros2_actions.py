@@ -23,7 +23,6 @@ stops the arm short of the goal.
 from __future__ import annotations
 
 import itertools
-import sys
 import threading
 import time
 import uuid
@@ -45,7 +44,6 @@ from zenoh.ext import Int64, z_deserialize, z_serialize
 from hilsim.core.keys import Keys
 from hilsim.core.ros2 import types as hilsim_types
 
-HILSIM = [sys.executable, "-m", "hilsim.cli"]
 ARM_JOINTS = [f"joint_{i}" for i in range(1, 7)]
 FJT = "control_msgs/action/FollowJointTrajectory"
 MOVE = "hilsim_msgs/action/Move"
