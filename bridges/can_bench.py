@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import random
 import tempfile
 import threading
@@ -43,7 +44,7 @@ from typing import Any
 import can
 
 from hilsim.bridges.bench_common import PACE, bridge_process, flat_out, pct, probes
-from hilsim.bridges.can_bus import UDP_GROUP_IPV6
+from hilsim.bridges.can_bus import BusConfig, resolve_bus
 from hilsim.bridges.can_profiles import DriveCommand, Estimate, FrameError, Heartbeat, make_profile
 from hilsim.core import msgs, transport
 from hilsim.core.config import CONFIG_DIR, ZenohConfig
@@ -70,8 +71,13 @@ def _paced(send: Any, first: int, rate: float, seconds: float) -> list[float]:
     return times
 
 
+def _group() -> str:
+    """python-can's default group, or its IPv4 one where the bridge takes it (no IPv6 multicast here)."""
+    return resolve_bus(BusConfig(), logging.getLogger("hilsim.bench.can")).channel
+
+
 def _bus(port: int) -> can.BusABC:
-    return can.Bus(interface="udp_multicast", channel=UDP_GROUP_IPV6, port=port)
+    return can.Bus(interface="udp_multicast", channel=_group(), port=port)
 
 
 # ---------------------------------------------------------------------- python-can alone
@@ -330,7 +336,7 @@ def cmd_can(args: argparse.Namespace) -> int:
     with tempfile.TemporaryDirectory(prefix="hilsim-bench-can-") as d:
         base = bench_python_can(port, args.samples, args.seconds)
         bridge = bench_bridge(port, args.samples, args.seconds, Path(d), args.realtime_priority)
-    res = {"bus": f"udp_multicast {UDP_GROUP_IPV6} port {port}", "samples": args.samples, "seconds": args.seconds,
+    res = {"bus": f"udp_multicast {_group()} port {port}", "samples": args.samples, "seconds": args.seconds,
            "python_can": base, **bridge}
     if args.json:
         print(json.dumps(res, indent=2))

@@ -17,7 +17,9 @@ turns, turns/s), rad and rad/s on Zenoh, through each joint's ``gear_ratio``, ``
 Faults (each published with :meth:`Service.fault` on ``log/bridge-can``, which ``hilsim up``
 prints as ``fault: …``, and in health, where the service state is ``fault`` while one lasts):
 a drive that misses ``heartbeat_misses`` heartbeats, reports an axis error, leaves closed-loop
-control or does not enter it; a bus that cannot be opened, fails, or goes bus-off. What the
+control or does not enter it; a bus that fails or goes bus-off. A bus that cannot be opened at
+start (within ``open_timeout``, default at once) is no fault but the end: the bridge exits
+non-zero with the reason in one line, and ``hilsim up`` ends the run. What the
 bridge does then: no new setpoint goes to a faulted drive; with ``on_fault: hold_all`` (the
 default) its other drives are held where they are (position control at their measured
 position) until every drive is healthy again; with ``hold_faulted`` they go on following their
@@ -49,7 +51,7 @@ from typing import Any, Literal
 import can
 from pydantic import BaseModel, ConfigDict, Field
 
-from hilsim.bridges.can_bus import BusConfig, CanLink, JointMap, UnusedFrames, finite, raise_priority
+from hilsim.bridges.can_bus import BusConfig, CanLink, JointMap, UnusedFrames, finite, raise_priority, resolve_bus
 from hilsim.bridges.can_profiles import DriveCommand, Estimate, FrameError, Heartbeat, make_profile
 from hilsim.core import msgs
 from hilsim.core.config import ConfigError, Scenario
@@ -70,6 +72,9 @@ class BridgeConfig(BaseModel):
                                    "after the bus comes up, and to enter closed-loop control when asked")
     recover_interval: float = Field(0.5, gt=0, description="[s] between attempts to bring a faulted drive back")
     reconnect_interval: float = Field(1.0, gt=0, description="[s] between attempts to reopen a failed bus")
+    open_timeout: float = Field(0.0, ge=0, description="[s] a bus that cannot be opened at start is retried this "
+                                "long, then the bridge stops with the reason (and hilsim up with it); 0: at once. "
+                                "A bus that was open and fails is reopened however long that takes")
     realtime_priority: int = Field(0, ge=0, le=99, description="SCHED_FIFO priority to ask for (0: none); "
                                    "physics asks for 10")
     rejoin_velocity: float = Field(0.5, gt=0, description="[rad/s] a recovered position joint moves to its command")
@@ -130,6 +135,7 @@ class CanBridgeService(Service):
         if len(set(nodes)) != len(nodes):
             raise ConfigError(f"{where}: {self.name}.joints: node ids repeat: {nodes}")
         self.profile = make_profile(c.profile, c.dbc)
+        c.bus = resolve_bus(c.bus, self.log)  # python-can's IPv4 group where IPv6 multicast is missing
         self.joints: dict[str, BridgedJoint] = {}
         for n in mine:
             iface = scenario.joint(n).interface
@@ -160,7 +166,7 @@ class CanBridgeService(Service):
         self.log.info("serving %s on CAN bus %s (profile %s)", ", ".join(
             f"{j.name} (node {j.node}, {j.interface})" for j in self.joints.values()),
             self.cfg.bus.describe(), self.cfg.profile)
-        self.link.start()
+        self.link.start_or_fail(self.cfg.open_timeout)  # a bus that cannot open ends the service (one line)
 
     def _info(self, text: str) -> None:
         """Good news (a recovery), in the process log and on ``log/bridge-can`` (level 20)."""
@@ -370,6 +376,7 @@ class CanBridgeService(Service):
     def loop(self) -> None:
         raise_priority(self.cfg.realtime_priority, self.log)
         while not self.stop_event.wait(0.02):
+            self.link.check_opened()
             with self.lock:
                 self._supervise()
 

@@ -9,14 +9,21 @@ other field is passed to ``can.Bus`` as it is (``bitrate``, ``port``, ``hop_limi
     bus: {interface: udp_multicast, channel: "ff15:7079:7468:6f6e:6465:6d6f:6d63:6173", port: 43113}
     bus: {interface: virtual, channel: test}          # in one process only
     bus: {interface: pcan, channel: PCAN_USBBUS1, bitrate: 1000000}
+
+python-can's default IPv6 group needs IPv6 multicast, which containers and some hosts lack:
+:func:`resolve_bus` then takes python-can's IPv4 group (``239.74.163.2``) instead, the same way in
+every process of the host (each probes IPv6 once), so the bridge and the drive emulator still
+meet. A bus that cannot be opened says why and what to change (:func:`open_bus`).
 """
 
 from __future__ import annotations
 
+import ipaddress
 import logging
 import math
 import os
 import socket
+import struct
 import time
 from collections import Counter
 from collections.abc import Callable, Iterable
@@ -29,7 +36,9 @@ from hilsim.bridges.link import KeptOpen, OncePer
 
 # python-can's udp_multicast defaults (can.interfaces.udp_multicast.UdpMulticastBus)
 UDP_GROUP_IPV6 = "ff15:7079:7468:6f6e:6465:6d6f:6d63:6173"
+UDP_GROUP_IPV4 = "239.74.163.2"
 UDP_PORT = 43113
+IPV4_ROUTE_HINT = "ip route add 224.0.0.0/4 dev lo"  # IPv4 multicast between the processes of one host
 # SocketCAN error frame class bits (linux/can/error.h)
 CAN_ERR_BUSOFF = 0x40
 CAN_ERR_RESTARTED = 0x100
@@ -88,11 +97,74 @@ class JointMap(BaseModel):
 
 
 def open_bus(cfg: BusConfig) -> can.BusABC:
-    """Open the bus; :class:`ConnectionError` with one line if it is not available."""
+    """Open the bus; :class:`ConnectionError` with one line if it is not available (for
+    udp_multicast: the system's reason, and what to change)."""
     try:
         return can.Bus(**cfg.kwargs())
     except (can.CanError, OSError, ImportError, ValueError, TypeError, NotImplementedError) as e:
-        raise ConnectionError(f"CAN bus {cfg.describe()} not available: {type(e).__name__}: {e}") from None
+        why = f"{type(e).__name__}: {e}"
+        cause = e.__cause__ or e.__context__
+        if isinstance(cause, OSError) and not isinstance(e, OSError):  # python-can hides the system's reason
+            why = f"{e} ({cause.strerror or cause})"
+        raise ConnectionError(f"CAN bus {cfg.describe()} not available: {why}{_udp_hint(cfg)}") from None
+
+
+def _ip_version(group: str) -> int | None:
+    try:
+        return ipaddress.ip_address(group).version
+    except ValueError:
+        return None
+
+
+def _udp_hint(cfg: BusConfig) -> str:
+    """What to do about a udp_multicast bus that does not open ("" for other interfaces)."""
+    if cfg.interface != "udp_multicast":
+        return ""
+    v, v6 = _ip_version(cfg.channel), ipv6_multicast_problem()
+    if v == 6:
+        what = f"no IPv6 multicast on this host ({v6})" if v6 else "IPv6 multicast may not reach this group"
+        return (f"; {what}: use python-can's IPv4 group, bus.channel {UDP_GROUP_IPV4} "
+                f"(e.g. --set bridge-can.bus.channel={UDP_GROUP_IPV4})")
+    if v == 4:
+        return (f"; IPv4 multicast needs a route (on one host: {IPV4_ROUTE_HINT})"
+                + (f"; no IPv6 multicast either ({v6})" if v6 else ""))
+    return ""
+
+
+_ipv6_probe: str | None = None  # None: not probed yet; "": IPv6 multicast works; else why not
+
+
+def ipv6_multicast_problem() -> str:
+    """Why a UDP socket of this host cannot join python-can's IPv6 group ("" if it can), as its
+    udp_multicast bus would (``IPV6_JOIN_GROUP`` on the default interface); probed once per process."""
+    global _ipv6_probe
+    if _ipv6_probe is None:
+        try:
+            with socket.socket(socket.AF_INET6, socket.SOCK_DGRAM) as s:
+                group = socket.inet_pton(socket.AF_INET6, UDP_GROUP_IPV6) + struct.pack("@I", 0)
+                s.setsockopt(socket.IPPROTO_IPV6, socket.IPV6_JOIN_GROUP, group)
+            _ipv6_probe = ""
+        except OSError as e:
+            _ipv6_probe = e.strerror or str(e)
+    return _ipv6_probe
+
+
+def resolve_bus(cfg: BusConfig, log: logging.Logger) -> BusConfig:
+    """The bus to open for ``cfg``: ``cfg`` itself, except python-can's default IPv6 group on a host
+    without IPv6 multicast, which becomes python-can's IPv4 group (same port), said in ``log``.
+    Every process of a host decides alike (the same probe), so the two ends of the bus still meet;
+    a group the scenario chose otherwise is never changed."""
+    if cfg.interface != "udp_multicast" or _ip_version(cfg.channel) != 6:
+        return cfg
+    if ipaddress.ip_address(cfg.channel) != ipaddress.ip_address(UDP_GROUP_IPV6):
+        return cfg
+    why = ipv6_multicast_problem()
+    if not why:
+        return cfg
+    log.warning("IPv6 multicast is not available on this host (%s): the CAN bus uses python-can's IPv4 "
+                "group %s instead (every process of this host does the same; set bus.channel to choose)",
+                why, UDP_GROUP_IPV4)
+    return cfg.model_copy(update={"channel": UDP_GROUP_IPV4})
 
 
 def is_bus_off(msg: can.Message) -> bool:
@@ -138,10 +210,35 @@ class CanLink(KeptOpen):
         self.batches = 0  # on_batch_end calls
         self._consecutive_failures = 0
         self._next_state_check = 0.0
+        self.opened_once = False
+        self._open_timeout = 0.0
+        self._open_deadline = math.inf
 
     @property
     def bus(self) -> can.BusABC | None:
         return self.handle
+
+    def start_or_fail(self, open_timeout: float) -> None:
+        """Start, insisting on the bus at start: with ``open_timeout`` 0 it is opened here, and a bus
+        that cannot be opened raises :class:`ConnectionError` (one line: why, and what to change);
+        else the reader keeps trying (faults said as usual) and :meth:`check_opened` raises once
+        ``open_timeout`` s have passed without it ever opening. Once it has been open, an outage is
+        only a fault: the reader reopens it however long that takes."""
+        if open_timeout <= 0:
+            self.handle = self.opener(self.cfg)
+            self._opened()
+            self.up, self.reason = True, ""
+            self.on_state(True, "")
+        else:
+            self._open_timeout = open_timeout
+            self._open_deadline = time.monotonic() + open_timeout
+        self.start()
+
+    def check_opened(self) -> None:
+        """:class:`ConnectionError` if the bus never opened within :meth:`start_or_fail`'s ``open_timeout``."""
+        if not self.opened_once and time.monotonic() > self._open_deadline:
+            raise ConnectionError(f"not opened within open_timeout ({self._open_timeout:g} s): "
+                                  f"{self.reason or 'CAN bus not available'}")
 
     # ---------------------------------------------------------------- KeptOpen's hooks
     def _write(self, handle: can.BusABC, msg: can.Message) -> None:
@@ -159,6 +256,7 @@ class CanLink(KeptOpen):
         handle.shutdown()
 
     def _opened(self) -> None:
+        self.opened_once = True
         self._consecutive_failures = 0
         self._reopen = None
         if self.rx_buffer > 0:

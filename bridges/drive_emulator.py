@@ -44,7 +44,7 @@ from typing import Any, Literal
 import can
 from pydantic import BaseModel, ConfigDict, Field
 
-from hilsim.bridges.can_bus import BusConfig, CanLink, JointMap, UnusedFrames, raise_priority
+from hilsim.bridges.can_bus import BusConfig, CanLink, JointMap, UnusedFrames, raise_priority, resolve_bus
 from hilsim.bridges.can_profiles import DriveCommand, DriveProfile, Estimate, FrameError, Heartbeat, make_profile
 from hilsim.core import msgs
 from hilsim.core.config import SIM, ConfigError, Scenario
@@ -64,6 +64,8 @@ class DriveEmulatorConfig(BaseModel):
     heartbeat_period: float = Field(0.1, gt=0, description="[s]")
     encoder_period: float = Field(0.01, gt=0, description="cyclic encoder estimates [s]")
     reconnect_interval: float = Field(1.0, gt=0, description="[s] between attempts to reopen a failed bus")
+    open_timeout: float = Field(0.0, ge=0, description="[s] a bus that cannot be opened at start is retried this "
+                                "long, then the emulator stops with the reason; 0: at once")
     realtime_priority: int = Field(0, ge=0, le=99, description="SCHED_FIFO priority to ask for (0: none); "
                                    "physics asks for 10")
     natural_frequency: float = Field(40.0, gt=0, description="model: position loop ω_n [rad/s]")
@@ -196,6 +198,7 @@ class DriveEmulatorService(Service):
                 k: JointMap.model_validate(v) for k, v in (bridge.get("joints") or {}).items()}
         except ValueError as e:
             raise ConfigError(f"{where}: {self.name}: drives/bus taken from bridge-can are not valid: {e}") from None
+        self.bus_cfg = resolve_bus(self.bus_cfg, self.log)  # as the bridge does: both ends on the same group
         if not drives:
             raise ConfigError(f"{where}: {self.name}.drives: no drive to emulate (name joints with a node_id, "
                               f"or give bridge-can.joints)")
@@ -241,7 +244,7 @@ class DriveEmulatorService(Service):
         if self.cfg.mode == "simulation":
             self.cmd_pub = self.publisher(self.keys.topic("joint_commands"))
             self.subscribe(self.keys.topic(self.cfg.state_topic), msgs.JointState, self._on_state)
-        self.link.start()
+        self.link.start_or_fail(self.cfg.open_timeout)  # a bus that cannot open ends the service (one line)
 
     def _on_bus(self, up: bool, reason: str) -> None:
         with self.lock:
@@ -326,6 +329,7 @@ class DriveEmulatorService(Service):
         raise_priority(c.realtime_priority, self.log)
         next_enc = next_hb = time.monotonic()
         while not self.stop_event.is_set():
+            self.link.check_opened()
             now = time.monotonic()
             with self.lock:
                 if c.mode == "model":

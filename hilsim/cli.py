@@ -1,6 +1,6 @@
 """The ``hilsim`` command: one entry for running, inspecting and measuring simulations.
 
-    hilsim up SCENARIO [--clock lockstep|realtime] [--duration S] [--seed N] [--only A,B --router EP]
+    hilsim up SCENARIO [--clock lockstep|realtime] [--duration S | --interactive] [--seed N] [--only A,B --router EP]
     hilsim run SERVICE --config FILE
     hilsim topic list | echo KEY [--count N] [--json] | hz KEY
     hilsim view [RRD]
@@ -89,9 +89,13 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="cmd", required=True)
 
     up = sub.add_parser("up", help="start all services of a scenario, run its task, stop, summarise")
-    up.add_argument("scenario", help="scenario name in config/ (e.g. arm) or a YAML path")
+    up.add_argument("scenario", help="scenario name in config/ (arm, arm-lean: the arm at half its rates, rover, "
+                    "rover-outdoor) or a YAML path")
     up.add_argument("--clock", choices=["lockstep", "realtime"], help="override clock.mode")
-    up.add_argument("--duration", type=float, help="stop after this many sim seconds")
+    up.add_argument("--duration", type=float, help="stop after this many sim seconds (before the task ends: "
+                    "result STOPPED, exit code 3)")
+    up.add_argument("--interactive", action="store_true",
+                    help="do not run the task: stay up until Ctrl-C, for hilsim goal, gains, topic and ROS 2 tools")
     up.add_argument("--seed", type=int, help="override the scenario seed")
     up.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="override any scenario field")
     up.add_argument("--out", help="run directory (default runs/<timestamp>)")
@@ -100,7 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--world", help="the scenario's world, e.g. rover --world outdoor (config/rover-outdoor.yaml)")
     up.add_argument("--hil", "--overlay", dest="hil", action="append", default=[], metavar="FILE",
                     help="merge a file over the scenario, in order (e.g. config/hil/motor-model.yaml, "
-                         "config/lean.yaml)")
+                         "config/hil/can-emulated.yaml)")
     up.add_argument("--compose", action="append", default=[], metavar="A,B,...",
                     help="run these services in one process (e.g. physics,sensors,controller); repeatable")
     up.add_argument("--only", metavar="A,B,...",

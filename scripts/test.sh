@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Set up .venv (if needed) and run the whole test suite: `bash scripts/test.sh [pytest args]`
+# Set up .venv (once; again when pyproject.toml changes) and run the whole test suite: `bash scripts/test.sh [pytest args]`
 set -euo pipefail
 cd "$(dirname "$0")/.."
 # tests/test_netns.py needs `ip` (iproute2), tests/test_security.py `openssl`, tests/test_panel.py
@@ -15,10 +15,8 @@ if [ ${#missing[@]} -gt 0 ] && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/nu
   { apt-get update -qq && apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null; } \
     || echo "scripts/test.sh: could not install ${missing[*]} with apt-get" >&2
 fi
-if [ ! -x .venv/bin/python ]; then
-  python3 -m venv .venv
-fi
-.venv/bin/python -m pip install -q --upgrade pip >/dev/null
-.venv/bin/python -m pip install -q -e '.[test]'
+# .venv with hilsim and its test tools: installed once, again when pyproject.toml changes
+source scripts/venv.sh
+ensure_venv '.[test]'
 .venv/bin/ruff check .
 exec .venv/bin/python -m pytest -q "$@"

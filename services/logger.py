@@ -87,7 +87,7 @@ from hilsim.core.service import LEVEL_WARN, Service
 disable_analytics()  # before rerun is imported: its SDK reads the analytics config at start-up
 import rerun as rr  # noqa: E402
 
-from hilsim.record.bag import TIME_NOTE, BagError, BagWriter  # noqa: E402
+from hilsim.record.bag import NO_ATTACHMENT, TIME_NOTE, BagError, BagWriter  # noqa: E402
 from hilsim.record.bag_read import BAG_DIR, bag_paths, recover_file, write_metadata  # noqa: E402
 from hilsim.record.rows import RowWriter  # noqa: E402
 from hilsim.record.viewer import default_blueprint  # noqa: E402
@@ -188,6 +188,7 @@ class LoggerService(Service):
         self.rows = RowWriter(self.rec, self.sc.robot, m, self.fault, scene)
         if self.sc.logger.bag:
             self.bag = self._open_bag()
+            self._bag_append = self.bag.append
         try:
             self.rows.log_model()
         except Exception as e:  # a model rerun cannot log must not stop the recording
@@ -339,10 +340,7 @@ class LoggerService(Service):
                 self._pending[key] += 1
                 return  # no bytes: nothing for the bag (bagged < recorded for this key)
         if self.bag is not None:  # every payload as it arrived, valid or not
-            if att is None:
-                self.bag.add(key, payload, t_ns)
-            else:
-                self.bag.add(key, payload, t_ns, att.seq, att.gid)
+            self._bag_append((key, payload, NO_ATTACHMENT if att is None else att, t_ns))
         if rows.raw(key, payload):  # a clock, joint state or IMU sample of a layout seen before
             self.sim_ns = rows.clock_ns
             self._pending[key] += 1
@@ -393,7 +391,7 @@ class LoggerService(Service):
         if self.bag is not None:
             try:
                 wrote = self.bag.flush()
-            except (OSError, BagError) as e:  # a full disk: the .rrd goes on, the bag stops here
+            except Exception as e:  # a full disk, a bug: the .rrd goes on, the bag stops here (a fault)
                 self.fault(f"the bag {self.bag.path} stopped: {type(e).__name__}: {e}", exc=e)
                 self.bag.abandon()
                 self.bag = None

@@ -155,7 +155,8 @@ class PlannerService(Service):
         self.pub_feedback = self.publisher(k.topic("planner/feedback"))
         self.pub_result = self.publisher(k.topic("planner/result"))
         self.pub_task_result = self.publisher(k.topic("task/result"))
-        self.subscribe(k.topic("joint_states"), msgs.JointState, self.on_joint_states, n_joints=self.n)
+        # its decision ticks: an error there would stop every goal and the task, so it ends the service
+        self.subscribe(k.topic("joint_states"), msgs.JointState, self.on_joint_states, n_joints=self.n, fatal=True)
         self._controller_seen = False
         self._declared.append(self.session.liveliness().declare_subscriber(
             k.alive("controller"), self._on_controller, history=True))

@@ -293,7 +293,7 @@ def test_garbage_frames_are_counted_not_fatal(rig: Callable[..., Rig]) -> None:
 
 def test_a_bus_missing_at_start_then_bus_off_faults_and_recovers(rig: Callable[..., Rig],
                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
-    r = rig()
+    r = rig(**{"bridge-can.open_timeout": 5.0})  # a USB adapter plugged in after the start is waited for
     tries = {"n": 0}
     real_open = can_bus.open_bus
 
@@ -319,6 +319,54 @@ def test_a_bus_missing_at_start_then_bus_off_faults_and_recovers(rig: Callable[.
     assert r.bridge.link.outages == 2
     wait_for(lambda: r.bridge.state == "running" and r.joint("joint_1").status == "ok", timeout=8,
              what="running after bus-off")
+
+
+def test_a_bus_that_cannot_open_at_start_stops_the_bridge_with_the_reason(rig: Callable[..., Rig],
+                                                                          caplog: pytest.LogCaptureFixture) -> None:
+    """No adapter at start (open_timeout 0, the default): the bridge exits non-zero at once, its
+    reason in one line (hilsim up then ends the run), instead of a fault the planner finds later."""
+    r = rig(**{"bridge-can.bus": {"interface": "socketcan", "channel": "hilsimnone0"}})
+    r.start(r.bridge)
+    t = r.ctx[-1]
+    t.thread.join(5)
+    assert not t.thread.is_alive() and t.rc == 1 and r.bridge.state == "fault"
+    assert r.bridge.link.handle is None and not r.bridge.link.opened_once
+    assert "stopped: CAN bus socketcan:hilsimnone0 not available: " in caplog.text, caplog.text
+
+
+def test_without_ipv6_multicast_both_ends_take_the_ipv4_group(monkeypatch: pytest.MonkeyPatch,
+                                                               caplog: pytest.LogCaptureFixture) -> None:
+    """python-can's default IPv6 group where IPv6 multicast cannot be joined (forced here; a netns
+    without IPv6 in tests/test_can_e2e.py): the bridge and the drive emulator, each deciding on its
+    own from the same scenario, both take python-can's IPv4 group on the same port, and say so; a
+    group the scenario chose is never changed; a udp_multicast bus that does not open says what to do."""
+    demo = REPO / "config" / "hil" / "can-emulated.yaml"
+    monkeypatch.setattr(can_bus, "_ipv6_probe", "No such device")
+    sc = load_scenario("arm", {"bridge-can.bus.port": 43999}, overlays=[demo])
+    bridge, emulator = CanBridgeService(sc), DriveEmulatorService(sc)
+    assert bridge.cfg.bus.kwargs() == emulator.bus_cfg.kwargs() == {
+        "interface": "udp_multicast", "channel": can_bus.UDP_GROUP_IPV4, "port": 43999}
+    assert caplog.text.count("IPv6 multicast is not available on this host (No such device)") == 2
+    chosen = load_scenario("arm", {"bridge-can.bus.channel": "ff15::4242"}, overlays=[demo])
+    assert CanBridgeService(chosen).cfg.bus.channel == "ff15::4242"
+    monkeypatch.setattr(can_bus, "_ipv6_probe", "")  # a host with IPv6 multicast: as configured
+    assert CanBridgeService(sc).cfg.bus.channel == can_bus.UDP_GROUP_IPV6
+
+    def no_socket(**kw: Any) -> can.BusABC:
+        try:
+            raise OSError(19, "No such device")
+        except OSError as e:
+            raise can.CanInitializationError("could not create or configure socket") from e
+
+    monkeypatch.setattr(can, "Bus", no_socket)
+    monkeypatch.setattr(can_bus, "_ipv6_probe", "No such device")
+    with pytest.raises(ConnectionError) as v4:
+        can_bus.open_bus(BusConfig(channel=can_bus.UDP_GROUP_IPV4, port=43999))
+    assert "could not create or configure socket (No such device)" in str(v4.value)
+    assert "ip route add 224.0.0.0/4 dev lo" in str(v4.value) and "no IPv6 multicast either" in str(v4.value)
+    with pytest.raises(ConnectionError) as v6:
+        can_bus.open_bus(BusConfig(channel="ff15::4242"))
+    assert f"--set bridge-can.bus.channel={can_bus.UDP_GROUP_IPV4}" in str(v6.value)
 
 
 def test_nothing_on_the_bus_is_a_fault_not_a_hang(rig: Callable[..., Rig]) -> None:

@@ -1,10 +1,11 @@
 """The docker compose files and the scenarios cannot drift apart (hilsim/run/deploy.py).
 
-No docker engine runs here: the shipped files must be exactly what ``hilsim compose`` makes of the
-scenarios today, their profiles must hold the right bridges, and every container's command, run
-as it is outside docker (only the router's address and the recording directory changed), must
-run the arm to its target, judged by the physics truth. (tests/test_compose.py is about services
-composed in one process, a different thing.)"""
+Without an engine: the shipped files must be exactly what ``hilsim compose`` makes of the scenarios
+today, their profiles must hold the right bridges, and every container's command, run as it is
+outside any container (only the router's address and the run directories changed), must run the
+arm to its target, judged by the physics truth, with the recorder's ending the run with the
+verdict while the others hold. tests/test_compose_run.py runs the arm's containers for real.
+(tests/test_compose.py is about services composed in one process, a different thing.)"""
 
 from __future__ import annotations
 
@@ -63,14 +64,23 @@ def test_each_profile_runs_exactly_the_scenarios_processes(path: Path, scenario:
     for name, svc in services.items():
         if name == "router":
             continue
-        assert svc["command"][:2] == ["run", name] and svc["command"][3].startswith("${HILSIM_SCENARIO:-")
+        cmd = svc["command"][1:] if svc["command"][0] == "--hold" else svc["command"]
+        router = "tcp/router:7447"
         if "hil-can" in svc.get("profiles", []):  # can0 belongs to the host's network
-            assert svc["network_mode"] == "host" and svc["environment"]["HILSIM_ZENOH_CONNECT"] == "tcp/127.0.0.1:7447"
+            router = "tcp/127.0.0.1:${HILSIM_ROUTER_PORT:-7447}"  # the router's port published on the host
+            assert svc["network_mode"] == "host" and svc["environment"]["HILSIM_ZENOH_CONNECT"] == router
+        # one host of the several-machines set-up: its own service, the others through the router
+        assert cmd[:1] == ["up"] and cmd[1].startswith("${HILSIM_SCENARIO:-"), cmd
+        assert cmd[2:] == ["--only", name, "--router", router], cmd
+        assert (svc["command"][0] == "--hold") == (name != "logger"), name  # the recorder's ends the run
         if name == "bridge-mavlink":  # the UDP port of bridge-mavlink.connection, published
             assert svc["ports"] == ["14550:14550/udp"]
-    logger = services["logger"]
-    assert logger["volumes"] == ["../runs:/hilsim/runs"] and "logger.out_dir=/hilsim/runs" in logger["command"]
-    assert "SYS_NICE" in services["physics"]["cap_add"] and services["physics"]["ulimits"]["rtprio"] == 99
+    assert services["logger"]["volumes"] == ["${HILSIM_RUNS:-../runs}:/hilsim/runs"]
+    # SCHED_FIFO needs CAP_SYS_NICE only; an rtprio limit is one root may not be allowed to raise
+    # (physics never started under compose with `ulimits: {rtprio: 99}`)
+    assert services["physics"]["cap_add"] == ["SYS_NICE"] and "ulimits" not in services["physics"]
+    assert comp["services"]["router"]["ports"] == ["${HILSIM_ROUTER_PORT:-7447}:7447"]
+    assert comp["x-podman"] == {"in_pod": False}  # podman-compose: containers on the network, not one pod
 
 
 def test_a_hil_scenario_without_the_base_services_is_refused() -> None:
@@ -80,17 +90,17 @@ def test_a_hil_scenario_without_the_base_services_is_refused() -> None:
 
 
 def test_each_container_command_runs_outside_docker(tmp_path: Path) -> None:
-    """docker/compose.yaml's default profile, each command as a process here: the router's listen
-    address and the logger's directory are the only changes (plus one target to keep it short)."""
+    """docker/compose.yaml's default profile, each container's entry point and command as a process
+    here (the router's address and each run directory are the only changes, plus one target to keep
+    it short): the recorder's ends by itself with ``hilsim up``'s verdict, the others hold until
+    stopped, as compose needs (``up --exit-code-from logger`` aborts the run at the first exit)."""
     comp = yaml.safe_load(SHIPPED[0].read_text())
     services = _active(comp, set())
     ep = f"tcp/127.0.0.1:{transport.free_port()}"
-    runs = tmp_path / "runs"
 
     def local(arg: str) -> str:
         arg = arg.replace("${HILSIM_SCENARIO:-config/arm.yaml}", "config/arm.yaml")
-        arg = arg.replace("tcp/0.0.0.0:7447", ep)
-        return arg.replace("logger.out_dir=/hilsim/runs", f"logger.out_dir={runs}")
+        return arg.replace("tcp/0.0.0.0:7447", ep).replace("tcp/router:7447", ep)
 
     procs: dict[str, subprocess.Popen[bytes]] = {}
     obs: Observer | None = None
@@ -99,29 +109,42 @@ def test_each_container_command_runs_outside_docker(tmp_path: Path) -> None:
         order = ["router", *[n for n in services if n not in ("router", "physics")], "physics"]
         for name in order:
             svc = services[name]
-            cmd = [local(a) for a in svc["command"]]
-            if name != "router":
-                cmd += ["--set", f"task.targets=[{TARGET}]"]
+            entry = svc.get("entrypoint", comp["x-service"]["entrypoint"])
+            cmd = [local(a) for a in [*entry, *svc["command"]]]
+            if cmd[0] == "hilsim":
+                cmd = [sys.executable, "-m", "hilsim.cli", *cmd[1:]]
+            else:
+                assert cmd[:3] == ["python", "-m", "hilsim.run.deploy"], cmd
+                cmd = [sys.executable, *cmd[1:], "--set", f"task.targets=[{TARGET}]", "--out", str(tmp_path / name)]
             env = {**os.environ, **comp["x-service"]["environment"], **svc.get("environment", {})}
             env["HILSIM_ZENOH_CONNECT"] = ep
             with open(tmp_path / f"{name}.log", "wb") as log:
-                procs[name] = subprocess.Popen([sys.executable, "-m", "hilsim.cli", *cmd], stdout=log,
-                                               stderr=subprocess.STDOUT, cwd=REPO, env=env, start_new_session=True)
+                procs[name] = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=REPO, env=env,
+                                               start_new_session=True)
             if name == "router":
                 assert wait_until(lambda: "listening" in (tmp_path / "router.log").read_text(), 30)
                 obs = Observer(ep)
         assert obs is not None
-        done = wait_until(lambda: "task-1" in obs.results or any(p.poll() is not None for p in procs.values()), 240)
+        held = [n for n in procs if n not in ("router", "logger")]
+        done = wait_until(lambda: procs["logger"].poll() is not None
+                          or any(procs[n].poll() is not None for n in held), 240)
         logs = "\n".join(f"--- {n}:\n{(tmp_path / f'{n}.log').read_text()[-1500:]}" for n in procs)
-        assert done and "task-1" in obs.results, logs
+        assert done and procs["logger"].returncode == 0, logs
+        out = (tmp_path / "logger.log").read_text()
+        assert "targets reached: 1/1" in out and "result: OK" in out, logs
+        # the service's own log, shown in the container's output as it grows
+        assert "logger     INFO    ready" in out, out
         stamp, ok = obs.results["task-1"]
         assert ok, logs
         err = np.abs(obs.truth_at(stamp) - np.asarray(TARGET)).max()
         assert err <= load_scenario("arm").task.tolerance + 0.002, err
+        # the others: their share is over, they hold, and go at compose's stop signal (SIGINT)
+        assert wait_until(lambda: all("waiting for compose to stop it" in (tmp_path / f"{n}.log").read_text()
+                                      for n in held), 30), logs
+        assert all(procs[n].poll() is None for n in held), {n: procs[n].returncode for n in held}
     finally:
         if obs is not None:
             obs.close()
-        # compose stops with SIGINT (stop_signal); physics first, the recorder last
         for name in ["physics", *[n for n in procs if n not in ("physics", "logger", "router")], "logger", "router"]:
             p = procs.get(name)
             if p is None:
@@ -133,9 +156,9 @@ def test_each_container_command_runs_outside_docker(tmp_path: Path) -> None:
             except subprocess.TimeoutExpired:
                 os.killpg(p.pid, signal.SIGKILL)
                 p.wait()
-    rrds = list(runs.glob("*/recording.rrd"))
+    rrds = list((tmp_path / "logger").glob("recording.rrd"))
     assert len(rrds) == 1 and rrds[0].stat().st_size > 10_000, rrds
-    assert all(p.returncode in (0, -signal.SIGINT) for p in procs.values()), {n: p.returncode for n, p in procs.items()}
+    assert all(p.returncode == 0 for p in procs.values()), {n: p.returncode for n, p in procs.items()}
 
 
 def test_many_robots_get_valid_container_names() -> None:
@@ -152,5 +175,15 @@ def test_many_robots_get_valid_container_names() -> None:
     names = set(comp["services"])
     assert all(re.fullmatch(r"[a-zA-Z0-9][a-zA-Z0-9_.-]*", n) for n in names), names
     assert {"controller-fleet", "sensors-fleet", "planner-fleet"} <= names, names
-    assert comp["services"]["controller-fleet"]["command"][:2] == ["run", "controller@*"]
+    assert comp["services"]["controller-fleet"]["command"][:5] == ["--hold", "up", "${HILSIM_SCENARIO:-" +
+                                                                   str(sc.relative_to(REPO)) + "}", "--only",
+                                                                   "controller@*"]
+    # the launcher takes the fleet's unit as one (--only controller@*: every robot's controller)
+    from hilsim.run.launcher import local_units
+
+    sc.write_text("extends: arm.yaml\nrobots: 2\n")
+    try:
+        assert local_units(load_scenario(sc), ["controller@*"]) == ["controller@*"]
+    finally:
+        sc.unlink()
     assert set(comp["services"]["physics"]["depends_on"]) <= names

@@ -113,3 +113,103 @@ def test_missing_file_and_bad_yaml(tmp_path: Path) -> None:
     (tmp_path / "x.yaml").write_text("name: [unclosed\n")
     with pytest.raises(ConfigError, match="not valid YAML"):
         load_scenario(tmp_path / "x.yaml")
+
+
+def _arm_edited(tmp_path: Path, *edits: tuple[str, str]) -> Path:
+    text = (REPO / "config" / "arm.yaml").read_text()
+    for old, new in edits:
+        assert old in text
+        text = text.replace(old, new)
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(text.replace("../models", str(REPO / "models")))
+    return bad
+
+
+@pytest.mark.parametrize(
+    "edits, field, expected",
+    [
+        ([("- [0.866, -0.789, -0.399, 0.0, -0.382, 0.0]", "- [0.866, -0.789]")], "task.targets[0]",
+         "expected 6 values, one per joint of tabletop.xml (joint_1, joint_2, joint_3, joint_4, joint_5, joint_6), "
+         "got 2"),
+        ([("joint_3: {kp: 19.94", "joint_7: {kp: 19.94")], "controller.gains.joint_7",
+         "expected a joint of tabletop.xml (joint_1"),
+        ([("    default: {kp: 100.0, ki: 5.0, kd: 5.0, i_limit: 2.0, feedforward: 0.0}\n", ""),
+          ("    joint_3: {kp: 19.94, ki: 0, kd: 2.413, i_limit: 1.2}\n", "")], "controller.gains",
+         "no gains for joint_3"),
+        ([("default: {interface: effort, server: sim}", "elbow: {interface: position}")], "joints.elbow",
+         "no actuated joint of that name"),
+    ],
+)
+def test_fields_shaped_by_the_robot_are_checked_against_its_model(tmp_path: Path, edits: list[tuple[str, str]],
+                                                                  field: str, expected: str) -> None:
+    """A target of the wrong length once passed validation and the run never ended (the planner met a
+    numpy broadcast error at every tick): every field whose shape depends on the robot is checked
+    against the model's actuated joints when the scenario is read, one line naming file and field."""
+    bad = _arm_edited(tmp_path, *edits)
+    with pytest.raises(ConfigError) as e:
+        load_scenario(bad)
+    msg = str(e.value)
+    assert "\n" not in msg and msg.startswith(f"{bad}: {field}: ") and expected in msg, msg
+
+
+def test_a_robots_override_and_the_planner_library_are_checked_against_the_model(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"robot_overrides\.arm1\.task\.targets\[0\]: expected 6 values"):
+        load_scenario("arm", {"robots": 2, "robot_overrides": {"arm1": {"task.targets": [[0.1, 0.2, 0.3]]}}})
+    with pytest.raises(ConfigError, match=r"task\.targets\[1\]: expected \[x, y\] or \[x, y, yaw\]"):
+        load_scenario("rover", {"task.targets": [[1.0, 2.0], [1.0]]})
+    lib = tmp_path / "planners.yaml"
+    lib.write_text((REPO / "config" / "planners.yaml").read_text().replace(
+        "velocity: [1.0, 1.0, 1.0, 1.5, 1.5, 1.5]", "velocity: [1.0, 1.0, 1.0, 1.5, 1.5]"))
+    with pytest.raises(ConfigError) as e:
+        load_scenario("arm", {"planner.library": str(lib)})
+    assert str(e.value).startswith(f"{lib}: limits.velocity: expected a number or 6 values"), e.value
+    # what the shipped scenarios say fits their models
+    for name in ("arm", "arm-lean", "rover", "rover-outdoor"):
+        load_scenario(name)
+    assert load_scenario("arm", {"robots": 2, "robot_overrides": {"arm1": {"task.targets": [[0.0] * 6]}}}).robots == 2
+
+
+@pytest.mark.parametrize(
+    "override, expected",
+    [
+        ({"controler.rate_hz": 5}, "--set controler.rate_hz=5: unknown field 'controler' (not a scenario field"),
+        ({"seed": 1, "controller.rate_hz": "fast"},
+         "--set controller.rate_hz=fast: controller.rate_hz: Input should be a valid number"),
+        ({"controller.rate_hz": 300}, "--set controller.rate_hz=300: controller.rate_hz (300.0) must divide"),
+        ({"task.targets": [[0.1, 0.2]]}, "--set task.targets=[[0.1, 0.2]]: task.targets[0]: expected 6 values"),
+        ({"clock.dt.x": 1}, "--set clock.dt.x=1: dt is not a section"),
+        ({"world.model": "nope.xml"}, "--set world.model=nope.xml: world.model: file "),
+    ],
+)
+def test_an_error_caused_by_a_set_names_the_set_not_the_file(override: dict[str, object], expected: str) -> None:
+    with pytest.raises(ConfigError) as e:
+        load_scenario("arm", override)
+    assert str(e.value).startswith(expected) and "arm.yaml" not in str(e.value), e.value
+
+
+def test_an_error_is_blamed_on_its_origin_file_overlay_or_option(tmp_path: Path) -> None:
+    bad = _arm_edited(tmp_path, ("dt: 0.001", "dt: -1"))
+    with pytest.raises(ConfigError, match=f"^{bad}: clock.dt: "):  # the file's own error, whatever is set on it
+        load_scenario(bad, {"seed": 3})
+    overlay = tmp_path / "overlay.yaml"
+    overlay.write_text("controller:\n  rate_hz: 300\n")
+    with pytest.raises(ConfigError, match=f"^{overlay}: controller.rate_hz"):
+        load_scenario("arm", {"seed": 3}, overlays=[overlay])
+    # a --set that repairs the file is not blamed, and an option is named as the user gave it
+    assert load_scenario(bad, {"clock.dt": 0.001}).clock.dt == 0.001
+    with pytest.raises(ConfigError, match=r"^--duration -1: duration: Input should be greater than 0"):
+        load_scenario("arm", {"duration": -1.0}, origins={"duration": "--duration -1"})
+
+
+def test_hilsim_up_says_a_bad_set_in_one_line_and_exits_2() -> None:
+    import subprocess
+    import sys
+
+    for args, line in ((["--set", "controler.rate_hz=5"], "error: --set controler.rate_hz=5: unknown field 'controler'"),
+                       (["--set", "task.targets=[[1, 2]]"], "error: --set task.targets=[[1, 2]]: task.targets[0]: "
+                                                           "expected 6 values")):
+        r = subprocess.run([sys.executable, "-m", "hilsim.cli", "up", "arm", *args], capture_output=True, text=True,
+                           timeout=60, cwd=REPO)
+        lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+        assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith(line), (r.returncode, r.stderr)
+        assert "arm.yaml" not in lines[0] and not r.stdout, r.stdout

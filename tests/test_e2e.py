@@ -128,7 +128,7 @@ def test_lockstep_runs_are_bit_identical(tmp_path: Path) -> None:
             p = hilsim_up("arm", "--router", ep, "--duration", "6", "--seed", "7", "--no-logger",
                           "--out", str(tmp_path / f"run{i}"), *extra)
             stdout, _ = p.communicate(timeout=240)
-            assert p.returncode == 0, stdout
+            assert p.returncode == 3 and "result: STOPPED (duration)" in stdout, stdout  # --duration cut the task
             assert ("physics+sensors+controller (pid" in stdout) == bool(extra), stdout
             assert "task-1: reached" in stdout, stdout  # so the run includes a re-plan mid-stream
             time.sleep(0.3)
@@ -365,3 +365,40 @@ def test_sim_rate_sees_physics_behind_but_not_a_late_delivery() -> None:
         delay[-200:] += np.linspace(0.0, 0.4, 200)  # a backlog at the end, as on a loaded CI machine
         marks = [(int(s), 100.0 + s / 1e9 / true_rate + d) for s, d in zip(stamps, delay, strict=True)]
         assert abs(sim_rate(marks) - true_rate) < 0.01, (true_rate, sim_rate(marks))
+
+
+def test_an_interactive_run_takes_goals_until_ctrl_c(tmp_path: Path) -> None:
+    """`hilsim up arm --interactive`: the task's targets are not run, the run stays up and says how to
+    stop it and what to try, a `hilsim goal` moves the arm there (judged by the physics truth), and
+    Ctrl-C stops it cleanly: every service gone, exit code 0 (how such a run ends)."""
+    ep = f"tcp/127.0.0.1:{transport.free_port()}"
+    router = transport.open_router(ep)
+    obs = Observer(ep)
+    lines: list[str] = []
+    p = hilsim_up("arm", "--interactive", "--no-logger", "--router", ep, "--out", str(tmp_path / "run"))
+    kids: list[psutil.Process] = []
+    try:
+        hint = wait_line(p, "interactive:", 120, lines)
+        assert hint.strip() == (f"interactive: Ctrl-C to stop; try hilsim goal arm --joints 0.866 -0.789 -0.399 0 "
+                                f"-0.382 0 --connect {ep}"), hint
+        kids = children_of(p.pid)
+        target = [0.3, 0.0, 0.0, 0.0, 0.0, 0.0]
+        goal = subprocess.run([*HILSIM, "goal", "arm", "--joints", *map(str, target), "--connect", ep,
+                               "--timeout", "120"], capture_output=True, text=True, timeout=180)
+        assert goal.returncode == 0 and "succeeded" in goal.stdout, goal.stdout + goal.stderr
+        with obs.lock:
+            last = np.array(obs.truth[-1][1]) if obs.truth else None
+        assert last is not None and np.abs(last - target).max() <= 0.01 + 0.002, last  # the truth, not its word
+        time.sleep(1.0)
+        assert p.poll() is None, "the run ended by itself"
+        os.killpg(p.pid, signal.SIGINT)  # Ctrl-C
+        stdout, _ = p.communicate(timeout=60)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+        obs.close()
+        router.close()
+    out = "".join(lines) + stdout
+    assert p.returncode == 0 and out.rstrip().endswith("result: OK"), out
+    assert [g for g in obs.results if g.startswith("task")] == [] and "targets reached" not in out, out
+    assert not [k for k in kids if k.is_running() and k.status() != psutil.STATUS_ZOMBIE], "services left behind"

@@ -11,10 +11,13 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import psutil
 import pytest
 from util import finish, up, wait_until
+
+from hilsim.core.keys import Keys
 
 LEFT = [0.866, -0.789, -0.399, 0.0, -0.382, 0.0]
 
@@ -132,3 +135,226 @@ def test_a_stop_signal_landing_while_a_lock_is_held_still_stops_the_service(how:
     r = subprocess.run([sys.executable, "-c", _SIGNAL_WHILE_LOCKED, how], capture_output=True, text=True,
                        timeout=15 if how == "watcher" else 4, cwd=Path(__file__).parent.parent)
     assert r.stdout.strip() == "stopped", r.stdout + r.stderr
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_second_stop_signal_kills_every_service_at_once(tmp_path: Path, sig: signal.Signals) -> None:
+    """Two quick Ctrl-C (or `timeout` in the same process group) once left every service running and
+    the launcher waiting for its Zenoh threads for good: the first signal stops the run, the second
+    kills every service (SIGKILL); nothing is left within seconds, and the exit code is 128 + the
+    signal (README: 130 for Ctrl-C, 143 for SIGTERM)."""
+    p = up("arm", "--out", str(tmp_path / "run"))  # recorder included: the slowest to stop
+    lines: list[str] = []
+    try:
+        assert p.stdout is not None
+        for line in p.stdout:
+            lines.append(line)
+            if line.startswith("ready:"):
+                break
+        kids = psutil.Process(p.pid).children(recursive=True)
+        assert len(kids) >= 5, (kids, lines)
+        time.sleep(0.5)
+        os.killpg(p.pid, sig)  # the launcher's process group, as a terminal does
+        time.sleep(0.2)
+        os.killpg(p.pid, sig)
+        t0 = time.monotonic()
+        assert wait_until(lambda: _all_gone(kids), 10.0), _still_there(kids)
+        gone_after = time.monotonic() - t0
+        out = "".join(lines) + finish(p, 30)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.communicate()
+    assert p.returncode == 128 + sig, out
+    assert gone_after < 10.0 and f"interrupted again ({sig.name}): killing every service" in out, out
+    assert out.rstrip().splitlines()[-1].startswith(f"result: INTERRUPTED ({sig.name}) 0/3 targets"), out
+
+
+class _Run:
+    """What the summary reads of a run (hilsim.run.summary.FinishedRun), without processes."""
+
+    def __init__(self, sc: Any, outcome: Any) -> None:
+        self.sc, self.outcome = sc, outcome
+        self.robots, self.local, self.untrusted = ["arm"], ["physics"], 0
+        self.run_dir = Path("/nonexistent")
+
+
+def _result(goal_id: str, success: bool) -> Any:
+    from hilsim.core import msgs
+
+    return msgs.MoveResult(goal_id=goal_id, success=success, execution_error=[0.0] * 6)
+
+
+@pytest.mark.parametrize(
+    "case, duration, reached, finished, faults, interrupted, code, verdict",
+    [
+        ("all reached", None, 3, True, [], 0, 0, "OK"),
+        ("duration cut", 12.0, 1, False, [], 0, 3, "STOPPED (duration) 1/3 targets"),
+        ("duration cut with faults", 12.0, 0, False, ["bridge-can: CAN bus down"], 0, 1, "FAILED"),
+        ("a fault, all reached", None, 3, True, ["physics: joint server silent"], 0, 1, "FAILED"),
+        ("a missed target", None, 2, True, [], 0, 1, "FAILED"),
+        ("a missed target, then the duration", 12.0, -1, False, [], 0, 1, "FAILED"),
+        ("Ctrl-C", None, 1, False, [], signal.SIGINT, 130, "INTERRUPTED (SIGINT) 1/3 targets"),
+        ("SIGTERM", None, 1, False, [], signal.SIGTERM, 143, "INTERRUPTED (SIGTERM) 1/3 targets"),
+    ],
+)
+def test_the_exit_code_says_how_the_run_ended(capsys: pytest.CaptureFixture[str], case: str, duration: float | None,
+                                              reached: int, finished: bool, faults: list[str], interrupted: int,
+                                              code: int, verdict: str) -> None:
+    """README: exit code 0 means every target was reached and nothing failed; `--duration` ending the
+    task is 3 (`result: STOPPED (duration) 1/3 targets`), a fault or a missed target 1 (even when the
+    duration ends the run: a CAN bus down once gave 0/3 targets, 3 faults, `result: OK`), a stop
+    signal 128 + its number. (The same, end to end: test_exit_codes_end_to_end.)"""
+    from hilsim.core.scenario import load_scenario
+    from hilsim.run.follow import Outcome
+    from hilsim.run.summary import summarise
+
+    sc = load_scenario("arm", {"duration": duration} if duration else {})
+    o = Outcome(faults=list(faults), interrupted=bool(interrupted), signal=int(interrupted))
+    o.results = [_result(f"task-{i}", True) for i in range(1, max(reached, 0) + 1)]
+    if reached == -1:
+        o.results = [_result("task-1", False)]
+    if finished:
+        o.results += [_result(f"task-{i}", False) for i in range(reached + 1, 4)]
+        o.task = _result("task", reached == 3)
+    else:
+        o.physics_done = duration is not None
+    assert summarise(_Run(sc, o)) == code, case
+    assert capsys.readouterr().out.rstrip().splitlines()[-1] == f"result: {verdict}", case
+
+
+@pytest.mark.parametrize("case", ["all reached", "duration", "fault"])
+def test_exit_codes_end_to_end(tmp_path: Path, case: str) -> None:
+    """Short lockstep runs of `hilsim up arm`: one near target reached (0); the task cut by
+    `--duration` (3); joint_1 on a CAN bus where no drive answers, run for its duration (1: faults,
+    never OK). A missed target (1): test_a_missed_target_exits_1_with_the_reason."""
+    from hilsim.core import transport
+
+    args = {
+        "all reached": ["--set", "task.targets=[[0.3, 0.0, 0.0, 0.0, 0.0, 0.0]]", "--set", "task.settle_time=0.1"],
+        "duration": ["--duration", "0.5"],
+        "fault": ["--hil", "config/hil/can.yaml", "--duration", "1.5",
+                  "--set", f"bridge-can.bus.port={transport.free_port()}"],
+    }[case]
+    p = up("arm", "--no-logger", "--out", str(tmp_path / "run"), *args)
+    out = finish(p, 180)
+    last = out.rstrip().splitlines()[-1]
+    if case == "all reached":
+        assert p.returncode == 0 and last == "result: OK" and "targets reached: 1/1" in out, out
+    elif case == "duration":
+        assert p.returncode == 3 and last == "result: STOPPED (duration) 0/3 targets", out
+    else:
+        # physics misses joint_1's server, the bridge its drive: whichever says so first
+        assert "fault: physics: joint server bridge-can silent" in out or "fault: bridge-can: " in out, out
+        assert p.returncode == 1 and last == "result: FAILED" and "faults reported:" in out, out
+
+
+def _crashing_services(fatal: bool, in_loop: bool = False) -> tuple[Any, Any, list[Any], Any]:
+    """A service whose loop raises (``in_loop``) or whose clock handler raises (``fatal``: the
+    subscription is its loop), and a ticker that publishes the clock, on one in-process bus."""
+    from hilsim.core import msgs
+    from hilsim.core.inproc import Bus
+    from hilsim.core.scenario import load_scenario
+    from hilsim.core.service import Service
+
+    sc = load_scenario("arm", {"task.targets": []})
+
+    class Crashing(Service):
+        name = "crashing"
+
+        def setup(self) -> None:
+            self.subscribe(self.keys.clock, msgs.Clock, self.on_clock, fatal=fatal)
+
+        def on_clock(self, m: msgs.Clock, _key: str) -> None:
+            if not in_loop:
+                raise ValueError("operands could not be broadcast together with shapes (6,) (2,)")
+
+        def loop(self) -> None:
+            if in_loop:
+                raise RuntimeError("boom")
+            super().loop()
+
+    class Ticker(Service):
+        name = "ticker"
+
+        def setup(self) -> None:
+            self.pub = self.publisher(self.keys.clock)
+
+    bus = Bus()
+    logs: list[Any] = []
+    bus.session().declare_subscriber(Keys.of(sc).log("crashing"),
+                                     lambda s: logs.append(msgs.decode(msgs.Log, s.payload.to_bytes())))
+    ticker = Ticker(sc)
+    ticker.attach(bus.session())
+    return Crashing(sc), ticker, logs, bus
+
+
+@pytest.mark.parametrize("how", ["loop", "fatal handler", "handler"])
+def test_a_service_whose_loop_raises_is_a_fault_and_exits_1(how: str) -> None:
+    """An exception in a service's loop (or in the handler of the subscription that is its loop: the
+    planner's decision ticks on joint_states) is a published fault and the service's end, exit code
+    1, which ends the run (test_a_service_that_raises_ends_the_run_non_zero); an exception in any
+    other handler is a fault it survives."""
+    import threading
+
+    from hilsim.core import msgs
+
+    svc, ticker, logs, bus = _crashing_services(fatal=how == "fatal handler", in_loop=how == "loop")
+    rc: list[int] = []
+    t = threading.Thread(target=lambda: rc.append(svc.serve(bus.session())), daemon=True)
+    t.start()
+    assert wait_until(lambda: svc.state != "starting", 5.0)
+    for _ in range(3):
+        ticker.pub.put(msgs.Clock(clock=msgs.stamp(1_000_000)))
+        bus.drain()
+    t.join(0.5 if how == "handler" else 5.0)
+    bus.drain()  # what it published meanwhile (its faults)
+    try:
+        if how == "handler":
+            assert t.is_alive() and svc.errors == 3, svc.errors
+            assert all(m.level == 40 and "ValueError" in m.msg for m in logs), logs
+        else:
+            assert not t.is_alive() and rc == [1], rc
+            assert svc.state == "fault" and svc.failed, svc.state
+            what = "RuntimeError: boom" if how == "loop" else "ValueError: operands could not be broadcast"
+            faults = [m for m in logs if m.level == 40]
+            assert len(faults) == 1 and what in faults[0].msg, logs
+    finally:
+        svc.request_stop()
+        t.join(5.0)
+        ticker.request_stop()
+
+
+_CRASHY = '''
+from hilsim.core.service import Service
+
+
+class Crashy(Service):
+    name = "crashy"
+
+    def loop(self):
+        if not self.stop_event.wait(1.0):  # while the run is under way
+            raise RuntimeError("crashy broke")
+'''
+
+
+def test_a_service_that_raises_ends_the_run_non_zero(tmp_path: Path) -> None:
+    """A plug-in service whose loop raises, run by `hilsim up` with the arm: its fault is shown,
+    its exit ends the run promptly, and `hilsim up` exits 1 (not a run that goes on for ever)."""
+    site = tmp_path / "site"
+    (site / "crashy_svc").mkdir(parents=True)
+    (site / "crashy_svc" / "__init__.py").write_text(_CRASHY)
+    info = site / "crashy_svc-0.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: crashy-svc\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text("[hilsim.services]\ncrashy = crashy_svc:Crashy\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(site), os.environ.get("PYTHONPATH")) if p)}
+    p = subprocess.Popen([sys.executable, "-m", "hilsim.cli", "up", "arm", "--no-logger", "--out",
+                          str(tmp_path / "run"), "--set", "services=[physics, sensors, controller, planner, crashy]",
+                          "--set", "task.targets=[]"],
+                         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=Path(__file__).parent.parent,
+                         start_new_session=True, env=env)
+    out = finish(p, 120)
+    assert "fault: crashy: stopped by an error: RuntimeError: crashy broke" in out, out
+    assert "error: service crashy" in out and "exited with code 1" in out, out
+    assert p.returncode == 1 and out.rstrip().endswith("result: FAILED"), out

@@ -29,7 +29,7 @@ from typing import Any
 import psutil
 import pytest
 import zenoh
-from util import LEAN, REPO, Observer, finish, up, wait_until
+from util import LEAN, REPO, Observer, finish, network_namespace, up, wait_until
 
 from hilsim.core import msgs, transport
 
@@ -402,6 +402,119 @@ def test_a_run_started_elsewhere_is_watched_and_commanded(router: str) -> None:
         run.send_signal(signal.SIGINT)
         out = finish(run, 90)
     assert "result: OK" in out, out
+
+
+class Lines:
+    """A child's output lines, read as they come."""
+
+    def __init__(self, proc: subprocess.Popen[str]) -> None:
+        self.proc, self.lines = proc, []
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self.lines.append(line.rstrip("\n"))
+
+    def wait(self, start: str, timeout: float) -> str:
+        assert wait_until(lambda: any(ln.startswith(start) for ln in self.lines), timeout), "\n".join(self.lines)
+        return next(ln for ln in self.lines if ln.startswith(start))
+
+
+def test_hilsim_ui_finds_a_run_of_a_terminal_and_its_sliders_follow_the_joints(tmp_path: Path) -> None:
+    """``hilsim ui`` without --connect beside a ``hilsim up`` of a terminal (both in a network
+    namespace of their own, so the well-known port 7447 is theirs): the panel joins that run's
+    router by itself and shows the run; a goal moves the joints and the sliders follow them, except
+    the one the user has set and not sent; the run's end (Ctrl-C in its terminal) is no fault."""
+    sync_playwright, exe = _browser()
+    with network_namespace("ui") as ns:
+        here = ["ip", "netns", "exec", ns, sys.executable, "-m", "hilsim.cli"]
+        run = Lines(subprocess.Popen([*here, "up", LEAN, "--clock", "realtime", "--set", "task.targets=[]",
+                                      "--no-logger", "--out", str(tmp_path / "run")], cwd=REPO, text=True,
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, start_new_session=True))
+        ui: Lines | None = None
+        try:
+            run.wait("ready:", 90)
+            ui = Lines(subprocess.Popen([*here, "ui", "--port", "8080"], cwd=REPO, text=True, stdout=subprocess.PIPE,
+                                        stderr=subprocess.STDOUT, start_new_session=True))
+            assert "(zenoh tcp/127.0.0.1:7447)" in ui.wait("hilsim panel: http", 60)
+            assert any("joined it" in ln for ln in ui.lines), ui.lines
+            browser_in_ns = tmp_path / "chromium"  # the browser in the namespace too (Playwright drives it by pipes)
+            browser_in_ns.write_text(f'#!/bin/sh\nexec ip netns exec {ns} {exe} "$@"\n')
+            browser_in_ns.chmod(0o755)
+            with sync_playwright() as pw:
+                browser = pw.chromium.launch(executable_path=str(browser_in_ns), args=["--no-sandbox"], headless=True)
+                page = browser.new_page(viewport={"width": 1500, "height": 1000})
+                assert wait_until(lambda: _goto(page, "http://127.0.0.1:8080/"), 30)
+                page.wait_for_function("document.getElementById('run-banner').textContent === "
+                                       "'Connected to a run started elsewhere: arm'", timeout=60_000)
+                page.wait_for_function("document.querySelectorAll('#services tbody td.up').length === 4",
+                                       timeout=30_000)
+                page.wait_for_selector("#joint-joint_2")
+                page.fill("#joint-joint_2", "0.25")  # set by hand, not sent
+                page.locator("#joint-joint_2").blur()
+                target = [-0.4, -0.2, 0.1, 0.0, -0.4, 0.0]
+                status = page.evaluate("(q) => fetch('/api/goal', {method: 'POST', headers: {'Content-Type': "
+                                       "'application/json'}, body: JSON.stringify({kind: 'joints', positions: q})})"
+                                       ".then((r) => r.status)", target)
+                assert status == 200
+                page.wait_for_selector("#goals tbody tr[data-state='reached']", timeout=60_000)
+                page.wait_for_function("Math.abs(Number(document.getElementById('range-joint_1').value) + 0.4) < 0.01 "
+                                       "&& document.getElementById('joint-joint_1').value === '-0.400'", timeout=10_000)
+                assert page.input_value("#joint-joint_2") == "0.25"
+                page.screenshot(path=str(tmp_path / "attached.png"))
+                run.proc.send_signal(signal.SIGINT)  # Ctrl-C in its terminal
+                assert run.proc.wait(60) == 0, run.lines
+                page.wait_for_function("document.getElementById('run-banner').textContent === 'No run'",
+                                       timeout=30_000)
+                time.sleep(1.5)  # past the panel's grace for a departure
+                assert page.locator("#fault-list li").count() == 0, page.text_content("#fault-list")
+                browser.close()
+        finally:
+            for p in (run, ui):
+                if p is not None and p.proc.poll() is None:
+                    p.proc.send_signal(signal.SIGTERM)
+                    try:
+                        p.proc.wait(60)
+                    except subprocess.TimeoutExpired:
+                        os.killpg(p.proc.pid, signal.SIGKILL)
+                        p.proc.wait()
+        assert ui is not None and ui.proc.returncode == 0, ui.lines
+
+
+def _goto(page: Any, url: str) -> bool:
+    try:
+        page.goto(url)
+        return True
+    except Exception:  # the panel not listening yet
+        return False
+
+
+def test_up_ui_prints_the_runs_progress_and_a_normal_end_is_no_fault() -> None:
+    """``hilsim up … --ui`` prints the run's progress beside the panel's URL; a run that ends by
+    itself (its duration) stops its services, the recorder last (seconds before the summary), and the
+    page lists no fault for them."""
+    sync_playwright, exe = _browser()
+    panel = PanelProc(up=[LEAN, "--clock", "realtime", "--set", "task.targets=[]", "--duration", "3"])
+    try:
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=exe, args=["--no-sandbox"], headless=True)
+            page = browser.new_page(viewport={"width": 1500, "height": 1000})
+            page.goto(panel.url)
+            page.wait_for_function("document.getElementById('run-banner').textContent.startsWith('Finished')",
+                                   timeout=90_000)
+            assert panel.state()["run"]["rc"] == 0, panel.state()["run"]["output"]
+            # they left, as stopped services do (not in red)
+            page.wait_for_function("document.querySelectorAll('#services tbody td.left').length === 5",
+                                   timeout=10_000)
+            time.sleep(1.5)  # past the panel's grace for a departure
+            assert page.locator("#fault-list li").count() == 0, page.text_content("#fault-list")
+            assert panel.state()["faults"] == []
+            browser.close()
+        for line in ("hilsim up arm: ", "ready: ", "summary:", "result: OK"):
+            assert any(ln.startswith(line) for ln in panel.lines), (line, panel.out())
+    finally:
+        assert panel.close() == 0, panel.out()
 
 
 def test_a_many_robot_run_shows_its_first_robot_with_every_service() -> None:

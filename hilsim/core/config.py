@@ -70,6 +70,15 @@ class ZenohConfig(_Model):
     # process is then a client of the router (no listener of its own, so nothing reaches it
     # without passing the router's certificate check and access control)
     tls: TlsConfig | None = None
+    # None: no Zenoh user/password. Set: a Zenoh client config file holding them
+    # (transport.auth.usrpwd), e.g. the zenoh-client.json5 that `hilsim up` writes for its run
+    # (docs/security.md); `hilsim up` sets it for its own services
+    auth: Path | None = Field(None, description="Zenoh config file with transport.auth.usrpwd user and password "
+                              "(hilsim up writes <run dir>/zenoh-client.json5 and fills this in)")
+    guests: Literal["none", "read"] = Field(
+        "none", description="hilsim up's router: whether a process with the run's guest credentials "
+        "(<run dir>/zenoh-guest.json5) may read every key (read) or nobody but the run's own processes may "
+        "connect (none)")
 
 
 class ClockConfig(_Model):
@@ -458,6 +467,8 @@ def format_error(path: Path | str, err: ValidationError, prefix: str = "") -> st
     shown = got is not None and not isinstance(got, dict | list) and e["type"] != "missing"
     extra = f" (got {got!r})" if shown else ""
     more = f" [+{len(err.errors()) - 1} more]" if len(err.errors()) > 1 else ""
+    if not e["loc"] and not prefix:  # a check across fields: its message names them
+        return f"{path}: {e['msg'].removeprefix('Value error, ')}{extra}{more}"
     return f"{path}: {loc}: {e['msg']}{extra}{more}"
 
 

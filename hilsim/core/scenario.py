@@ -2,12 +2,17 @@
 
 A bad file never produces a traceback: :func:`load_scenario` raises :class:`~hilsim.core.config.ConfigError`
 whose message is one line naming the file, the field and what was expected, e.g.
-``config/arm.yaml: controller.gains.joint_2.kp: Input should be a valid number (got 'fast')``.
+``config/arm.yaml: controller.gains.joint_2.kp: Input should be a valid number (got 'fast')``. It
+names where the bad value came from: the file, an overlay (``--hil``), or the override
+(``--set controler.rate_hz=5: unknown field 'controler' …``). Fields whose shape depends on the
+robot (joint names, per-joint gains, task targets, the planner library's limits) are checked
+against the world model's actuated joints (:func:`check_model`), so a target of the wrong
+length is refused at load, not met by a service mid-run.
 
 Relative paths inside a scenario are resolved against the directory of the file.
 Environment overrides (applied after the file): ``HILSIM_PREFIX``, ``HILSIM_ZENOH_CONNECT``
-(comma-separated endpoints), ``HILSIM_ZENOH_MODE``, and ``zenoh.tls`` from ``HILSIM_TLS_ROOT_CA``,
-``HILSIM_TLS_CERTIFICATE``, ``HILSIM_TLS_PRIVATE_KEY``.
+(comma-separated endpoints), ``HILSIM_ZENOH_MODE``, ``HILSIM_ZENOH_AUTH`` (``zenoh.auth``), and
+``zenoh.tls`` from ``HILSIM_TLS_ROOT_CA``, ``HILSIM_TLS_CERTIFICATE``, ``HILSIM_TLS_PRIVATE_KEY``.
 
 The schema itself is :mod:`hilsim.core.config`; this module sits above it and the registry,
 so it may ask the registry which services exist.
@@ -15,8 +20,11 @@ so it may ask the registry which services exist.
 
 from __future__ import annotations
 
+import copy
+import json
 import os
 from collections.abc import Sequence
+from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -115,39 +123,170 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def _shown(value: Any) -> str:
+    """An override's value as the user would type it after ``--set FIELD=``."""
+    return json.dumps(value) if isinstance(value, list | dict) else str(value)
+
+
+Layer = tuple[str, Any]  # (origin, an overlay's data or an override (field, value))
+
+
+def _compose(base: dict[str, Any], layers: Sequence[Layer]) -> dict[str, Any]:
+    """A fresh copy of ``base`` with ``layers`` (overlays merged, overrides set) applied in order."""
+    data = copy.deepcopy(base)
+    for origin, layer in layers:
+        if isinstance(layer, dict):
+            data = _merge(data, copy.deepcopy(layer))
+            continue
+        try:
+            set_dotted(data, layer[0], copy.deepcopy(layer[1]))
+        except ConfigError as e:
+            raise ConfigError(f"{origin}: {str(e).split(': ', 1)[-1]}") from None
+    return data
+
+
 def load_scenario(
-    name_or_path: str | Path, overrides: dict[str, Any] | None = None, overlays: Sequence[str | Path] = ()
+    name_or_path: str | Path, overrides: dict[str, Any] | None = None, overlays: Sequence[str | Path] = (),
+    origins: dict[str, str] | None = None,
 ) -> Scenario:
-    """Load, merge, override, validate. A scenario file may start from another with
-    ``extends: <path relative to this file>`` and change only some fields; ``overlays`` (e.g. a
-    HIL file given to ``hilsim up --hil``) are merged on top in order, then ``overrides``."""
+    """Load, merge, override, validate, check against the robot model. A scenario file may start
+    from another with ``extends: <path relative to this file>`` and change only some fields;
+    ``overlays`` (e.g. a HIL file given to ``hilsim up --hil``) are merged on top in order, then
+    ``overrides``.
+
+    An error names where the bad value came from: the file, an overlay, or an override, as
+    ``--set FIELD=VALUE`` or as ``origins`` names it (override key -> how it was given, e.g.
+    ``{"duration": "--duration -1"}``), e.g. ``--set controler.rate_hz=5: unknown field 'controler' …``."""
     path = scenario_path(name_or_path)
-    data = _read(path)
+    base = _read(path)
+    layers: list[Layer] = []
     for o in overlays:
         op = Path(o)
         if not op.exists():
             raise ConfigError(f"{op}: no such overlay file")
-        data = _merge(data, _read(op))
+        layers.append((str(op), _read(op)))
     for k, v in (overrides or {}).items():
-        set_dotted(data, k, v)
+        layers.append(((origins or {}).get(k) or f"--set {k}={_shown(v)}", (k, v)))
+    try:
+        return _build(path, _compose(base, layers), str(path))
+    except ConfigError as e:
+        if not layers:
+            raise
+        full = str(e)
+    what = full.removeprefix(f"{path}: ")
+    # the first layer with which this error appears is its origin (the last one, at the latest)
+    for i in range(len(layers) + 1):
+        where = layers[i - 1][0] if i else str(path)
+        try:
+            _build(path, _compose(base, layers[:i]), where)
+        except ConfigError as e:
+            if str(e) == full or str(e).removeprefix(f"{where}: ") == what:
+                raise ConfigError(str(e)) from None
+    raise ConfigError(full)  # not reached: the last layer reproduces the error
+
+
+def _build(path: Path, data: dict[str, Any], where: str) -> Scenario:
+    """The scenario from merged raw ``data`` of the file ``path``: validated, checked, or a
+    one-line ConfigError starting with ``where``."""
     _apply_env(data)
     _resolve_paths(data, path.resolve().parent)
     try:
         sc = Scenario.model_validate(data, context=_context())
     except ValidationError as e:
-        raise ConfigError(format_error(path, e)) from None
+        raise ConfigError(format_error(where, e)) from None
+    robots = {}
     for robot in sc.robot_overrides:  # a bad value is said when the file is read, not when that robot starts
         try:
-            robot_scenario(sc, robot)
+            robots[robot] = robot_scenario(sc, robot)
         except ConfigError as e:
-            raise ConfigError(f"{path}: {str(e).split(': ', 1)[-1]}") from None
+            raise ConfigError(f"{where}: {str(e).split(': ', 1)[-1]}") from None
     if not sc.world.model.exists():
-        raise ConfigError(f"{path}: world.model: file {sc.world.model} does not exist")
+        raise ConfigError(f"{where}: world.model: file {sc.world.model} does not exist")
     if sc.world.urdf is not None and not sc.world.urdf.exists():
-        raise ConfigError(f"{path}: world.urdf: file {sc.world.urdf} does not exist")
-    check_joint_servers(sc, path)
+        raise ConfigError(f"{where}: world.urdf: file {sc.world.urdf} does not exist")
+    check_joint_servers(sc, where)
+    check_model(sc, where)
+    for robot, rsc in robots.items():  # what a robot's overrides change, against the same model
+        check_model(rsc, where, f"robot_overrides.{robot}.")
     sc.source = path
     return sc
+
+
+@cache
+def _actuated_joints(model: Path, mtime_ns: int) -> tuple[str, ...]:
+    import mujoco
+
+    try:
+        spec = mujoco.MjSpec.from_file(str(model))
+    except Exception as e:
+        raise ConfigError(f"world.model: cannot load {model}: {' '.join(str(e).split())}") from None
+    return tuple(a.target for a in spec.actuators if a.trntype == mujoco.mjtTrn.mjTRN_JOINT)
+
+
+def model_joints(sc: Scenario) -> list[str]:
+    """The robot's joints as its services know them: the world model's actuated joints, in
+    actuator order (one robot's, with ``robots`` > 1: every copy has the same)."""
+    return list(_actuated_joints(sc.world.model, sc.world.model.stat().st_mtime_ns))
+
+
+def check_model(sc: Scenario, where: str, field: str = "") -> None:
+    """Every field whose shape depends on the robot, against its world model (one-line
+    ConfigError starting with ``where``; ``field``: the prefix of the fields' names, e.g. a
+    robot's ``robot_overrides.arm1.``): joint names in ``joints`` and ``controller.gains``, a
+    gain for every joint, one value per joint in each of ``task.targets`` (the planner's; the
+    navigator's are ``[x, y]`` or ``[x, y, yaw]``), and the planner library's per-joint ``limits``."""
+    try:
+        names = model_joints(sc)
+    except ConfigError as e:
+        raise ConfigError(f"{where}: {e}") from None
+    model = sc.world.model
+    listed = f"({', '.join(names)})"
+    for j in sc.joints:
+        if j != "default" and j not in names:
+            raise ConfigError(f"{where}: {field}joints.{j}: no actuated joint of that name in {model} "
+                              f"(joints: {', '.join(names)})")
+    gains = sc.controller.gains
+    groups: dict[str, list[str]] = {}  # a plug-in control law may take gains per group: *_steering
+    if sc.controller.type != "joint_trajectory":
+        for n in names:
+            head, _, group = n.rpartition("_")
+            if head and group and not group.isdigit():
+                groups.setdefault(group, []).append(n)
+        groups = {g: m for g, m in groups.items() if len(m) > 1}
+    for k in gains:
+        if k != "default" and k not in names and k not in groups:
+            extra = f", a group ({', '.join(groups)})" if groups else ""
+            raise ConfigError(f"{where}: {field}controller.gains.{k}: expected a joint of {model.name} "
+                              f"{listed}{extra} or 'default'")
+    if gains and "default" not in gains:
+        bare = [n for n in names if n not in gains and not any(n in groups.get(g, ()) for g in gains)]
+        if bare:
+            raise ConfigError(f"{where}: {field}controller.gains: no gains for {', '.join(bare)} "
+                              f"(give each joint of {model.name}, or a 'default' entry)")
+    if "planner" in sc.services:
+        for i, t in enumerate(sc.task.targets):
+            if len(t) != len(names):
+                raise ConfigError(f"{where}: {field}task.targets[{i}]: expected {len(names)} values, one per "
+                                  f"joint of {model.name} {listed}, got {len(t)}")
+        _check_library_limits(sc, len(names), f"{model.name} {listed}")
+    elif "navigator" in sc.services:
+        for i, t in enumerate(sc.task.targets):
+            if len(t) not in (2, 3):
+                raise ConfigError(f"{where}: {field}task.targets[{i}]: expected [x, y] or [x, y, yaw] (a goal "
+                                  f"of the navigator), got {len(t)} values")
+
+
+def _check_library_limits(sc: Scenario, n: int, joints: str) -> None:
+    """The planner library's ``limits``: a number, or one per joint (a ConfigError naming the library)."""
+    lib = sc.planner.library or CONFIG_DIR / "planners.yaml"
+    try:
+        limits = (yaml.safe_load(Path(lib).read_text()) or {}).get("limits") or {}
+    except (OSError, yaml.YAMLError, AttributeError):
+        return  # an unreadable library is the planner's to report, with its reason
+    for key, v in limits.items() if isinstance(limits, dict) else ():
+        if isinstance(v, list) and len(v) != n:
+            raise ConfigError(f"{lib}: limits.{key}: expected a number or {n} values, one per joint of "
+                              f"{joints}, got {len(v)}")
 
 
 def check_joint_servers(sc: Scenario, path: Path | str) -> None:
@@ -186,6 +325,8 @@ def _apply_env(data: dict[str, Any]) -> None:
         z["connect"] = [e.strip() for e in v.split(",") if e.strip()]
     if v := os.environ.get("HILSIM_ZENOH_MODE"):
         z["mode"] = v
+    if v := os.environ.get("HILSIM_ZENOH_AUTH"):  # a Zenoh config file with user and password
+        z["auth"] = v
     if tls := tls_from_env():
         z["tls"] = tls
 

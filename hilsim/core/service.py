@@ -7,7 +7,9 @@ messages (the default :meth:`loop` just waits) or overrides :meth:`loop`.
 What the base does once for all:
 - every payload is decoded and validated (:func:`hilsim.core.msgs.decode`); a bad one is
   rejected, counted per key, logged with its key, and the service keeps running;
-- an exception in a handler is counted as an error and logged, never silently dropped;
+- an exception in a handler is counted as an error and logged, never silently dropped; one in
+  :meth:`loop`, or in the handler of a ``fatal`` subscription (the service's loop), is a fault
+  that stops the service with exit code 1, so ``hilsim up`` ends the run non-zero;
 - handlers run under one lock, so a service's state needs no further locking;
 - health (``<prefix>/<robot>/health/<service>``, diagnostic_msgs/DiagnosticArray) is published
   once a second and at exit; warnings and errors also go to ``<prefix>/<robot>/log/<service>``;
@@ -179,6 +181,7 @@ class Service:
         self.errors = 0
         self.overruns = 0
         self.last_error = ""
+        self.failed: str | None = None  # the error that stopped it (fail, or loop raising)
         self.sim_ns = 0  # latest sim time this service knows of
         self.session: zenoh.Session | None = None
         self._declared: list[Any] = []
@@ -244,9 +247,15 @@ class Service:
         n_joints: int | None = None,
         with_attachment: bool = False,
         stream: bool = True,
+        fatal: bool = False,
     ) -> None:
         """Call ``handler(msg, key)`` for every valid message on ``key`` (may be a key expression);
         with ``with_attachment``, ``handler(msg, key, attachment)`` (None if the sample has none).
+
+        An exception in ``handler`` is a fault the service survives (counted, logged, published),
+        unless ``fatal``: this subscription is the service's loop (its clock, e.g. the planner's
+        decision ticks on ``joint_states``), which cannot go on without it, so the service stops
+        with exit code 1 (:meth:`fail`), as when :meth:`loop` raises, and ``hilsim up`` ends the run.
 
         ``stream``: the key carries a stream (states, commands at a rate), where in realtime a
         sample older than ``clock.max_age`` is dropped because a newer one follows. ``False`` for
@@ -300,7 +309,7 @@ class Service:
             except msgs.BadMessage as e:  # well-formed, but not usable here (e.g. an unknown joint)
                 self.reject(k, str(e))
             except Exception as e:  # a bug or bad value must not kill the subscriber thread
-                self.fault(f"error handling {k}: {type(e).__name__}: {e}", exc=e)
+                (self.fail if fatal else self.fault)(f"error handling {k}: {type(e).__name__}: {e}", exc=e)
 
         self._declared.append(self.session.declare_subscriber(key, on_sample))
         if "*" not in key:  # a concrete topic: a ROS 2 subscription, seen by `ros2 topic info`
@@ -446,6 +455,14 @@ class Service:
         self.log.error(text, exc_info=exc if self.log.isEnabledFor(logging.DEBUG) else None)
         self._publish_log(40, text)
 
+    def fail(self, text: str, exc: BaseException | None = None) -> None:
+        """An error the service does not survive: a fault (counted, logged, published), then the
+        service stops and exits with code 1, which ends the run under ``hilsim up``."""
+        self.fault(text, exc)
+        self.state = "fault"
+        self.failed = text
+        self.stop_event.set()
+
     def _publish_log(self, level: int, text: str) -> None:
         if self._log_pub is not None:
             try:
@@ -557,16 +574,27 @@ class Service:
             self.log.info("ready")
             threading.Thread(target=self._health_thread, daemon=True, name="health").start()
             self.loop()
-            if self.state == "running":
+            if self.failed is not None:  # a fatal handler's error (fail): already reported
+                rc = 1
+            elif self.state == "running":
                 self.state = "stopped"
         except ConfigError as e:
             # a bad scenario or model: one line, as everywhere else, not a traceback
             self.state = "fault"
             self.log.error("%s", e)
             rc = 2
+        except ConnectionError as e:
+            # a device or link it cannot do without (a CAN bus that does not open): the reason, one line
+            self.state = "fault"
+            self.log.error("stopped: %s", e)
+            rc = 1
         except Exception as e:
+            # a fault like any other (published: hilsim up shows it), and the end of the service
             self.state = "fault"
             self.log.exception("stopped by an error: %s", e)
+            self.errors += 1
+            self.last_error = self.failed = f"stopped by an error: {type(e).__name__}: {e}"
+            self._publish_log(40, self.last_error)
             rc = 1
         finally:
             self.stop_event.set()

@@ -7,6 +7,12 @@ To join another network, set ``zenoh.connect`` in the scenario or ``HILSIM_ZENOH
 (e.g. ``tcp/192.0.2.10:7447``) and the same programs connect there instead (docs/deployment.md).
 With ``zenoh.tls`` (or ``HILSIM_TLS_*``) every process is a TLS client of the router with its own
 certificate, and the router's config file says who may do what (docs/security.md).
+
+Without TLS, ``hilsim up``'s router authenticates (Zenoh's ``transport.auth.usrpwd``) with a user and
+password made for the run and lets only that user write (access control by username): every
+process of the run gets them from ``zenoh.auth`` (a Zenoh client config file, ``<run
+dir>/zenoh-client.json5``), its own listener checks them too, and the tools of the same user find them
+through a pointer file per port (:func:`pointer_path`), as Jupyter's token is found.
 """
 
 from __future__ import annotations
@@ -15,6 +21,7 @@ import json
 import logging
 import os
 import socket
+import stat
 import threading
 import time
 from pathlib import Path
@@ -43,6 +50,15 @@ def zenoh_config(zc: ZenohConfig, *, mode: str | None = None, listen: list[str] 
             conf.insert_json5(f"transport/link/tls/{k}", json.dumps(str(Path(v).resolve())))
         conf.insert_json5("transport/link/tls/enable_mtls", "true")  # else the certificate is not presented
         conf.insert_json5("scouting/gossip/enabled", "false")
+    elif zc.auth is not None and mode != "router":
+        cred = read_credentials(zc.auth)
+        conf.insert_json5("transport/auth/usrpwd/user", json.dumps(cred.user))
+        conf.insert_json5("transport/auth/usrpwd/password", json.dumps(cred.password))
+        if cred.dictionary is not None:
+            # a peer's own listener asks whoever connects for the run's user and password as well
+            conf.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(cred.dictionary)))
+        else:  # nothing to check others against (a guest): no listener, a client of the router
+            mode, listen = "client", []
     conf.insert_json5("mode", json.dumps(mode or zc.mode))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(zc.multicast_scouting))
     # as rmw_zenoh's default config: transient-local publishers (robot_description, tf_static) are
@@ -69,13 +85,178 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-def open_router(endpoint: str) -> zenoh.Session:
-    """A router session listening on ``endpoint`` (e.g. ``tcp/127.0.0.1:7447``)."""
+def open_router(endpoint: str, users: RouterUsers | None = None) -> zenoh.Session:
+    """A router session listening on ``endpoint`` (e.g. ``tcp/127.0.0.1:7447``); with ``users``,
+    only they may connect, and do what :func:`access_rules` gives them."""
     zc = ZenohConfig(connect=[], listen=[endpoint])
+    conf = zenoh_config(zc, mode="router")
+    if users is not None:
+        conf.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(users.dictionary)))
+        conf.insert_json5("access_control", json.dumps(access_rules(users)))
     try:
-        return zenoh.open(zenoh_config(zc, mode="router"))
+        return zenoh.open(conf)
     except zenoh.ZError as e:
         raise ConnectionError(f"cannot start the Zenoh router on {endpoint}: {e}") from e
+
+
+# ---------------------------------------------------------------- user and password (usrpwd)
+# What `hilsim up` writes to its run directory (mode 0600 but the guests' file): the router's
+# dictionary, a client config file for the run's user (also what a ROS 2 node on rmw_zenoh takes
+# as ZENOH_SESSION_CONFIG_URI), and with zenoh.guests: read one for the read-only guest user.
+USERS_FILE = "zenoh-users.txt"
+CLIENT_CONFIG = "zenoh-client.json5"
+GUEST_CONFIG = "zenoh-guest.json5"
+AUTH_ENV = "HILSIM_ZENOH_AUTH"  # a tool's credentials file, when not found through the pointer
+ALL_MESSAGES = ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable", "liveliness_token",
+                "liveliness_query", "declare_liveliness_subscriber"]
+
+
+class Credentials(NamedTuple):
+    user: str
+    password: str
+    dictionary: Path | None  # the router's user:password file, which a peer's listener checks too
+
+
+class RouterUsers(NamedTuple):
+    dictionary: Path  # user:password per line (Zenoh's dictionary_file)
+    run_user: str  # may do everything
+    guest_user: str | None  # may read (subscribe, watch liveliness), nothing else
+
+
+def access_rules(users: RouterUsers) -> dict[str, Any]:
+    """Zenoh access control by username: the run's user everything, the guest (if any) reading only,
+    anybody else nothing (no other user can authenticate anyway)."""
+    rules: list[dict[str, Any]] = [{"id": "everything", "messages": ALL_MESSAGES, "flows": ["ingress", "egress"],
+                                    "permission": "allow", "key_exprs": ["**"]}]
+    subjects: list[dict[str, Any]] = [{"id": "run", "usernames": [users.run_user]}]
+    policies: list[dict[str, Any]] = [{"id": "the run's processes", "rules": ["everything"], "subjects": ["run"]}]
+    if users.guest_user is not None:
+        rules += [{"id": "observe", "messages": ["declare_subscriber", "declare_liveliness_subscriber",
+                                                "liveliness_query"], "flows": ["ingress"], "permission": "allow",
+                   "key_exprs": ["**"]},
+                  {"id": "deliver", "messages": ["put", "delete", "reply", "liveliness_token"], "flows": ["egress"],
+                   "permission": "allow", "key_exprs": ["**"]}]
+        subjects.append({"id": "guest", "usernames": [users.guest_user]})
+        policies.append({"id": "guests read", "rules": ["observe", "deliver"], "subjects": ["guest"]})
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
+            "policies": policies}
+
+
+def read_credentials(path: Path) -> Credentials:
+    """User, password and dictionary file of a Zenoh config file (``transport.auth.usrpwd``);
+    ConfigError (one line) if it has none or cannot be read."""
+    try:
+        conf = zenoh.Config.from_file(str(path))
+        user = json.loads(conf.get_json("transport/auth/usrpwd/user") or "null")
+        password = json.loads(conf.get_json("transport/auth/usrpwd/password") or "null")
+        dictionary = json.loads(conf.get_json("transport/auth/usrpwd/dictionary_file") or "null")
+    except (zenoh.ZError, OSError, ValueError) as e:
+        raise ConfigError(f"zenoh.auth: cannot read {path}: {str(e).splitlines()[0] if str(e) else e}") from None
+    if not isinstance(user, str) or not isinstance(password, str):
+        raise ConfigError(f"zenoh.auth: {path} has no transport.auth.usrpwd user and password")
+    return Credentials(user, password, Path(dictionary) if isinstance(dictionary, str) else None)
+
+
+def write_private(path: Path, text: str, mode: int = 0o600) -> None:
+    """Write ``text`` to a file only its owner may read (``mode``), made so before anything is in it."""
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, mode)
+    try:
+        os.fchmod(fd, mode)
+        os.write(fd, text.encode())
+    finally:
+        os.close(fd)
+
+
+def client_config_text(endpoint: str, cred: Credentials) -> str:
+    """A Zenoh client config (JSON, hence JSON5): the router's endpoint, the user and password, and
+    timestamping on as rmw_zenoh's default config has it. For ``ZENOH_SESSION_CONFIG_URI``."""
+    usrpwd: dict[str, str] = {"user": cred.user, "password": cred.password}
+    if cred.dictionary is not None:  # a hilsim peer's listener checks who connects against it
+        usrpwd["dictionary_file"] = str(cred.dictionary)
+    return json.dumps({
+        "mode": "client",
+        "connect": {"endpoints": [endpoint]},
+        "scouting": {"multicast": {"enabled": False}},
+        "timestamping": {"enabled": {"router": True, "peer": True, "client": True}},
+        "transport": {"auth": {"usrpwd": usrpwd}},
+    }, indent=2) + "\n"
+
+
+def _net_namespace() -> str:
+    """This process's network namespace (two namespaces may each have a router on one port)."""
+    try:
+        return str(os.stat("/proc/self/ns/net").st_ino)
+    except OSError:
+        return "0"
+
+
+def pointer_dir() -> Path:
+    """Where ``hilsim up`` says which run owns a router port: ``$XDG_RUNTIME_DIR/hilsim``, else
+    ``~/.cache/hilsim`` (this user's only: mode 0700)."""
+    base = os.environ.get("XDG_RUNTIME_DIR", "")
+    if base and os.path.isdir(base) and os.access(base, os.W_OK):
+        return Path(base) / "hilsim"
+    return Path.home() / ".cache" / "hilsim"
+
+
+def pointer_path(port: int) -> Path:
+    """The pointer file of the run whose router listens on loopback ``port`` (in this network namespace)."""
+    return pointer_dir() / f"{port}-{_net_namespace()}.json"
+
+
+def loopback_port(endpoint: str) -> int | None:
+    """The port of a ``tcp/`` endpoint on this machine's loopback, else None (credentials are given
+    to nothing else)."""
+    proto, _, addr = endpoint.partition("/")
+    host, _, port = addr.rpartition(":")
+    if proto != "tcp" or host not in ("127.0.0.1", "localhost", "[::1]") or not port.isdigit():
+        return None
+    return int(port)
+
+
+def write_pointer(endpoint: str, run_dir: Path, client_config: Path) -> Path | None:
+    """Say (mode 0600) that the router on ``endpoint`` is this process's run's, with its credentials."""
+    port = loopback_port(endpoint)
+    if port is None:
+        return None
+    path = pointer_path(port)
+    path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+    write_private(path, json.dumps({"endpoint": endpoint, "run_dir": str(run_dir.resolve()),
+                                    "client_config": str(client_config.resolve()), "pid": os.getpid()}) + "\n")
+    return path
+
+
+def remove_pointer(path: Path | None) -> None:
+    """Remove a pointer this process wrote (not one a later run wrote over it)."""
+    if path is None:
+        return
+    try:
+        if json.loads(path.read_text()).get("pid") == os.getpid():
+            path.unlink()
+    except (OSError, ValueError):
+        pass
+
+
+def find_credentials(endpoints: list[str]) -> Path | None:
+    """The client config of the run whose router listens on one of ``endpoints`` (loopback), from its
+    pointer file: only one this user owns and no one else may read, of a launcher still running."""
+    for ep in endpoints:
+        port = loopback_port(ep)
+        if port is None:
+            continue
+        path = pointer_path(port)
+        try:
+            st = path.stat()
+            if st.st_uid != os.getuid() or stat.S_IMODE(st.st_mode) & 0o077:
+                continue
+            info = json.loads(path.read_text())
+            os.kill(int(info["pid"]), 0)  # the launcher that wrote it still runs
+            client = Path(info["client_config"])
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        if client.is_file():
+            return client
+    return None
 
 
 # certificate and key paths of a router config file, resolved against the file's directory
@@ -224,13 +405,18 @@ def tool_keys(robot: str = "arm", prefix: str | None = None, domain: int | None 
 
 
 def tool_zenoh(connect: str | None = None) -> ZenohConfig:
-    """The Zenoh settings of a tool: :func:`tool_endpoints`, and a TLS identity from
-    ``HILSIM_TLS_*`` when set (docs/security.md)."""
+    """The Zenoh settings of a tool: :func:`tool_endpoints`, a TLS identity from ``HILSIM_TLS_*``
+    when set, else a user and password: ``HILSIM_ZENOH_AUTH`` (a Zenoh config file), else those of
+    the ``hilsim up`` of this user whose router listens there (:func:`find_credentials`; docs/security.md)."""
     from pydantic import ValidationError
 
     tls = tls_from_env()
+    endpoints = tool_endpoints(connect)
+    # user and password: HILSIM_ZENOH_AUTH, else those of the run (of this user) whose router it is
+    env_auth = os.environ.get(AUTH_ENV, "").strip()
+    auth = None if tls else Path(env_auth) if env_auth else find_credentials(endpoints)
     try:
-        return ZenohConfig(connect=tool_endpoints(connect), tls=TlsConfig(**tls) if tls else None)
+        return ZenohConfig(connect=endpoints, tls=TlsConfig(**tls) if tls else None, auth=auth)
     except ValidationError as e:
         err = e.errors()[0]
         raise ConfigError(f"TLS from the environment: {err['msg'].removeprefix('Value error, ')}") from None

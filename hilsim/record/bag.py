@@ -31,11 +31,13 @@ writer killed before :meth:`BagWriter.close` leaves no summary or footer:
 
 from __future__ import annotations
 
+import json
 import struct
 import zlib
 from collections import Counter
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
+from operator import itemgetter
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -68,6 +70,9 @@ MAGIC = b"\x89MCAP0\r\n"
 CHUNK_BYTES = 1 << 20  # uncompressed bytes of messages per chunk, at most (one batch may make several)
 ZSTD_LEVEL = 1  # fast: the recorder's CPU matters more than the last 10 % of size
 NO_WRITER = 0xFFFF  # writer index of a message that came without an attachment
+NO_ATTACHMENT = (0, 0, None)  # a queued sample's attachment when it had none
+_SEQ, _GID = itemgetter(0), itemgetter(2)
+_KEY, _DATA, _ATT, _LOG = itemgetter(0), itemgetter(1), itemgetter(2), itemgetter(3)
 WRITERS_ATTACHMENT = "hilsim_writers"  # before each chunk: uint16 writer index per message
 WRITERS_MEDIA_TYPE = "application/x-hilsim-writer-index"
 WRITER_METADATA = "hilsim_writer"  # one per writer: index, gid, key, topic
@@ -169,10 +174,11 @@ class BagWriter:
     """One MCAP file of a rosbag2 bag, written by the recorder's worker (one thread)."""
 
     def __init__(self, directory: str | Path, index: int = 0, *, chunk_bytes: int = CHUNK_BYTES,
-                 compression: str = "zstd", custom: dict[str, str] | None = None, describe: bool = True) -> None:
+                 compression: str = "zstd", custom: dict[str, str] | None = None, describe: bool = True,
+                 name: str | None = None) -> None:
         self.dir = Path(directory)
         self.dir.mkdir(parents=True, exist_ok=True)
-        self.path = self.dir / FILE_PATTERN.format(index)
+        self.path = self.dir / (name or FILE_PATTERN.format(index))
         self.chunk_bytes = chunk_bytes
         if compression not in ("zstd", ""):
             raise BagError(f"compression {compression!r}: expected zstd or '' (none)")
@@ -188,7 +194,9 @@ class BagWriter:
         self._stamp_at = np.full(1, -1, np.int64)  # per channel id
         self._writers: dict[bytes, int] = {}
         self._new_writers: list[tuple[int, bytes, str, str]] = []  # index, gid, key, topic
-        self._batch: list[tuple[int, int, int, int, bytes]] = []
+        # queued samples: (key, payload, attachment (seq, source ns, gid) or NO_ATTACHMENT, receive ns)
+        self._batch: list[tuple[str, bytes, tuple[int, int, bytes | None], int]] = []
+        self.append = self._batch.append
         self._chunk_indexes: list[ChunkIndex] = []
         self._attachment_indexes: list[AttachmentIndex] = []
         self._metadata_indexes: list[MetadataIndex] = []
@@ -244,29 +252,43 @@ class BagWriter:
             topic, ros_type, type_hash = "/" + key.strip("/"), "", ""
         schema_id = 0
         if ros_type and ros2types.is_known(ros_type):
-            schema_id = self._schemas.get(ros_type, 0)
-            if not schema_id:
-                schema_id = len(self._schema_records) + 1
-                s = Schema(id=schema_id, name=ros_type, encoding=SchemaEncoding.ROS2,
-                           data=ros2types.full_definition(ros_type).encode())
-                self._schemas[ros_type] = schema_id
-                self._schema_records.append(s)
-                rb = RecordBuilder()
-                s.write(rb)
-                self._write(rb.end())
-        cid = len(self._channel_records) + 1
+            schema_id = self._schema(ros_type, SchemaEncoding.ROS2, ros2types.full_definition(ros_type).encode())
         meta = {"offered_qos_profiles": qos_yaml(qos_profiles(topic)), "topic_type_hash": type_hash,
                 "hilsim_key": key}
-        c = Channel(id=cid, topic=topic, message_encoding=MessageEncoding.CDR, schema_id=schema_id, metadata=meta)
+        return self._channel(key, topic, ros_type or "unknown", schema_id, MessageEncoding.CDR, meta)
+
+    def _schema(self, name: str, encoding: str, data: bytes) -> int:
+        schema_id = self._schemas.get(name, 0)
+        if not schema_id:
+            schema_id = len(self._schema_records) + 1
+            s = Schema(id=schema_id, name=name, encoding=encoding, data=data)
+            self._schemas[name] = schema_id
+            self._schema_records.append(s)
+            rb = RecordBuilder()
+            s.write(rb)
+            self._write(rb.end())
+        return schema_id
+
+    def _channel(self, key: str, topic: str, ros_type: str, schema_id: int, encoding: str,
+                 meta: dict[str, str]) -> ChannelInfo:
+        cid = len(self._channel_records) + 1
+        c = Channel(id=cid, topic=topic, message_encoding=encoding, schema_id=schema_id, metadata=meta)
         self._channel_records.append(c)
         rb = RecordBuilder()
         c.write(rb)
         self._write(rb.end())
-        info = ChannelInfo(cid, key, topic, ros_type or "unknown", schema_id, stamp_offset(ros_type))
+        info = ChannelInfo(cid, key, topic, ros_type, schema_id,
+                           stamp_offset(ros_type) if encoding == MessageEncoding.CDR else -1)
         self._channels[key] = info
         self._by_id.append(info)
         self._stamp_at = np.append(self._stamp_at, info.stamp_at)
         return info
+
+    def json_channel(self, topic: str, schema_name: str, schema: dict[str, Any]) -> ChannelInfo:
+        """A channel of JSON messages (``message_encoding`` json, a ``jsonschema`` schema): what
+        ``hilsim export`` writes for rows that make no ROS 2 message. Its key is ``json:<topic>``."""
+        sid = self._schema(schema_name, SchemaEncoding.JSONSchema, json.dumps(schema).encode())
+        return self._channel(f"json:{topic}", topic, schema_name, sid, MessageEncoding.JSON, {})
 
     def declare_channel(self, c: Channel, schema: Schema | None) -> ChannelInfo:
         """A channel (and its schema) as another file had them, ids kept (recovery)."""
@@ -300,21 +322,14 @@ class BagWriter:
     # ------------------------------------------------------------------ messages
     def add(self, key: str, data: bytes, log_ns: int, seq: int = 0, gid: bytes | None = None) -> None:
         """Queue one sample: ``data`` its raw CDR payload, ``log_ns`` when it was received, ``seq`` and
-        ``gid`` from its attachment (``gid`` None: it had none). Written by the next :meth:`flush`."""
-        ch = self._channels.get(key)
-        if ch is None:
-            ch = self._register(key)
-        if gid is None:
-            w = NO_WRITER
-        else:
-            w = self._writers.get(gid, -1)
-            if w < 0:
-                w = len(self._writers)
-                if w >= NO_WRITER:
-                    raise BagError(f"more than {NO_WRITER - 1} writers")
-                self._writers[gid] = w
-                self._new_writers.append((w, gid, key, ch.topic))
-        self._batch.append((ch.id, seq & 0xFFFFFFFF, w, log_ns, data))
+        ``gid`` from its attachment (``gid`` None: it had none). Written by the next :meth:`flush`.
+        The recorder's worker appends ``(key, payload, attachment, receive ns)`` to :attr:`append`
+        itself (an attachment is ``(seq, source ns, gid)``; :data:`NO_ATTACHMENT` for none)."""
+        self.append((key, data, NO_ATTACHMENT if gid is None else (seq, 0, gid), log_ns))
+
+    def add_to(self, ch: ChannelInfo, data: bytes, log_ns: int) -> None:
+        """Queue a message on a channel of this file (no attachment), e.g. a :meth:`json_channel`'s."""
+        self.append((ch.key, data, NO_ATTACHMENT, log_ns))
 
     @property
     def pending(self) -> int:
@@ -322,19 +337,39 @@ class BagWriter:
 
     def flush(self) -> Counter[str]:
         """Write every queued message (chunks of at most ``chunk_bytes``) and flush the file to the
-        OS; returns how many messages per key this flush wrote."""
-        batch, self._batch = self._batch, []
+        OS; returns how many messages per key this flush wrote. The per-message work is C loops
+        (``zip``, ``map``, ``np.fromiter``) over the batch, the rest numpy per chunk."""
+        batch = self._batch[:]
+        self._batch.clear()
         out: Counter[str] = Counter()
         if batch:
             n = len(batch)
-            ch, seq, w, log, data = zip(*batch, strict=True)
-            ch_a = np.fromiter(ch, np.uint16, n)
-            self.write_chunks(ch_a, np.fromiter(seq, np.uint32, n), np.fromiter(w, np.uint16, n),
-                              np.fromiter(log, np.uint64, n), None, data)
-            for cid, n in zip(*np.unique(ch_a, return_counts=True), strict=True):
-                info = self._by_id[int(cid)]
+            # columns by C-level maps: zip(*batch) makes an iterator per sample (GC work, 4x slower here)
+            keys, data, atts = list(map(_KEY, batch)), list(map(_DATA, batch)), list(map(_ATT, batch))
+            chans = self._channels
+            for k in set(keys).difference(chans):
+                self._register(k)
+            cid = {k: c.id for k, c in chans.items()}
+            ch = np.fromiter(map(cid.__getitem__, keys), np.uint16, n)
+            gids = list(map(_GID, atts))
+            known = self._writers
+            for g in set(gids).difference(known):
+                if g is None:
+                    continue
+                if len(known) >= NO_WRITER:
+                    raise BagError(f"more than {NO_WRITER - 1} writers")
+                k = keys[gids.index(g)]
+                known[g] = len(known)
+                self._new_writers.append((known[g], g, k, chans[k].topic))
+            wmap = {None: NO_WRITER, **known}
+            self.write_chunks(ch, np.fromiter(map(_SEQ, atts), np.uint64, n).astype(np.uint32),
+                              np.fromiter(map(wmap.__getitem__, gids), np.uint16, n),
+                              np.fromiter(map(_LOG, batch), np.uint64, n),
+                              None, data)
+            for c, k in zip(*np.unique(ch, return_counts=True), strict=True):
+                info = self._by_id[int(c)]
                 assert info is not None
-                out[info.key] += int(n)
+                out[info.key] += int(k)
             self.written.update(out)
         self._f.flush()
         return out

@@ -63,7 +63,8 @@ class BagMessage(NamedTuple):
     pub_ns: int  # its sim-time stamp
     seq: int  # its rmw_zenoh sequence number (low 32 bits)
     gid: bytes | None  # its writer's gid; None if it came without an attachment (or the index is lost)
-    data: bytes  # the raw CDR payload
+    data: bytes  # the raw CDR payload (a JSON channel of ``hilsim export``: JSON text)
+    encoding: str = "cdr"  # the channel's message encoding
 
 
 @dataclass
@@ -101,13 +102,14 @@ class BagFile:
 
     def messages(self) -> Iterator[BagMessage]:
         """Every message in file order."""
-        info = {cid: (c.topic, c.metadata.get("hilsim_key", ""), self.type_of(cid)) for cid, c in self.channels.items()}
+        info = {cid: (c.topic, c.metadata.get("hilsim_key", ""), self.type_of(cid), c.message_encoding)
+                for cid, c in self.channels.items()}
         gids = self.writers
         for ch, seq, w, log, pub, data in self.chunks:
             for c, s, wi, lt, pt, d in zip(ch.tolist(), seq.tolist(), w.tolist(), log.tolist(), pub.tolist(), data,
                                            strict=True):
-                topic, key, typ = info[c]
-                yield BagMessage(topic, key, typ, lt, pt, s, gids.get(wi), d)
+                topic, key, typ, enc = info[c]
+                yield BagMessage(topic, key, typ, lt, pt, s, gids.get(wi), d, enc)
 
 
 # ---------------------------------------------------------------------------------------- reading
@@ -317,21 +319,31 @@ def _qos_list(c: Channel) -> list[dict[str, Any]]:
 
 
 def metadata_dict(bag: Bag, custom: dict[str, str] | None = None) -> dict[str, Any]:
-    """``metadata.yaml``'s content for a bag (rosbag2 version 9): times are log times (receive)."""
+    """``metadata.yaml``'s content for a bag (rosbag2 version 9): times are log times (receive).
+    Only files of CDR channels are listed (rosbag2 and rosbags know no other): the JSON rows of
+    ``hilsim export`` (a file of their own) are for MCAP readers (Foxglove) alone."""
     topics: dict[tuple[str, str], dict[str, Any]] = {}
     files = []
     t0s, t1s = [], []
-    for f in bag.files:
+    total = 0
+    listed = [f for f in bag.files if f.channels and all(c.message_encoding == "cdr" for c in f.channels.values())]
+    for f in listed:
         counts = f.counts()
-        logs = [c[3] for c in f.chunks if len(c[3])]
+        cdr = np.array([cid for cid, c in f.channels.items() if c.message_encoding == "cdr"], np.uint16)
+        logs = [c[3][np.isin(c[0], cdr)] for c in f.chunks]
+        logs = [a for a in logs if len(a)]
+        n = sum(len(a) for a in logs)
+        total += n
         start = int(min(int(a.min()) for a in logs)) if logs else 0
         stop = int(max(int(a.max()) for a in logs)) if logs else 0
         if logs:
             t0s.append(start)
             t1s.append(stop)
         files.append({"path": f.path.name, "starting_time": {"nanoseconds_since_epoch": start},
-                      "duration": {"nanoseconds": stop - start}, "message_count": f.message_count})
+                      "duration": {"nanoseconds": stop - start}, "message_count": n})
         for cid, c in sorted(f.channels.items()):
+            if c.message_encoding != "cdr":
+                continue
             t = (c.topic, f.type_of(cid))
             entry = topics.setdefault(t, {"topic_metadata": {
                 "name": c.topic, "type": t[1], "serialization_format": c.message_encoding,
@@ -344,11 +356,11 @@ def metadata_dict(bag: Bag, custom: dict[str, str] | None = None) -> dict[str, A
         "storage_identifier": "mcap",
         "duration": {"nanoseconds": (max(t1s) - start) if t1s else 0},
         "starting_time": {"nanoseconds_since_epoch": start},
-        "message_count": bag.message_count,
+        "message_count": total,
         "topics_with_message_count": [topics[k] for k in sorted(topics)],
         "compression_format": "",  # MCAP compresses its chunks itself: no rosbag2 file or message compression
         "compression_mode": "",
-        "relative_file_paths": [f.path.name for f in bag.files],
+        "relative_file_paths": [f.path.name for f in listed],
         "files": files,
         "custom_data": custom or {},
         "ros_distro": "jazzy",  # the type descriptions and hashes are Jazzy's (REP 2016)

@@ -49,6 +49,8 @@ class Outcome:
     faults: list[str] = field(default_factory=list)
     stalled: str = ""  # physics waited longer than clock.ack_timeout for a lockstep participant
     interrupted: bool = False
+    signal: int = 0  # the stop signal that interrupted the run (SIGINT, SIGTERM; hilsim.run.launcher)
+    killed: list[str] = field(default_factory=list)  # services killed (SIGKILL) on a second stop signal
     restarts: list[Restart] = field(default_factory=list)
 
 

@@ -47,6 +47,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
@@ -61,7 +62,7 @@ from hilsim.core.provenance import Provenance
 from hilsim.core.restart import RESTART_ENV, STATE_DIR
 from hilsim.core.scenario import load_scenario, write_scenario
 from hilsim.run.follow import Follower, Outcome, Restart
-from hilsim.run.router import cmd_router, open_default_router
+from hilsim.run.router import cmd_router, open_default_router, open_run_router
 from hilsim.run.summary import summarise
 from hilsim.run.worlds import world_scenario
 
@@ -137,7 +138,9 @@ class Launcher:
         self.quiet = quiet
         self.router_ep = router
         self._router: zenoh.Session | None = None
+        self._pointer: Path | None = None  # the pointer file to this run's router (transport.write_pointer)
         self.children: dict[str, Child] = {}
+        self.hurry = False  # a second stop signal: services are killed, not waited for
         self.changed = threading.Event()
         self.lock = threading.Lock()
         # a service of another host: its last samples (task/result) may reach us well after its token
@@ -167,8 +170,12 @@ class Launcher:
     def start(self) -> None:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         if self.router_ep is None:
-            self.router_ep, self._router = open_default_router()
-            self.say(f"zenoh router: {self.router_ep}")
+            # only this run's processes may join it: a user and password of its own (docs/security.md)
+            rr = open_run_router(self.run_dir, self.sc.zenoh.guests)
+            self.router_ep, self._router, self._pointer = rr.endpoint, rr.session, rr.pointer
+            self.sc.zenoh.auth = rr.client_config
+            guests = f"; guests read with {rr.guest_config}" if rr.guest_config else ""
+            self.say(f"zenoh router: {self.router_ep} (user and password in {rr.client_config}{guests})")
         self.sc.zenoh.connect = [self.router_ep]
         self.sc.logger.run_dir = self.run_dir.resolve()
         cfg = self.run_dir / "scenario.yaml"
@@ -194,6 +201,8 @@ class Launcher:
         env.setdefault("PYTHONUNBUFFERED", "1")
         if attempt:
             env[RESTART_ENV] = str(attempt)
+        if self.sc.zenoh.auth is not None:  # the run's credentials, whatever the caller's environment says
+            env[transport.AUTH_ENV] = str(self.sc.zenoh.auth)
         log_path = self.run_dir / f"{name}.log"
         with open(log_path, "ab" if attempt else "wb") as logf:
             if attempt:
@@ -229,7 +238,7 @@ class Launcher:
         deadline = time.monotonic() + timeout
         last_print = time.monotonic()
         while time.monotonic() < deadline:
-            if self.check_children():
+            if self.outcome.interrupted or self.check_children():
                 return False
             missing = self.missing()
             if not missing:
@@ -348,7 +357,7 @@ class Launcher:
         t0 = time.monotonic()
         last_print = last_poll = t0
         while True:
-            if self.check_children():
+            if self.outcome.interrupted or self.check_children():
                 return
             if self.follower.ended():  # the task, the duration, or a stalled lockstep
                 return
@@ -380,31 +389,59 @@ class Launcher:
 
     # ------------------------------------------------------------------ stop
     def stop(self) -> None:
-        for name in getattr(self, "order", []):
-            c = self.children.get(name)
-            if c is None:
-                continue
-            c.restart_at = None  # a restart still pending when the run ends does not happen
-            if c.proc.poll() is None:
-                c.proc.send_signal(signal.SIGINT)
-                c.proc.send_signal(signal.SIGCONT)  # a stopped (suspended) service must handle it too
-                try:
-                    c.proc.wait(timeout=300 if name == "logger" else 15)
-                except subprocess.TimeoutExpired:
-                    self.say(f"warning: {name} did not stop within the grace period; killing it")
-                    c.proc.kill()
-                    c.proc.wait()
-        for s in getattr(self, "_subs", []):
-            s.undeclare()
-        if hasattr(self, "session"):
-            self.session.close()
-        if self._router is not None:
-            self._router.close()
+        """Stop every service in order (SIGINT, the recorder given time to close its files), or
+        kill them after :meth:`interrupt` said hurry; then close the session and the router,
+        whatever happened before (their threads would keep the launcher's process alive)."""
+        try:
+            for name in getattr(self, "order", []):
+                c = self.children.get(name)
+                if c is None:
+                    continue
+                c.restart_at = None  # a restart still pending when the run ends does not happen
+                if c.proc.poll() is None:
+                    if self.hurry:
+                        self.kill_all()
+                    else:
+                        c.proc.send_signal(signal.SIGINT)
+                        c.proc.send_signal(signal.SIGCONT)  # a stopped (suspended) service must handle it too
+                    try:
+                        c.proc.wait(timeout=300 if name == "logger" else 15)
+                    except subprocess.TimeoutExpired:
+                        self.say(f"warning: {name} did not stop within the grace period; killing it")
+                        c.proc.kill()
+                        c.proc.wait()
+        finally:
+            for s in getattr(self, "_subs", []):
+                s.undeclare()
+            if hasattr(self, "session"):
+                self.session.close()
+            if self._router is not None:
+                self._router.close()
+                transport.remove_pointer(self._pointer)
+
+    def interrupt(self, signum: int) -> None:
+        """A stop signal (``hilsim up``'s watcher thread calls this, never a signal handler): the
+        first one ends the run, its services told to stop as at its end; another one kills every
+        service still running (SIGKILL), so a second Ctrl-C means faster, never a hang."""
+        name = signal.Signals(signum).name
+        if not self.outcome.interrupted:
+            self.outcome.signal = signum
+            self.outcome.interrupted = True
+            again = "Ctrl-C" if signum == signal.SIGINT else name
+            self.say(f"interrupted ({name}): stopping services… ({again} again to kill them at once)")
+            self.changed.set()
+        else:
+            self.say(f"interrupted again ({name}): killing every service")
+            self.hurry = True
+            self.kill_all()
 
     def kill_all(self) -> None:
-        for c in self.children.values():
+        """SIGKILL every service still running (recorded in the outcome)."""
+        for c in list(self.children.values()):
             if c.proc.poll() is None:
                 c.proc.kill()
+                if c.name not in self.outcome.killed:
+                    self.outcome.killed.append(c.name)
 
 
 def local_units(sc: Scenario, only: list[str] | None) -> list[str]:
@@ -446,66 +483,134 @@ def default_run_dir(sc: Scenario) -> Path:
     return Path(sc.logger.out_dir) / stamp
 
 
+def _stop_signals(on_signal: Callable[[int], None]) -> Callable[[], None]:
+    """Take SIGINT and SIGTERM, however often they come, by calling ``on_signal(signum)`` from a
+    watcher thread; returns what puts the previous handlers back.
+
+    Never in a handler of the main thread: one that raised (KeyboardInterrupt) cut the launcher's
+    own stopping short at a second Ctrl-C, leaving its Zenoh session open and its process waiting
+    for that session's threads for good; one that takes a lock may deadlock on it
+    (:func:`hilsim.core.service.on_stop_signals`). The handlers do nothing; the interpreter writes
+    the signal's number to a wake-up pipe, which the thread reads. Explicit for SIGINT too: a
+    launcher started in the background of a script inherits SIGINT ignored."""
+    if threading.current_thread() is not threading.main_thread():
+        return lambda: None  # signals reach the main thread only: its caller's business
+    r, w = os.pipe()
+    os.set_blocking(w, False)
+    old_fd = signal.set_wakeup_fd(w, warn_on_full_buffer=False)
+    stops = (signal.SIGINT, signal.SIGTERM)
+    old = {s: signal.signal(s, lambda *_: None) for s in stops}
+
+    def watch() -> None:
+        while True:
+            try:
+                data = os.read(r, 64)
+            except OSError:
+                return
+            if not data:
+                return
+            for b in data:
+                if b in stops:
+                    on_signal(b)
+
+    t = threading.Thread(target=watch, daemon=True, name="stop-signals")
+    t.start()
+
+    def restore() -> None:
+        signal.set_wakeup_fd(old_fd)
+        for s, h in old.items():
+            signal.signal(s, h)
+        os.close(w)  # the watcher reads the end of the pipe and returns
+        t.join(1.0)
+        os.close(r)
+
+    return restore
+
+
+def _interactive_hint(la: Launcher, example: list[float] | None) -> str:
+    """What ``hilsim up --interactive`` says once ready: how to stop, and a goal to try."""
+    sc = la.sc
+    robot = fleet.robot_names(sc)[0] if sc.robots > 1 else sc.robot
+    connect = "" if la.router_ep == transport.DEFAULT_CONNECT else f" --connect {la.router_ep}"
+    if "planner" in sc.services:
+        joints = " ".join(f"{v:g}" for v in example) if example else "J1 …"
+        try_ = f"hilsim goal {robot} --joints {joints}{connect}"
+    elif "navigator" in sc.services:
+        xy = " ".join(f"{v:g}" for v in example[:2]) if example else "X Y"
+        try_ = f"hilsim goal {robot} --xy {xy}{connect}"
+    else:
+        try_ = f"geometry_msgs/Twist on {Keys.of(sc, robot).topic_name('cmd_vel')}"
+    return f"interactive: Ctrl-C to stop; try {try_}"
+
+
 def cmd_up(args: argparse.Namespace) -> int:
+    """``hilsim up``: its exit code is the summary's (:mod:`hilsim.run.summary`): 0 every target
+    reached, 1 failed, 3 stopped by ``--duration`` before its task ended, 128 + N interrupted by
+    signal N (Ctrl-C: 130, SIGTERM: 143); a second stop signal kills the services at once."""
+    from hilsim.core.config import ConfigError
     from hilsim.core.scenario import parse_overrides
 
     overrides = parse_overrides(args.set)
+    origins: dict[str, str] = {}  # where an override came from, for its errors
     if args.clock:
-        overrides["clock.mode"] = args.clock
+        overrides["clock.mode"], origins["clock.mode"] = args.clock, f"--clock {args.clock}"
     if args.duration is not None:
-        overrides["duration"] = args.duration
+        overrides["duration"], origins["duration"] = args.duration, f"--duration {args.duration:g}"
     if args.seed is not None:
-        overrides["seed"] = args.seed
+        overrides["seed"], origins["seed"] = args.seed, f"--seed {args.seed}"
     if getattr(args, "wait", None) is not None:  # physics waits as long as the launcher does
-        overrides["clock.start_timeout"] = args.wait
+        overrides["clock.start_timeout"], origins["clock.start_timeout"] = args.wait, f"--wait {args.wait:g}"
     if args.compose:
         overrides["compose"] = [[n.strip() for n in g.split(",") if n.strip()] for g in args.compose]
+        origins["compose"] = " ".join(f"--compose {g}" for g in args.compose)
+    interactive = getattr(args, "interactive", False)
+    if interactive and args.duration is not None:
+        raise ConfigError("--interactive: the run stays up until Ctrl-C; drop --duration")
     only = [n.strip() for n in args.only.split(",") if n.strip()] if getattr(args, "only", None) else None
     if only and "zenoh.mode" not in overrides and not os.environ.get("HILSIM_ZENOH_MODE"):
         # several hosts: every process a client of the router. Peers listen on loopback, and
         # Zenoh (1.10) did not route between peers of two hosts through the router for them
         overrides["zenoh.mode"] = "client"
     scenario = world_scenario(args.scenario, args.world) if getattr(args, "world", None) else args.scenario
-    sc = load_scenario(scenario, overrides, overlays=args.hil)
+    sc = load_scenario(scenario, overrides, overlays=args.hil, origins=origins)
+    example = None
+    if interactive:  # no task (every robot's), no duration: up until Ctrl-C, for goals and tools
+        example = sc.task.targets[0] if sc.task.targets else None
+        sc.task.targets = []
+        sc.duration = None
+        for over in sc.robot_overrides.values():
+            over.pop("task.targets", None)
+            if isinstance(over.get("task"), dict):
+                over["task"].pop("targets", None)
     if args.no_logger:
         sc.services = [s for s in sc.services if s != "logger"]
     run_dir = Path(args.out) if args.out else default_run_dir(sc)
     if sc.zenoh.tls is not None and not args.router:
-        from hilsim.core.config import ConfigError
-
         raise ConfigError("zenoh.tls is set: start the router with `hilsim router --config FILE` and pass its "
                           "tls/ endpoint with --router (docs/security.md)")
+    if args.router and sc.zenoh.tls is None and sc.zenoh.auth is None:
+        # the router of another run of this user (its credentials, as a tool finds them), or one without
+        sc.zenoh.auth = transport.find_credentials([args.router])
     la = Launcher(sc, run_dir, router=args.router, only=only)
     here = f" ({', '.join(la.local)} here, the rest from other hosts)" if only else ""
     print(f"hilsim up {sc.name}: {len(sc.processes())} services{here}, clock {sc.clock.mode}, seed {sc.seed}, "
-          f"run dir {run_dir}")
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        la.outcome.interrupted = True
-        la.changed.set()
-        raise KeyboardInterrupt
-
-    # explicit for SIGINT too: a launcher started in the background of a script inherits
-    # SIGINT ignored, and Python then never raises KeyboardInterrupt
-    old = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGTERM, signal.SIGINT)}
+          f"run dir {run_dir}", flush=True)
+    restore = _stop_signals(la.interrupt)  # from here on, no signal raises in this thread
     try:
-        la.start()
-        if la.wait_ready(sc.clock.start_timeout):
-            if not sc.task.targets and sc.duration is None:
-                robot = fleet.robot_names(sc)[0] if sc.robots > 1 else sc.robot  # robots > 1: e.g. arm0
-                how = (f"send goals with `hilsim goal {robot} --joints …`" if "planner" in sc.services
-                       else f"send goals with `hilsim goal {robot} --xy X Y`" if "navigator" in sc.services
-                       else f"drive it with geometry_msgs/Twist on {Keys.of(sc, robot).topic_name('cmd_vel')}")
-                print(f"no task targets and no --duration: running until Ctrl-C ({how})", flush=True)
-            la.follow()
-    except KeyboardInterrupt:
-        la.outcome.interrupted = True
-        print("interrupted: stopping services…", flush=True)
-    finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
         try:
+            la.start()
+            if la.wait_ready(sc.clock.start_timeout):
+                if interactive:
+                    print(_interactive_hint(la, example), flush=True)
+                elif not sc.task.targets and sc.duration is None:
+                    robot = fleet.robot_names(sc)[0] if sc.robots > 1 else sc.robot  # robots > 1: e.g. arm0
+                    how = (f"send goals with `hilsim goal {robot} --joints …`" if "planner" in sc.services
+                           else f"send goals with `hilsim goal {robot} --xy X Y`" if "navigator" in sc.services
+                           else f"drive it with geometry_msgs/Twist on {Keys.of(sc, robot).topic_name('cmd_vel')}")
+                    print(f"no task targets and no --duration: running until Ctrl-C ({how})", flush=True)
+                la.follow()
+        finally:
             la.stop()
-        except KeyboardInterrupt:
-            la.kill_all()
-    return summarise(la)
+        return summarise(la)
+    finally:
+        restore()

@@ -7,7 +7,18 @@ this host ran the recorder, the recording: the counts the logger wrote to
 says it published (``published:<key>`` in its final health), and the bag (``<run dir>/bag/``): the
 messages per key counted in its files against what the recorder received; a recorder that died has its
 ``recording.rrd`` parts recovered (:mod:`hilsim.core.recording`) and its bag made whole
-(:func:`hilsim.record.bag_read.recover_bag`). The result is ``OK`` (exit code 0) or ``FAILED`` (1).
+(:func:`hilsim.record.bag_read.recover_bag`). The result and the exit code of ``hilsim up``:
+
+- ``OK`` (0): every target reached (or a run without a task ended as planned), nothing failed;
+- ``FAILED`` (1): a target missed, a fault reported, a service died, the lockstep stalled, or the
+  recording is not whole;
+- ``STOPPED (duration) 1/3 targets`` (3): ``--duration`` ended the run before its task, and
+  nothing failed until then;
+- ``INTERRUPTED (SIGINT) 1/3 targets`` (128 + the signal: 130, SIGTERM 143): a stop signal ended
+  the run before its task. A run without a task (no targets and no duration, ``--interactive``)
+  is meant to end so: it is judged as usual, unless its services had to be killed (a second signal).
+
+(2 is a configuration error, said before anything starts: :mod:`hilsim.cli`.)
 
 Reads and writes no Zenoh key: only the outcome and the run directory.
 """
@@ -15,6 +26,7 @@ Reads and writes no Zenoh key: only the outcome and the run directory.
 from __future__ import annotations
 
 import json
+import signal
 from collections.abc import Callable
 from pathlib import Path
 from typing import Protocol
@@ -22,6 +34,9 @@ from typing import Protocol
 from hilsim.core.config import Scenario
 from hilsim.core.keys import UnknownKey, topic_name
 from hilsim.run.follow import Outcome
+
+EXIT_OK, EXIT_FAILED, EXIT_STOPPED = 0, 1, 3  # and 128 + N: interrupted by signal N (SIGINT: 130)
+TASK_HOSTS = {"planner", "navigator"}  # the services that run a scenario's task.targets (hilsim.sim.tasks)
 
 
 class FinishedRun(Protocol):
@@ -42,27 +57,36 @@ class FinishedRun(Protocol):
 
 
 def summarise(la: FinishedRun) -> int:
-    """Print the summary of a stopped run; its exit code: 0 (``result: OK``) or 1 (``FAILED``)."""
+    """Print the summary of a stopped run; its exit code (see the module's docstring): 0
+    (``result: OK``), 1 (``FAILED``), 3 (``STOPPED (duration)``) or 128 + the signal (``INTERRUPTED``)."""
     o, sc = la.outcome, la.sc
-    # with no task and no duration, Ctrl-C is how a run ends: not a failure
-    open_ended = not sc.task.targets and sc.duration is None
-    ok = not o.died and not o.stalled and (not o.interrupted or open_ended)
-    n_targets = len(sc.task.targets)
+    # the task's targets, if a service runs them (the planner; the rover's navigator)
+    n_targets = len(sc.task.targets) if TASK_HOSTS.intersection(sc.services) else 0
+    # with no task and no duration, Ctrl-C is how a run ends (--interactive): not an interruption
+    open_ended = not n_targets and sc.duration is None
+    interrupted = o.interrupted and (not open_ended or bool(o.killed))
+    # a fault is a failure, whether or not the run went on (it may have run out its duration)
+    ok = not o.died and not o.stalled and not o.faults
+    # a task goal that failed: a missed target, even if the run was cut short afterwards
+    ok = ok and not any(not r.success and r.goal_id.startswith("task-") for r in o.results)
+    unfinished = False  # a task without its result: cut short (duration, signal) or a failure
+    reached_all, n_all = 0, n_targets * len(la.robots)
     print("summary:")
     if n_targets and len(la.robots) > 1:  # robots > 1: each robot's own task
         for robot in la.robots:
             reached = sum(1 for r, who in zip(o.results, o.result_robots, strict=True)
                           if who == robot and r.success and r.goal_id.startswith("task-"))
+            reached_all += reached
             task = o.tasks.get(robot)
             if task is None:
                 print(f"  {robot}: targets reached {reached}/{n_targets}, task not finished")
-                ok = ok and sc.duration is not None and o.physics_done
+                unfinished = True
                 continue
             err = max((abs(e) for e in task.execution_error), default=float("nan"))
             print(f"  {robot}: targets reached {reached}/{n_targets}, final max joint error {err:.4f} rad")
             ok = ok and task.success and reached == n_targets
     elif n_targets:
-        reached = sum(1 for r in o.results if r.success and r.goal_id.startswith("task-"))
+        reached = reached_all = sum(1 for r in o.results if r.success and r.goal_id.startswith("task-"))
         print(f"  targets reached: {reached}/{n_targets}")
         if o.task is not None:
             # the joints as the planner named them in its trajectories (index if it sent none)
@@ -77,7 +101,7 @@ def summarise(la: FinishedRun) -> int:
             ok = ok and o.task.success and reached == n_targets
         else:
             print("  task: not finished")
-            ok = ok and sc.duration is not None and o.physics_done
+            unfinished = True
     ph = o.health.get("physics", {})
     if ph:
         print(f"  sim time {ph.get('sim_time', '?')} s, real-time factor {ph.get('real_time_factor', '?')}, "
@@ -85,12 +109,13 @@ def summarise(la: FinishedRun) -> int:
     for name, h in sorted(o.health.items()):
         bad = _num(h.get("rejected")) + _num(h.get("errors"))
         if bad:
-            print(f"  {name}: {h.get('rejected')} rejected, {h.get('errors')} errors (last: {h.get('last_error', '')})")
+            last = f" (last: {h['last_error']})" if h.get("last_error") else ""  # none: no empty "(last: )"
+            print(f"  {name}: {h.get('rejected')} rejected, {h.get('errors')} errors{last}")
     rrd = la.run_dir / "recording.rrd"
     if any("logger" in u.split("+") for u in la.local):  # a recorder on another host summarises there
         # a recorder that died left no footer (and no counts): make its file whole, say what it holds
         logger_restarted = any(r.name == "logger" for r in o.restarts)
-        if logger_restarted or any(n == "logger" for n, _ in o.died):
+        if logger_restarted or any(n == "logger" for n, _ in o.died) or "logger" in o.killed:
             ok = _recover_recordings(la.run_dir) and ok
         summary = la.run_dir / "record_summary.json"
         if summary.exists():
@@ -152,6 +177,8 @@ def summarise(la: FinishedRun) -> int:
                 n_lost = 0
             # realtime: a loss is reported, not a failure; lockstep promises that nothing is lost
             ok = ok and not mismatch and (realtime or not n_lost)
+        elif "logger" in o.killed:  # by a second stop signal: its counts died with it
+            print("  recording summary missing (the recorder was killed)")
         else:
             print("  recording summary missing")
             ok = False
@@ -168,8 +195,24 @@ def summarise(la: FinishedRun) -> int:
         print(f"  restarted {r.name} (exit code {r.rc} at sim time {r.sim_time} s; {back})")
     if la.untrusted:
         print(f"  ignored {la.untrusted} samples on results, health and logs from writers other than the services")
-    print("result: " + ("OK" if ok else "FAILED"))
-    return 0 if ok else 1
+    if o.killed:
+        print(f"  killed (SIGKILL) on a second stop signal: {', '.join(o.killed)}")
+    cut = unfinished and sc.duration is not None and o.physics_done
+    if unfinished and not cut and not interrupted:
+        ok = False  # the run ended without its task's result, neither by its duration nor by a signal
+    targets = f" {reached_all}/{n_all} targets" if n_all else ""
+    if interrupted:
+        sig = signal.Signals(o.signal or signal.SIGINT)
+        verdict = f"INTERRUPTED ({sig.name}){targets}" + ("" if ok else ", and FAILED (above)")
+        code = 128 + sig
+    elif not ok:
+        verdict, code = "FAILED", EXIT_FAILED
+    elif cut:
+        verdict, code = f"STOPPED (duration){targets}", EXIT_STOPPED
+    else:
+        verdict, code = "OK", EXIT_OK
+    print("result: " + verdict)
+    return code
 
 
 def _num(v: str | None) -> int:

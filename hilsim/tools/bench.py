@@ -131,8 +131,10 @@ def _launch(sc: Scenario, run_dir: Path, cpu: dict[str, float] | None = None) ->
     return la.outcome.health.get("physics", {})
 
 
-def bench_distributed(sim_seconds: float, tmp: Path, cpu: dict[str, float] | None = None) -> float:
-    h = _launch(_scenario(sim_seconds), tmp / "distributed", cpu)
+def bench_distributed(sim_seconds: float, tmp: Path, cpu: dict[str, float] | None = None, bag: bool = True) -> float:
+    """``hilsim up arm``; ``bag``: the recorder writes its bag too (``logger.bag``)."""
+    h = _launch(_scenario(sim_seconds, **{"logger.bag": bag}), tmp / ("distributed" if bag else "distributed-nobag"),
+                cpu)
     return float(h["real_time_factor"])
 
 
@@ -158,6 +160,16 @@ def bench_realtime(seconds: float, tmp: Path) -> dict[str, float]:
 def _each(us_per_step: dict[str, float]) -> str:
     """``name µs, …``, costliest first."""
     return ", ".join(f"{n} {v:.0f}" for n, v in sorted(us_per_step.items(), key=lambda x: -x[1]))
+
+
+def _recorder_line(r: dict[str, float]) -> str:
+    """The recorder's CPU per sample without and with the bag: whole process and worker alone."""
+    p0, p1 = r["process_without_bag_us"], r["process_with_bag_us"]
+    w0, w1 = r["worker_without_bag_us"], r["worker_with_bag_us"]
+    return (f"{p0:.1f} µs of CPU per recorded sample without the bag, {p1:.1f} µs with it "
+            f"({100 * (p1 / p0 - 1):+.0f} %; logger process, distributed run); "
+            f"its worker alone {w0:.2f} -> {w1:.2f} µs "
+            f"({100 * (w1 / w0 - 1):+.0f} %, {r['worker_samples']:.0f} samples of the arm mix)")
 
 
 def cmd_loop(args: argparse.Namespace) -> int:
@@ -191,6 +203,17 @@ def cmd_loop(args: argparse.Namespace) -> int:
         steps = sim * 1000
         res["distributed_cpu_us_per_step"] = {n: 1e6 * s / steps for n, s in cpu.items()}
         say(f"    {res['distributed_rtf']:.2f}x real time")
+        say("  the recorder's CPU per sample, without and with its bag (logger.bag false/true) …")
+        from hilsim.tools.bench_bag import process_us_per_sample, worker_cost
+
+        cpu_nobag: dict[str, float] = {}
+        bench_distributed(sim, Path(d), cpu_nobag, bag=False)
+        res["recorder"] = {
+            "process_without_bag_us": process_us_per_sample(Path(d) / "distributed-nobag", cpu_nobag["logger"]),
+            "process_with_bag_us": process_us_per_sample(Path(d) / "distributed", cpu["logger"]),
+            **{f"worker_{k}": v for k, v in worker_cost().items()},
+        }
+        say(f"    {_recorder_line(res['recorder'])}")
         say("  composed (physics, sensors, controller in one process; planner and logger apart) …")
         cpu = {}
         res["composed_rtf"] = bench_composed(sim, Path(d), cpu=cpu)
@@ -239,6 +262,7 @@ def cmd_loop(args: argparse.Namespace) -> int:
     print(f"recording floor: a recorder in its own process costs {min(c['callback'], c['channel']):.1f} + "
           f"{c['put']:.1f} µs of CPU per sample on Zenoh alone; at 10x real time the arm's "
           f"{KEYS_PER_STEP} keys per step take {per_s:.2f} cores for it")
+    print(f"recorder: {_recorder_line(res['recorder'])}")
     if "realtime" in res:
         r = res["realtime"]
         print(f"\nrealtime 1 kHz, {args.realtime_seconds:g} s: tick jitter p50 {r['jitter_p50_ms']:.3f} ms, "

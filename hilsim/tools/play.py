@@ -94,6 +94,8 @@ def schedule(bag: Bag, select: Selector, domain: int | None, skip_clock: bool) -
     latest = 0
     stamped: dict[str, bool] = {}
     for i, m in enumerate(bag.messages()):
+        if m.encoding != "cdr":  # a JSON channel of hilsim export: no key to play it on
+            continue
         s = stamped.get(m.type)
         if s is None:
             s = stamped[m.type] = stamp_offset(m.type) >= 0 and m.type not in STARTS_AT_STAMP

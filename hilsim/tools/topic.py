@@ -6,7 +6,8 @@ and never publishes anything. Topics are ROS 2 names (``/arm/joint_states``) in 
 ``--domain`` (``ROS_DOMAIN_ID``); ``list`` reads the ROS 2 graph (rmw_zenoh's liveliness tokens) as
 ``ros2 topic list`` does, so a ROS 2 node's topics show up beside hilsim's. ``echo``/``hz`` take a
 topic name (its key is ``<domain>/<name>/*/*``: any type) or a Zenoh key expression, and decode
-each sample by the type in its key (:func:`hilsim.core.keys.message_type`).
+each sample by the type in its key (:func:`hilsim.core.keys.message_type`). ``echo`` on a topic
+that has no publisher in the graph (no ``MP`` token) and no sample says so after a second.
 
 ``hz`` believes only the key's rightful writer: once a publisher has announced itself for the key
 (its ``MP`` graph token, :mod:`hilsim.core.provenance`), a sample without an attachment, from another
@@ -19,6 +20,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 import threading
 import time
 from collections import defaultdict, deque
@@ -33,6 +35,7 @@ from hilsim.core.provenance import Provenance
 from hilsim.core.ros2 import wire
 
 WRITERS_SETTLE_S = 0.5  # hz: time for the announced writers (liveliness history) to arrive
+NO_PUBLISHER_AFTER_S = 1.0  # echo: a topic without publisher nor sample is said to be so after this
 
 
 def _session(args: argparse.Namespace) -> zenoh.Session:
@@ -162,14 +165,48 @@ def cmd_echo(args: argparse.Namespace) -> int:
             if args.count is not None and n >= args.count:
                 done.set()
 
+    publishers: set[str] = set()  # the MP graph tokens of publishers on the topic (expression)
+
+    def on_token(s: zenoh.Sample) -> None:
+        key = publisher_key(str(s.key_expr))
+        if key is None or not zenoh.KeyExpr(expr).intersects(zenoh.KeyExpr(key)):
+            return
+        with lock:
+            (publishers.add if s.kind == zenoh.SampleKind.PUT else publishers.discard)(str(s.key_expr))
+
+    domain = int(expr.split("/", 1)[0]) if expr.split("/", 1)[0].isdigit() else transport.tool_domain(
+        getattr(args, "domain", None))
     with _session(args) as ses:
+        graph = ses.liveliness().declare_subscriber(wire.graph_key(domain), on_token, history=True)
         sub = ses.declare_subscriber(expr, on_sample)
         try:
-            done.wait(args.duration)
+            # a topic nobody publishes: say so after a second, instead of waiting in silence
+            quiet = args.duration is None or args.duration > NO_PUBLISHER_AFTER_S
+            if quiet and not done.wait(NO_PUBLISHER_AFTER_S):
+                with lock:
+                    silent = n == 0 and not publishers
+                if silent:
+                    print(f"no publisher on {args.key} yet (waiting; Ctrl-C to stop)", file=sys.stderr, flush=True)
+            done.wait(None if args.duration is None else max(0.0, args.duration - NO_PUBLISHER_AFTER_S * quiet))
         except KeyboardInterrupt:
             pass
         sub.undeclare()
+        graph.undeclare()
     return 0 if (args.count is None or n >= args.count) else 1
+
+
+def publisher_key(token: str) -> str | None:
+    """The data key a publisher's graph token (``MP``) announces; None for any other token."""
+    try:
+        t = wire.parse_token(token)
+    except ValueError:
+        return None
+    if t.kind != "MP" or not t.topic or not t.dds_type or not t.type_hash:
+        return None
+    try:
+        return wire.topic_key(t.domain, t.topic, t.dds_type, t.type_hash)
+    except ValueError:
+        return None
 
 
 def cmd_hz(args: argparse.Namespace) -> int:

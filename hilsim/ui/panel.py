@@ -6,11 +6,19 @@ robot is shown and what goals are checked against, and composes the state the pa
 
 Zenoh keys: none of its own; it opens the session the others use (``transport.open_tool_session``)
 and reads the robots' liveliness (``alive/*``) from the watcher to find a run started elsewhere.
+
+Without ``--connect`` (``hilsim ui``), the panel finds a simulation already running on this machine
+by itself: when a Zenoh router already listens on the well-known ``tcp/127.0.0.1:7447`` (a ``hilsim
+up`` of a terminal, or ``hilsim router``), it joins that router instead of opening one of its own; when
+that router is gone by the time the panel starts a run, it opens the router there itself. With
+``hilsim up … --ui`` (``attach=False``) it keeps to a router of its own, as before (7447 when free).
 """
 
 from __future__ import annotations
 
+import sys
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -18,33 +26,85 @@ import zenoh
 
 from hilsim.core import transport
 from hilsim.ui.commands import Commands
+from hilsim.ui.jsonio import BadInput
 from hilsim.ui.options import ScenarioOption, planner_names, scenario_options
 from hilsim.ui.runs import RunControl
 from hilsim.ui.viewer import Viewer
 from hilsim.ui.watch import Monitor
 
+ROUTER_WAIT_S = 3.0  # for the panel's session to reach a router it joins (or reopened)
+
+
+def _has_router(session: zenoh.Session, wait: float) -> bool:
+    """True once ``session`` is connected to a Zenoh router (within ``wait`` seconds)."""
+    end = time.monotonic() + wait
+    while True:
+        if any(True for _ in session.info.routers_zid()):
+            return True
+        if time.monotonic() >= end:
+            return False
+        time.sleep(0.05)
+
 
 class Panel:
     def __init__(self, *, connect: str | None = None, prefix: str | None = None, runs_dir: Path = Path("runs"),
-                 robot: str = "arm") -> None:
+                 robot: str = "arm", attach: bool = True) -> None:
         self.prefix = transport.tool_prefix(prefix)
         self.router: zenoh.Session | None = None
+        joined = None
         if connect:
             self.endpoint = connect
         else:
-            from hilsim.run.launcher import open_default_router
-
-            self.endpoint, self.router = open_default_router()
-        self.session = transport.open_tool_session(self.endpoint)
+            joined = self._own_or_join_router(attach)
+        self.session = joined or transport.open_tool_session(self.endpoint)
         self.monitor = Monitor(self.session, self.prefix)
         self.options = scenario_options()
         self.planners = planner_names()
         self.closing = threading.Event()
-        self.control = RunControl(self.monitor, self.options, self.planners, self.endpoint, runs_dir, self.closing)
+        self.control = RunControl(self.monitor, self.options, self.planners, self.endpoint, runs_dir, self.closing,
+                                  before_start=None if connect else self._router_for_a_run)
         self.run = self.control.run  # the run's process
         self.default_robot = robot
         self.commands = Commands(self.session, self.prefix, self.monitor, self.planners, self.robot, self.option)
         self.viewer = Viewer()
+
+    def _own_or_join_router(self, attach: bool) -> zenoh.Session | None:
+        """The well-known router: opened here when its port is free; else (``attach``) joined, when a
+        Zenoh router answers there (a simulation already running on this machine: the session on it
+        is returned); else a router of the panel's own on a free port."""
+        from hilsim.run.launcher import open_default_router
+
+        ep = transport.DEFAULT_CONNECT
+        try:
+            self.endpoint, self.router = ep, transport.open_router(ep)
+            return None
+        except ConnectionError:
+            pass
+        if attach:
+            session = transport.open_tool_session(ep)
+            if _has_router(session, ROUTER_WAIT_S):
+                self.endpoint = ep
+                print(f"hilsim panel: a Zenoh router already listens on {ep} (a hilsim up running?): "
+                      "joined it, its simulation is shown", flush=True)
+                return session
+            session.close()
+        self.endpoint, self.router = open_default_router()  # says which port it took instead
+        return None
+
+    def _router_for_a_run(self) -> None:
+        """Before the panel starts a run on a router it joined: if that router has gone (its ``hilsim
+        up`` ended), open it here, on the same endpoint, and let the session reconnect to it."""
+        if self.router is not None or _has_router(self.session, 0.0):
+            return
+        try:
+            self.router = transport.open_router(self.endpoint)
+        except ConnectionError as e:
+            raise BadInput("run", f"the Zenoh router the panel joined ({self.endpoint}) is gone and its port "
+                           f"cannot be taken: {e}", 503) from None
+        print(f"hilsim panel: the router it had joined is gone; opened the Zenoh router on {self.endpoint}",
+              file=sys.stderr, flush=True)
+        if not _has_router(self.session, ROUTER_WAIT_S):
+            raise BadInput("run", f"the panel did not reconnect to its router on {self.endpoint}", 503)
 
     def robot(self) -> str:
         """The robot shown: the panel's run's; else one whose services are alive (a run started

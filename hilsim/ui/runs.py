@@ -6,7 +6,8 @@ request checked against ``config/``, one simulation per prefix, the run's own ve
 Zenoh keys: none of its own. The run is started with ``--router`` on the panel's endpoint (so its
 services join the panel's network); a second simulation is refused while the watcher
 (:mod:`hilsim.ui.watch`) sees services alive (``alive/*``) on the prefix, and a service of the
-running run whose ``alive/<service>`` token disappears is made a fault there.
+running run whose ``alive/<service>`` token disappears is made a fault there, unless it left because
+the run ended (its last health ``stopped`` or ``done``, or the launcher's report of the end).
 """
 
 from __future__ import annotations
@@ -183,8 +184,10 @@ class RunControl:
     ``hilsim up … --ui``), and what the run itself says of its services (faults in the watcher)."""
 
     def __init__(self, monitor: Monitor, options: dict[str, ScenarioOption], planners: list[str], router: str,
-                 runs_dir: Path, closing: threading.Event) -> None:
+                 runs_dir: Path, closing: threading.Event, *, before_start: Any = None) -> None:
         self.monitor = monitor
+        self.before_start = before_start  # called (no argument) before a run starts: the router is there
+        self.echo = False  # print what the run prints (hilsim up --ui: its progress beside the panel's URL)
         self.options = options
         self.planners = planners
         self.closing = closing
@@ -196,6 +199,8 @@ class RunControl:
     def _run_said(self, line: str) -> None:
         """The launcher's own verdicts: a dead service, a stall (``error: …``) is a fault; once the
         run is ending, services leave because they are stopped, not because they died."""
+        if self.echo:
+            print(line, flush=True)
         if line.startswith("error:"):
             self.monitor.fault("hilsim up", line.removeprefix("error:").strip())
         if line.startswith(("error:", "interrupted", "summary:")):
@@ -253,6 +258,8 @@ class RunControl:
             sc = load_scenario(arg, {**overrides, **parse_overrides(_sets(req.extra))})
         except ConfigError as e:
             raise BadInput("scenario", str(e)) from None
+        if self.before_start is not None:
+            self.before_start()
         info = self.run.start(req, sc, arg)
         with self.monitor.lock:  # a new run: the last one's faults, goals and plot are history
             self.monitor.faults.clear()

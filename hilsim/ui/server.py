@@ -5,7 +5,9 @@ tool uses, sends goals and gains through the services' own queryables, and start
 time as a child ``hilsim up`` process (its own process group; SIGTERM from the kernel if the panel
 dies; stopped with SIGTERM, then waited for). Unless ``--connect`` names a router, the panel opens
 the Zenoh router itself (``tcp/127.0.0.1:7447`` when free, as ``hilsim up`` would) and starts its
-runs with ``--router`` on it, so it sees every run it starts and ``hilsim topic`` finds it too.
+runs with ``--router`` on it, so it sees every run it starts and ``hilsim topic`` finds it too; when
+a ``hilsim up`` already holds that port, ``hilsim ui`` joins its router and shows its run
+(:class:`hilsim.ui.panel.Panel`). ``hilsim up … --ui`` prints the run's progress beside the URL.
 
 This module builds the app and serves it (``hilsim ui``, ``hilsim up … --ui``); the parts, one
 concern each, with the Zenoh keys each reads or queries in its own docstring:
@@ -64,12 +66,14 @@ def serve(host: str, port: int, *, connect: str | None = None, prefix: str | Non
               file=sys.stderr)
         return 2
     try:
-        panel = Panel(connect=connect, prefix=prefix, runs_dir=runs_dir)
+        # hilsim ui joins a simulation already running on the well-known router; hilsim up --ui runs its own
+        panel = Panel(connect=connect, prefix=prefix, runs_dir=runs_dir, attach=first is None)
     except (ConnectionError, zenoh.ZError) as e:
         print(f"hilsim ui: {e}", file=sys.stderr)
         return 2
     try:
         if first is not None:
+            panel.control.echo = True  # the run's progress here too, as hilsim up alone prints it
             try:
                 info = panel.control.start_request(first)
             except BadInput as e:
@@ -112,5 +116,6 @@ def cmd_up_ui(args: argparse.Namespace) -> int:
         print("hilsim up --ui: --only and --router are not supported with the panel (it owns the router; "
               "use hilsim ui --connect EP)", file=sys.stderr)
         return 2
-    req = RunRequest(args.scenario, args.world or "", "", args.clock or "realtime", "task", extra, args.out or "")
+    mode = "interactive" if getattr(args, "interactive", False) else "task"
+    req = RunRequest(args.scenario, args.world or "", "", args.clock or "realtime", mode, extra, args.out or "")
     return serve(args.ui_host, args.ui_port, first=req)

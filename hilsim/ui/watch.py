@@ -31,6 +31,10 @@ from hilsim.ui.jsonio import finite
 PLOT_PERIOD = 0.05  # wall seconds between plot samples (the truth comes at 500-1000 Hz)
 PLOT_POINTS = 240  # samples kept for the plot: 12 s at 20 Hz
 RING = 64  # samples of a high-rate key Zenoh keeps between two reads (the latest of each robot among them)
+# wall seconds a departed service's last words (its final health, physics' "done") have to arrive
+# before its departure is judged: a service stopped at the run's end says "stopped" as it leaves
+DEPARTURE_GRACE = 1.0
+ENDED_STATES = ("stopped", "done")  # a service's last health state when it left because it was stopped
 
 
 def _robot_of(key: str, prefix: str) -> str:
@@ -133,8 +137,25 @@ class Monitor:
             was = rv.alive.get(svc, False)
             rv.alive[svc] = up
             departed = was and not up and self.watch_departures and svc in self.expected
-        if departed:  # a service of the running run left: it died (a stop clears watch_departures first)
-            self.fault(svc, f"service {svc} is gone (its liveliness token disappeared)")
+        if departed:  # a service of the running run left: judged once its last health had time to come
+            t = threading.Timer(DEPARTURE_GRACE, self._judge_departure, args=(_robot_of(key, self.prefix), svc))
+            t.daemon = True
+            t.start()
+
+    def _judge_departure(self, robot: str, svc: str) -> None:
+        """A fault if the service died: not back, the run not ending (the launcher's report clears
+        ``watch_departures``; physics said ``done``), and its last health not ``stopped`` or ``done``
+        (what a service says as it leaves when it is stopped)."""
+        with self.lock:
+            rv = self.robots.get(robot)
+            if rv is None or rv.alive.get(svc, False) or not self.watch_departures:
+                return
+            last = rv.health.get(svc, {}).get("values", {}).get("state")
+            done = any(r.health.get("physics", {}).get("values", {}).get("state") == "done"
+                       for r in self.robots.values())
+        if last in ENDED_STATES or done:
+            return
+        self.fault(svc, f"service {svc} is gone (its liveliness token disappeared)")
 
     def _on_health(self, sample: zenoh.Sample) -> None:
         h = self._decode(sample, msgs.DiagnosticArray)

@@ -7,6 +7,8 @@ const COLORS = ["#0969da", "#cf222e", "#1a7f37", "#8250df", "#bf8700", "#1b7c83"
 let options = { scenarios: [], planners: [], gain_fields: [] };
 let last = null;          // the latest state
 let builtFor = "";        // the run (pid) the goal and gains forms were built for
+const edited = new Set(); // joints whose target the user has set (slider or field) and not sent yet
+let dragging = false;     // a slider is held: nothing moves under the pointer
 // everything that came over Zenoh (names, messages, goal ids) is text, never markup: any participant
 // of the network may write a health message
 const esc = (x) => String(x ?? "").replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" }[c]));
@@ -112,14 +114,36 @@ function buildGoalForms(sc, st) {
       <span class="err" id="err-joint-${n}" aria-live="polite"></span>`;
     box.append(row);
     const range = row.querySelector("input[type=range]"), num = $("joint-" + name);
-    range.addEventListener("input", () => { num.value = Number(range.value).toFixed(3); });
-    num.addEventListener("input", () => { const x = parseFloat(num.value); if (Number.isFinite(x)) range.value = x; });
+    range.addEventListener("input", () => { edited.add(name); num.value = Number(range.value).toFixed(3); });
+    num.addEventListener("input", () => {
+      edited.add(name);
+      const x = parseFloat(num.value); if (Number.isFinite(x)) range.value = x;
+    });
+    range.addEventListener("pointerdown", () => { dragging = true; });
+  });
+}
+window.addEventListener("pointerup", () => { dragging = false; });
+window.addEventListener("pointercancel", () => { dragging = false; });
+
+// the sliders show where the joints are (the truth), except one the user is setting: dragged,
+// focused, or set and not sent yet
+function followTruth(st) {
+  const sc = st.scenario;
+  if (!sc || sc.mobile || dragging) return;
+  const at = new Map((st.joints.names || []).map((n, i) => [n, st.joints.position[i]]));
+  sc.joints.forEach((name, i) => {
+    const range = $("range-" + name), num = $("joint-" + name), q = at.get(name);
+    if (!range || !num || q === null || q === undefined || edited.has(name)) return;
+    if (document.activeElement === range || document.activeElement === num) return;
+    range.value = Math.min(sc.upper[i], Math.max(sc.lower[i], q));
+    num.value = q.toFixed(3);
   });
 }
 
 $("use-current").addEventListener("click", () => {
   const sc = last && last.scenario, pos = last && last.joints.position;
   if (!sc || !pos) return;
+  edited.clear();
   sc.joints.forEach((name, i) => {
     if (pos[i] === null || pos[i] === undefined) return;
     $("joint-" + name).value = pos[i].toFixed(3);
@@ -134,7 +158,8 @@ $("joint-form").addEventListener("submit", async (ev) => {
   if (!sc) return;
   // the text as typed: the server says what is wrong with it, beside the field
   const positions = sc.joints.map((n) => $("joint-" + n).value);
-  await post("/api/goal", { kind: "joints", positions, planner: $("goal-planner").value }, "goal");
+  // sent: the sliders follow the joints (to the target) again
+  if (await post("/api/goal", { kind: "joints", positions, planner: $("goal-planner").value }, "goal")) edited.clear();
 });
 
 $("pose-form").addEventListener("submit", async (ev) => {
@@ -238,7 +263,9 @@ function renderServices(st) {
     const tr = document.createElement("tr");
     tr.dataset.service = s.name;
     const lvl = s.level === null || s.level === undefined ? "" : ["OK", "WARN", "ERROR", "STALE"][s.level] || s.level;
-    tr.innerHTML = `<th scope="row">${esc(s.name)}</th><td class="${s.alive ? "up" : "down"}">${s.alive ? "alive" : "gone"}</td>
+    // a service that left because it was stopped (its last health: stopped, done) is not alarming
+    const left = s.alive ? "up" : ["stopped", "done"].includes(s.state) ? "left" : "down";
+    tr.innerHTML = `<th scope="row">${esc(s.name)}</th><td class="${left}">${s.alive ? "alive" : "gone"}</td>
       <td class="${["fault", "stalled", "error"].includes(s.state) ? "down" : ""}">${esc(s.state)}</td><td class="lvl${Number(s.level)}">${esc(lvl)}${s.message ? ": " + esc(s.message) : ""}${s.last_error ? " (" + esc(s.last_error) + ")" : ""}</td>`;
     return tr;
   }));
@@ -339,9 +366,10 @@ function render(st) {
       $("scenario").value = st.run.scenario; fillWorlds();
       if ([...$("world").options].some((o) => o.value === st.run.world)) $("world").value = st.run.world;
     }
+    edited.clear();
     buildGoalForms(key ? st.scenario : null, st);
     buildGains(key ? st.scenario : null);
-  }
+  } else if (key) followTruth(st);
   renderServices(st); renderJoints(st); renderGoals(st); renderGains(st.gains); renderFaults(st);
 }
 
