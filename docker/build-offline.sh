@@ -53,9 +53,7 @@ if ! "$PYTHON" -m pip wheel -q --no-index --find-links "$WHEELS" -w "$WHEELS" -r
     | { grep -v "^WARNING: Location 'file:" || true; } >&2
 fi
 
-ignore=(--ignorefile docker/Dockerfile.dockerignore)
-[ "$ENGINE" = docker ] && ignore=()  # BuildKit finds docker/Dockerfile.dockerignore by itself
 say "building $IMAGE (FROM $BASE, wheels from $WHEELS, no network)"
-"$ENGINE" build --quiet -f docker/Dockerfile "${ignore[@]}" --network none \
+"$ENGINE" build --quiet -f docker/Dockerfile --network none \
   --build-arg BASE_IMAGE="$BASE" --build-context wheels="$WHEELS" -t "$IMAGE" . >/dev/null
 say "built $IMAGE"

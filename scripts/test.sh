@@ -9,6 +9,17 @@ missing=()
 command -v ip >/dev/null || missing+=(iproute2)
 command -v openssl >/dev/null || missing+=(openssl)
 command -v chromium >/dev/null || missing+=(chromium)
+# tests/test_compose_run.py runs docker/compose.yaml in containers with Podman: podman and runc (crun
+# refuses this machine's mixed cgroups), catatonit (`init: true`), netavark, aardvark-dns and
+# iptables (the compose network, its names, the published port), mmdebstrap (the base image, built
+# from the apt mirror: no registry is reachable)
+command -v podman >/dev/null || missing+=(podman)
+command -v runc >/dev/null || missing+=(runc)
+command -v mmdebstrap >/dev/null || missing+=(mmdebstrap)
+command -v iptables >/dev/null || missing+=(iptables)
+[ -x /usr/libexec/podman/catatonit ] || missing+=(catatonit)
+[ -x /usr/lib/podman/netavark ] || missing+=(netavark)
+[ -x /usr/lib/podman/aardvark-dns ] || missing+=(aardvark-dns)
 if [ ${#missing[@]} -gt 0 ] && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
   # not fatal: without them those tests say what is missing, and the rest of the suite still runs
   # (the browser test fails under CI=true)
@@ -18,5 +29,16 @@ fi
 # .venv with hilsim and its test tools: installed once, again when pyproject.toml changes
 source scripts/venv.sh
 ensure_venv '.[test]'
+# podman-compose for tests/test_compose_run.py, from PyPI: Debian 12's (1.0.3) ignores profiles and
+# would start every HIL bridge; then the base image, built only when missing (podman keeps it, and
+# the test's image and wheels, between runs on this machine)
+if [ ! -x .venv/bin/podman-compose ]; then
+  .venv/bin/python -m pip install -q 'podman-compose>=1.1' \
+    || echo "scripts/test.sh: could not install podman-compose with pip" >&2
+fi
+if command -v podman >/dev/null && command -v mmdebstrap >/dev/null; then
+  CONTAINERS_CONF="${CONTAINERS_CONF:-$PWD/config/podman/containers.conf}" bash docker/build-offline.sh --base-only \
+    || echo "scripts/test.sh: could not build the base image (docker/build-offline.sh --base-only)" >&2
+fi
 .venv/bin/ruff check .
 exec .venv/bin/python -m pytest -q "$@"

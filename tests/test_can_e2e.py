@@ -276,23 +276,23 @@ def test_without_ipv6_multicast_the_demo_runs_on_the_ipv4_group_or_stops_at_once
     route the bridge and the drive emulator, each on its own, take python-can's IPv4 group and the
     drive comes up in closed-loop control."""
     with network_namespace("can", ipv6=False) as ns:
-        def demo(run: str) -> tuple[subprocess.CompletedProcess[str], float]:
+        def demo(run: str) -> tuple[subprocess.Popen[str], str, float]:
             t0 = time.monotonic()
-            p = subprocess.run(["ip", "netns", "exec", ns, sys.executable, "-m", "hilsim.cli", "up", LEAN, "--hil",
-                                str(EMULATED), "--no-logger", "--duration", "2", "--set", "task.targets=[]",
-                                "--out", str(tmp_path / run)], capture_output=True, text=True, cwd=REPO, timeout=120)
-            return p, time.monotonic() - t0
+            p = subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, "-m", "hilsim.cli", "up", LEAN, "--hil",
+                                  str(EMULATED), "--no-logger", "--duration", "2", "--set", "task.targets=[]",
+                                  "--out", str(tmp_path / run)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                                 text=True, cwd=REPO, start_new_session=True)
+            out = finish(p, 120)
+            return p, out, time.monotonic() - t0
 
-        p, took = demo("no-route")
-        out = p.stdout + p.stderr
+        p, out, took = demo("no-route")
         assert p.returncode != 0 and took < 30, (took, out)
         assert re.search(r"error: service (bridge-can|drive-emulator) \(pid \d+\) exited with code 1: .*"
                          r"stopped: CAN bus udp_multicast:239\.74\.163\.2 port=43113 not available: could not "
                          r"create or configure socket \(No such device\); IPv4 multicast needs a route \(on one "
                          r"host: ip route add 224\.0\.0\.0/4 dev lo\)", out), out
         subprocess.run(["ip", "-n", ns, "route", "add", "224.0.0.0/4", "dev", "lo"], check=True, timeout=20)
-        p, _ = demo("ipv4")
-        out = p.stdout + p.stderr
+        p, out, _ = demo("ipv4")
         assert p.returncode == 0 and "result: OK" in out, out
         for svc in ("bridge-can", "drive-emulator"):
             log = (tmp_path / "ipv4" / f"{svc}.log").read_text()

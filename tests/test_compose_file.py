@@ -79,7 +79,7 @@ def test_each_profile_runs_exactly_the_scenarios_processes(path: Path, scenario:
     # SCHED_FIFO needs CAP_SYS_NICE only; an rtprio limit is one root may not be allowed to raise
     # (physics never started under compose with `ulimits: {rtprio: 99}`)
     assert services["physics"]["cap_add"] == ["SYS_NICE"] and "ulimits" not in services["physics"]
-    assert comp["services"]["router"]["ports"] == ["${HILSIM_ROUTER_PORT:-7447}:7447"]
+    assert comp["services"]["router"]["ports"] == ["127.0.0.1:${HILSIM_ROUTER_PORT:-7447}:7447"]
     assert comp["x-podman"] == {"in_pod": False}  # podman-compose: containers on the network, not one pod
 
 

@@ -132,10 +132,10 @@ def _arm_edited(tmp_path: Path, *edits: tuple[str, str]) -> Path:
          "expected 6 values, one per joint of tabletop.xml (joint_1, joint_2, joint_3, joint_4, joint_5, joint_6), "
          "got 2"),
         ([("joint_3: {kp: 19.94", "joint_7: {kp: 19.94")], "controller.gains.joint_7",
-         "expected a joint of tabletop.xml (joint_1"),
+         "not a joint of the model (joints of tabletop.xml: joint_1"),
         ([("    default: {kp: 100.0, ki: 5.0, kd: 5.0, i_limit: 2.0, feedforward: 0.0}\n", ""),
           ("    joint_3: {kp: 19.94, ki: 0, kd: 2.413, i_limit: 1.2}\n", "")], "controller.gains",
-         "no gains for joint_3"),
+         "no gains for joint_3 and no 'default' entry"),
         ([("default: {interface: effort, server: sim}", "elbow: {interface: position}")], "joints.elbow",
          "no actuated joint of that name"),
     ],
@@ -155,7 +155,7 @@ def test_fields_shaped_by_the_robot_are_checked_against_its_model(tmp_path: Path
 def test_a_robots_override_and_the_planner_library_are_checked_against_the_model(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"robot_overrides\.arm1\.task\.targets\[0\]: expected 6 values"):
         load_scenario("arm", {"robots": 2, "robot_overrides": {"arm1": {"task.targets": [[0.1, 0.2, 0.3]]}}})
-    with pytest.raises(ConfigError, match=r"task\.targets\[1\]: expected \[x, y\] or \[x, y, yaw\]"):
+    with pytest.raises(ConfigError, match=r"task\.targets\[1\]: a rover target is \[x, y\] or \[x, y, yaw\]"):
         load_scenario("rover", {"task.targets": [[1.0, 2.0], [1.0]]})
     lib = tmp_path / "planners.yaml"
     lib.write_text((REPO / "config" / "planners.yaml").read_text().replace(
@@ -205,9 +205,10 @@ def test_hilsim_up_says_a_bad_set_in_one_line_and_exits_2() -> None:
     import subprocess
     import sys
 
-    for args, line in ((["--set", "controler.rate_hz=5"], "error: --set controler.rate_hz=5: unknown field 'controler'"),
-                       (["--set", "task.targets=[[1, 2]]"], "error: --set task.targets=[[1, 2]]: task.targets[0]: "
-                                                           "expected 6 values")):
+    cases = ((["--set", "controler.rate_hz=5"], "error: --set controler.rate_hz=5: unknown field 'controler'"),
+             (["--set", "task.targets=[[1, 2]]"],
+              "error: --set task.targets=[[1, 2]]: task.targets[0]: expected 6 values"))
+    for args, line in cases:
         r = subprocess.run([sys.executable, "-m", "hilsim.cli", "up", "arm", *args], capture_output=True, text=True,
                            timeout=60, cwd=REPO)
         lines = [ln for ln in r.stderr.splitlines() if ln.strip()]

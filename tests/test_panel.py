@@ -446,10 +446,19 @@ def test_hilsim_ui_finds_a_run_of_a_terminal_and_its_sliders_follow_the_joints(t
                 browser = pw.chromium.launch(executable_path=str(browser_in_ns), args=["--no-sandbox"], headless=True)
                 page = browser.new_page(viewport={"width": 1500, "height": 1000})
                 assert wait_until(lambda: _goto(page, "http://127.0.0.1:8080/"), 30)
-                page.wait_for_function("document.getElementById('run-banner').textContent === "
-                                       "'Connected to a run started elsewhere: arm'", timeout=60_000)
-                page.wait_for_function("document.querySelectorAll('#services tbody td.up').length === 4",
-                                       timeout=30_000)
+
+                def until(js: str, timeout_s: float) -> None:
+                    """``js`` holds on the page within ``timeout_s``; else what the panel and the run said."""
+                    try:
+                        page.wait_for_function(js, timeout=timeout_s * 1000)
+                    except Exception:
+                        st = page.evaluate("fetch('/api/state').then((r) => r.json())")
+                        raise AssertionError(f"{js}: not within {timeout_s} s; panel: {st}\nrun: {run.lines}\n"
+                                             f"ui: {ui.lines if ui else ''}") from None
+
+                until("document.getElementById('run-banner').textContent === "
+                      "'Connected to a run started elsewhere: arm'", 60)
+                until("document.querySelectorAll('#services tbody td.up').length === 4", 30)
                 page.wait_for_selector("#joint-joint_2")
                 page.fill("#joint-joint_2", "0.25")  # set by hand, not sent
                 page.locator("#joint-joint_2").blur()
@@ -458,15 +467,14 @@ def test_hilsim_ui_finds_a_run_of_a_terminal_and_its_sliders_follow_the_joints(t
                                        "'application/json'}, body: JSON.stringify({kind: 'joints', positions: q})})"
                                        ".then((r) => r.status)", target)
                 assert status == 200
-                page.wait_for_selector("#goals tbody tr[data-state='reached']", timeout=60_000)
-                page.wait_for_function("Math.abs(Number(document.getElementById('range-joint_1').value) + 0.4) < 0.01 "
-                                       "&& document.getElementById('joint-joint_1').value === '-0.400'", timeout=10_000)
+                until("document.querySelector(\"#goals tbody tr[data-state='reached']\") !== null", 60)
+                until("Math.abs(Number(document.getElementById('range-joint_1').value) + 0.4) < 0.01 "
+                      "&& document.getElementById('joint-joint_1').value === '-0.400'", 10)
                 assert page.input_value("#joint-joint_2") == "0.25"
                 page.screenshot(path=str(tmp_path / "attached.png"))
                 run.proc.send_signal(signal.SIGINT)  # Ctrl-C in its terminal
                 assert run.proc.wait(60) == 0, run.lines
-                page.wait_for_function("document.getElementById('run-banner').textContent === 'No run'",
-                                       timeout=30_000)
+                until("document.getElementById('run-banner').textContent === 'No run'", 30)
                 time.sleep(1.5)  # past the panel's grace for a departure
                 assert page.locator("#fault-list li").count() == 0, page.text_content("#fault-list")
                 browser.close()
@@ -490,12 +498,13 @@ def _goto(page: Any, url: str) -> bool:
         return False
 
 
-def test_up_ui_prints_the_runs_progress_and_a_normal_end_is_no_fault() -> None:
+def test_up_ui_prints_the_runs_progress_and_a_normal_end_is_no_fault(tmp_path: Path) -> None:
     """``hilsim up … --ui`` prints the run's progress beside the panel's URL; a run that ends by
     itself (its duration) stops its services, the recorder last (seconds before the summary), and the
     page lists no fault for them."""
     sync_playwright, exe = _browser()
-    panel = PanelProc(up=[LEAN, "--clock", "realtime", "--set", "task.targets=[]", "--duration", "3"])
+    panel = PanelProc(up=[LEAN, "--clock", "realtime", "--set", "task.targets=[]", "--duration", "3",
+                          "--out", str(tmp_path / "run")])
     try:
         with sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path=exe, args=["--no-sandbox"], headless=True)

@@ -254,15 +254,15 @@ def check_model(sc: Scenario, where: str, field: str = "") -> None:
                 groups.setdefault(group, []).append(n)
         groups = {g: m for g, m in groups.items() if len(m) > 1}
     for k in gains:
-        if k != "default" and k not in names and k not in groups:
-            extra = f", a group ({', '.join(groups)})" if groups else ""
-            raise ConfigError(f"{where}: {field}controller.gains.{k}: expected a joint of {model.name} "
-                              f"{listed}{extra} or 'default'")
+        if k != "default" and k not in names and k not in groups:  # as the controller words it
+            extra = f", groups: {', '.join(groups)}" if groups else ""
+            raise ConfigError(f"{where}: {field}controller.gains.{k}: not a joint of the model (joints of "
+                              f"{model.name}: {', '.join(names)}{extra}; or 'default')")
     if gains and "default" not in gains:
         bare = [n for n in names if n not in gains and not any(n in groups.get(g, ()) for g in gains)]
-        if bare:
-            raise ConfigError(f"{where}: {field}controller.gains: no gains for {', '.join(bare)} "
-                              f"(give each joint of {model.name}, or a 'default' entry)")
+        if bare:  # as the controller words it
+            raise ConfigError(f"{where}: {field}controller.gains: no gains for {bare[0]} and no 'default' entry "
+                              f"(joints of {model.name}: {', '.join(names)})")
     if "planner" in sc.services:
         for i, t in enumerate(sc.task.targets):
             if len(t) != len(names):
@@ -272,8 +272,8 @@ def check_model(sc: Scenario, where: str, field: str = "") -> None:
     elif "navigator" in sc.services:
         for i, t in enumerate(sc.task.targets):
             if len(t) not in (2, 3):
-                raise ConfigError(f"{where}: {field}task.targets[{i}]: expected [x, y] or [x, y, yaw] (a goal "
-                                  f"of the navigator), got {len(t)} values")
+                raise ConfigError(f"{where}: {field}task.targets[{i}]: a rover target is [x, y] or [x, y, yaw] "
+                                  f"(got {len(t)} numbers)")
 
 
 def _check_library_limits(sc: Scenario, n: int, joints: str) -> None:

@@ -18,8 +18,8 @@ Compose ends a run when the first container exits (``--exit-code-from`` implies
 after physics stopped (the recorder drains what is still in flight; a recorder stopped while
 lockstep physics still steps would miss samples). So every other container ``--hold``s: once its
 launcher ended well (the task is over, its service stopped) it stays, idle, until compose stops it;
-one that ended badly (its service died, the others never came) exits with that code at once, which
-stops the run (the recorder's launcher then reports it interrupted: FAILED, exit code 1).
+one that ended badly (its service died, the others never came, the router was unreachable) exits
+with that code at once, which stops the run: the recorder's launcher is interrupted, a non-zero exit.
 
 Each ``--hil FILE`` is a HIL scenario (a whole scenario file, e.g. ``config/hil/arm-can.yaml``) that
 runs every process of SCENARIO plus its bridges; those bridges become containers under a profile:
@@ -150,7 +150,8 @@ def compose(scenario: str | Path, hil: list[str | Path] | tuple[str | Path, ...]
     services: dict[str, Any] = {
         "router": {"<<": anchor, "entrypoint": ["hilsim"], "depends_on": [],
                    "command": ["router", "--listen", f"tcp/0.0.0.0:{ROUTER_PORT}"],
-                   "ports": [f"{HOST_PORT}:{ROUTER_PORT}"]}}
+                   # on the host's loopback only: the router has no authentication (docs/security.md)
+                   "ports": [f"127.0.0.1:{HOST_PORT}:{ROUTER_PORT}"]}}
     for u, profile in sorted(units.items(), key=lambda kv: (kv[1] or "", list(units).index(kv[0]))):
         name = container_name(u)  # a composed process a+b: one container
         svc: dict[str, Any] = {"<<": anchor}

@@ -51,6 +51,7 @@ class Outcome:
     interrupted: bool = False
     signal: int = 0  # the stop signal that interrupted the run (SIGINT, SIGTERM; hilsim.run.launcher)
     killed: list[str] = field(default_factory=list)  # services killed (SIGKILL) on a second stop signal
+    not_started: list[str] = field(default_factory=list)  # services that never announced themselves
     restarts: list[Restart] = field(default_factory=list)
 
 

@@ -10,7 +10,10 @@ writes the resolved scenario to ``runs/<timestamp>/scenario.yaml``, starts one
 names (in the reverse of the order the service classes declare for stopping), waits for each
 liveliness token, then follows the task result, every service's health and its faults. It stops
 when the task result arrives, the scenario duration is reached, a service dies, or on Ctrl-C;
-physics is stopped first and the logger last so it can drain and close the recording. Children
+physics is stopped first and the logger last so it can drain and close the recording. Ctrl-C or
+SIGTERM again while they stop kills them at once; signals are taken by a watcher thread, never
+raised in the main thread, so stopping and the summary always finish. ``--interactive`` runs no
+task and stays up until Ctrl-C. Children
 get SIGTERM if the launcher itself dies (PR_SET_PDEATHSIG), so no process outlives a run.
 
 Restart policy (``restart.services``, :class:`hilsim.core.config.RestartConfig`): a service with
@@ -257,6 +260,7 @@ class Launcher:
             hint = (f"; start the remote ones on their hosts (hilsim up {self.sc.source or self.sc.name} --only … "
                     f"--router {self.router_ep}) and check they reach that router")
         self.say(f"error: services did not announce themselves within {timeout:.0f}s: {', '.join(missing)}{hint}")
+        self.outcome.not_started = missing  # a run that never started is no OK run
         return False
 
     # ------------------------------------------------------------------ follow

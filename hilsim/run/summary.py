@@ -10,8 +10,8 @@ messages per key counted in its files against what the recorder received; a reco
 (:func:`hilsim.record.bag_read.recover_bag`). The result and the exit code of ``hilsim up``:
 
 - ``OK`` (0): every target reached (or a run without a task ended as planned), nothing failed;
-- ``FAILED`` (1): a target missed, a fault reported, a service died, the lockstep stalled, or the
-  recording is not whole;
+- ``FAILED`` (1): a target missed, a fault reported, a service died or never announced itself, the
+  lockstep stalled, or the recording is not whole;
 - ``STOPPED (duration) 1/3 targets`` (3): ``--duration`` ended the run before its task, and
   nothing failed until then;
 - ``INTERRUPTED (SIGINT) 1/3 targets`` (128 + the signal: 130, SIGTERM 143): a stop signal ended
@@ -66,7 +66,7 @@ def summarise(la: FinishedRun) -> int:
     open_ended = not n_targets and sc.duration is None
     interrupted = o.interrupted and (not open_ended or bool(o.killed))
     # a fault is a failure, whether or not the run went on (it may have run out its duration)
-    ok = not o.died and not o.stalled and not o.faults
+    ok = not o.died and not o.stalled and not o.faults and not o.not_started
     # a task goal that failed: a missed target, even if the run was cut short afterwards
     ok = ok and not any(not r.success and r.goal_id.startswith("task-") for r in o.results)
     unfinished = False  # a task without its result: cut short (duration, signal) or a failure
@@ -188,6 +188,8 @@ def summarise(la: FinishedRun) -> int:
         print(f"  service {name} died (exit code {rc})")
     if o.stalled:
         print(f"  stalled: {o.stalled}")
+    if o.not_started:
+        print(f"  never announced themselves: {', '.join(o.not_started)}")
     if o.faults:
         print(f"  faults reported: {len(o.faults)} (first: {o.faults[0]})")
     for r in o.restarts:
