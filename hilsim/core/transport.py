@@ -11,8 +11,8 @@ certificate, and the router's config file says who may do what (docs/security.md
 Without TLS, ``hilsim up``'s router authenticates (Zenoh's ``transport.auth.usrpwd``) with a user and
 password made for the run and lets only that user write (access control by username): every
 process of the run gets them from ``zenoh.auth`` (a Zenoh client config file, ``<run
-dir>/zenoh-client.json5``), its own listener checks them too, and the tools of the same user find them
-through a pointer file per port (:func:`pointer_path`), as Jupyter's token is found.
+dir>/zenoh-client.json5``) and is then a client of the router (no listener of its own), and the tools
+of the same user find them through a pointer file per port (:func:`pointer_path`), as Jupyter's token is.
 """
 
 from __future__ import annotations
@@ -51,14 +51,13 @@ def zenoh_config(zc: ZenohConfig, *, mode: str | None = None, listen: list[str] 
         conf.insert_json5("transport/link/tls/enable_mtls", "true")  # else the certificate is not presented
         conf.insert_json5("scouting/gossip/enabled", "false")
     elif zc.auth is not None and mode != "router":
+        # a client of the router, as with TLS: every sample passes its authentication and access
+        # control, and there is no listener of our own. (Peers with a user, password and dictionary
+        # of their own lost liveliness tokens between them now and then: seen with Zenoh 1.10.)
+        mode, listen = "client", []
         cred = read_credentials(zc.auth)
         conf.insert_json5("transport/auth/usrpwd/user", json.dumps(cred.user))
         conf.insert_json5("transport/auth/usrpwd/password", json.dumps(cred.password))
-        if cred.dictionary is not None:
-            # a peer's own listener asks whoever connects for the run's user and password as well
-            conf.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(cred.dictionary)))
-        else:  # nothing to check others against (a guest): no listener, a client of the router
-            mode, listen = "client", []
     conf.insert_json5("mode", json.dumps(mode or zc.mode))
     conf.insert_json5("scouting/multicast/enabled", json.dumps(zc.multicast_scouting))
     # as rmw_zenoh's default config: transient-local publishers (robot_description, tf_static) are
@@ -114,7 +113,6 @@ ALL_MESSAGES = ["put", "delete", "declare_subscriber", "query", "reply", "declar
 class Credentials(NamedTuple):
     user: str
     password: str
-    dictionary: Path | None  # the router's user:password file, which a peer's listener checks too
 
 
 class RouterUsers(NamedTuple):
@@ -143,18 +141,17 @@ def access_rules(users: RouterUsers) -> dict[str, Any]:
 
 
 def read_credentials(path: Path) -> Credentials:
-    """User, password and dictionary file of a Zenoh config file (``transport.auth.usrpwd``);
-    ConfigError (one line) if it has none or cannot be read."""
+    """User and password of a Zenoh config file (``transport.auth.usrpwd``); ConfigError (one line)
+    if it has none or cannot be read."""
     try:
         conf = zenoh.Config.from_file(str(path))
         user = json.loads(conf.get_json("transport/auth/usrpwd/user") or "null")
         password = json.loads(conf.get_json("transport/auth/usrpwd/password") or "null")
-        dictionary = json.loads(conf.get_json("transport/auth/usrpwd/dictionary_file") or "null")
     except (zenoh.ZError, OSError, ValueError) as e:
         raise ConfigError(f"zenoh.auth: cannot read {path}: {str(e).splitlines()[0] if str(e) else e}") from None
     if not isinstance(user, str) or not isinstance(password, str):
         raise ConfigError(f"zenoh.auth: {path} has no transport.auth.usrpwd user and password")
-    return Credentials(user, password, Path(dictionary) if isinstance(dictionary, str) else None)
+    return Credentials(user, password)
 
 
 def write_private(path: Path, text: str, mode: int = 0o600) -> None:
@@ -170,15 +167,12 @@ def write_private(path: Path, text: str, mode: int = 0o600) -> None:
 def client_config_text(endpoint: str, cred: Credentials) -> str:
     """A Zenoh client config (JSON, hence JSON5): the router's endpoint, the user and password, and
     timestamping on as rmw_zenoh's default config has it. For ``ZENOH_SESSION_CONFIG_URI``."""
-    usrpwd: dict[str, str] = {"user": cred.user, "password": cred.password}
-    if cred.dictionary is not None:  # a hilsim peer's listener checks who connects against it
-        usrpwd["dictionary_file"] = str(cred.dictionary)
     return json.dumps({
         "mode": "client",
         "connect": {"endpoints": [endpoint]},
         "scouting": {"multicast": {"enabled": False}},
         "timestamping": {"enabled": {"router": True, "peer": True, "client": True}},
-        "transport": {"auth": {"usrpwd": usrpwd}},
+        "transport": {"auth": {"usrpwd": {"user": cred.user, "password": cred.password}}},
     }, indent=2) + "\n"
 
 

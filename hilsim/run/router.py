@@ -61,11 +61,11 @@ def open_run_router(run_dir: Path, guests: str = "none") -> RunRouter:
     transport.write_private(users, "".join(f"{u}:{p}\n" for u, p in [(user, password), *([guest] if guest else [])]))
     ep, session = open_default_router(RouterUsers(users, user, guest[0] if guest else None))
     client = (run_dir / transport.CLIENT_CONFIG).resolve()
-    transport.write_private(client, transport.client_config_text(ep, Credentials(user, password, users)))
+    transport.write_private(client, transport.client_config_text(ep, Credentials(user, password)))
     guest_config = None
     if guest is not None:  # meant to be handed out: readable by anyone who can reach the run directory
         guest_config = (run_dir / transport.GUEST_CONFIG).resolve()
-        transport.write_private(guest_config, transport.client_config_text(ep, Credentials(*guest, None)), 0o644)
+        transport.write_private(guest_config, transport.client_config_text(ep, Credentials(*guest)), 0o644)
     return RunRouter(ep, session, client, guest_config, transport.write_pointer(ep, run_dir, client))
 
 
