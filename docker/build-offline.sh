@@ -42,7 +42,6 @@ req="$(mktemp)"
 cons="$(mktemp)"
 trap 'rm -f "$req" "$cons"' EXIT
 "$PYTHON" -c "import tomllib; print(*tomllib.load(open('pyproject.toml', 'rb'))['project']['dependencies'], sep='\n')" > "$req"
-echo xxhash >> "$req"  # as docker/Dockerfile installs it (missing from pyproject.toml's dependencies)
 echo 'setuptools>=69' >> "$req"
 echo wheel >> "$req"
 "$PYTHON" -m pip freeze --exclude-editable 2>/dev/null | grep -v '^-e ' > "$cons" || true
@@ -54,6 +53,12 @@ if ! "$PYTHON" -m pip wheel -q --no-index --find-links "$WHEELS" -w "$WHEELS" -r
 fi
 
 say "building $IMAGE (FROM $BASE, wheels from $WHEELS, no network)"
+old="$("$ENGINE" image inspect --format '{{.Id}}' "$IMAGE" 2>/dev/null || true)"
 "$ENGINE" build --quiet -f docker/Dockerfile --network none \
   --build-arg BASE_IMAGE="$BASE" --build-context wheels="$WHEELS" -t "$IMAGE" . >/dev/null
+new="$("$ENGINE" image inspect --format '{{.Id}}' "$IMAGE")"
+# the image it replaced, untagged now: removed, so that builds after each change do not pile up
+if [ -n "$old" ] && [ "$old" != "$new" ]; then
+  "$ENGINE" rmi "$old" >/dev/null 2>&1 || true
+fi
 say "built $IMAGE"

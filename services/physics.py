@@ -141,6 +141,7 @@ class PhysicsService(Service):
         self.end_ns = round(sc.duration * 1e9) if sc.duration else None
         self.last_progress = time.monotonic()
         self.waiting_reported = False
+        self.silent: list[str] = []  # lockstep participants silent for clock.ack_timeout, to be restarted
         robot_keys = [Keys.of(sc, r) for r in fleet.robot_names(sc)]
         self.robots = [Robot(self, k, v, k.robot if sc.robots > 1 else None)
                        for k, v in zip(robot_keys, views, strict=True)]
@@ -353,6 +354,7 @@ class PhysicsService(Service):
         self.last_progress = time.monotonic()
         if self.waiting_reported:
             self.waiting_reported = False
+            self.silent = []
             if self.state == "stalled":
                 self.state = "running"
                 self.log.info("lockstep acknowledgements arrive again")
@@ -378,6 +380,7 @@ class PhysicsService(Service):
             "real_time_factor": f"{self.world.time_ns / 1e9 / wall:.3f}" if wall else "0",
             "clock_mode": self.sc.clock.mode,
             "waiting_for": ",".join(self._missing()),
+            "silent": ",".join(self.silent),  # to be restarted by hilsim up (_report_silent)
             "servers_silent": ",".join(sorted(self.server_silent)),
             "clipped_commands": self.world.clipped,
             "contact_steps": self.contact_steps,
@@ -465,18 +468,42 @@ class PhysicsService(Service):
                     self._advance()
         while not self.stop_event.wait(0.05 if self.gone else 0.2):
             with self.lock:
-                if self.gone:
-                    if not self.done:
-                        self._resume_when_back()
-                    continue  # paused on purpose: not a stall
+                if self.gone and not self.done:
+                    self._resume_when_back()
                 stalled = time.monotonic() - self.last_progress
                 if not self.done and stalled > self.sc.clock.ack_timeout and not self.waiting_reported:
                     self.waiting_reported = True
-                    # "stalled" in health: hilsim up ends the run on it instead of waiting forever
-                    self.state = "stalled"
-                    self.fault(f"no lockstep acknowledgement from {', '.join(self._missing())} "
-                               f"for step t={self.world.time_ns / 1e9:.3f}s after {stalled:.1f}s")
-                    self.publish_health_async()
+                    self._report_silent(stalled)
+
+    def _report_silent(self, stalled: float) -> None:
+        """Lockstep, no step for ``clock.ack_timeout`` (under self.lock): the participants that owe an
+        acknowledgement, and the services that left and are not back (a process stopped or hung: its
+        session's lease ran out, yet it never exited), are silent. Those ``hilsim up`` restarts
+        (restart policy on-failure) are named in health (``silent``): it kills such a process, which
+        cannot restart itself, and starts it again, while sim time waits. Any other is a fault, and
+        "stalled" in health ends the run instead of waiting forever."""
+        silent = sorted({*self._missing(), *(s for s in self.gone if s not in self.present)})
+        if not silent:
+            return
+        t = self.world.time_ns / 1e9
+        restartable = [s for s in silent if self.sc.restart.policy(self._unit(s)) == "on-failure"]
+        if restartable == silent:
+            self.silent = silent
+            self.warn(f"{', '.join(silent)} silent for {stalled:.1f} s at step t={t:.3f}s (no lockstep "
+                      f"acknowledgement, or gone and not back): restart policy on-failure, hilsim up restarts it")
+        else:
+            # "stalled" in health: hilsim up ends the run on it instead of waiting forever
+            self.state = "stalled"
+            gone = [s for s in silent if s in self.gone]
+            why = f"; {', '.join(gone)} left at t={t:.3f}s and did not come back" if gone else ""
+            self.fault(f"no lockstep acknowledgement from {', '.join(silent)} for step t={t:.3f}s "
+                       f"after {stalled:.1f}s{why}")
+        self.publish_health_async()
+
+    def _unit(self, svc: str) -> str:
+        """The process (launch unit) a service runs in: itself, or a composed ``a+b`` (hilsim.run.compose)."""
+        base = svc.split("@")[0]
+        return next((u for u in self.sc.launch_units() if base in u.split("@")[0].split("+")), svc)
 
     def _resume_when_back(self) -> None:
         """Lockstep, paused (under self.lock): once every service that left is back, and its peers
@@ -495,6 +522,7 @@ class PhysicsService(Service):
                 self.acked[s] = max(self.acked[s], self.world.time_ns - 1)
         self.gone.clear()
         self.state = "running"
+        self.silent, self.waiting_reported = [], False
         self.last_progress = time.monotonic()
         self.log.info("%s back: lockstep resumes at t=%.3f s", back, self.world.time_ns / 1e9)
         self.publish_health_async()

@@ -2,11 +2,18 @@
 
 It listens to every key of the simulation and, for each key it has seen, publishes bad and
 mutated copies of real samples: empty, random bytes, truncated, bit-flipped, 1 MiB, a well-formed
-message with a NaN in it, and well-formed copies of real samples from an unannounced writer (with
-no attachment, and with an attachment of its own). It prints how many of each it sent, as JSON,
-when stopped (SIGINT/SIGTERM) or after ``--seconds``.
+message with a NaN in it, well-formed copies of real samples from an unannounced writer (with
+no attachment, and with an attachment of its own), and forged ones: a real sample with one value
+changed, sent with its writer's gid (public: the graph token's hash, and in every sample) and the
+writer's next sequence number, as that writer would. ``--kinds`` picks some of them.
 
-    python tests/injector.py --connect tcp/127.0.0.1:7447 [--domain 0] [--rate 300] [--seconds 30]
+It is a client of the router (as every process with credentials is): with ``--auth FILE`` (a Zenoh
+config with the run's user and password, e.g. ``<run dir>/zenoh-client.json5``) as an insider;
+without it, against ``hilsim up``'s router, it cannot connect. It prints, as JSON, how many of each
+kind it sent when stopped (SIGINT/SIGTERM) or after ``--seconds``, or ``{"connected": false, …}``.
+
+    python tests/injector.py --connect tcp/127.0.0.1:7447 [--auth FILE] [--domain 0] [--rate 300]
+        [--seconds 30] [--kinds forged_writer,random]
 """
 
 from __future__ import annotations
@@ -27,7 +34,8 @@ from hilsim.core import msgs, transport
 from hilsim.core.config import ZenohConfig
 from hilsim.core.keys import UnknownKey, message_type
 
-KINDS = ("empty", "random", "truncated", "bitflip", "huge", "nan", "copy_no_attachment", "copy_foreign_writer")
+KINDS = ("empty", "random", "truncated", "bitflip", "huge", "nan", "copy_no_attachment", "copy_foreign_writer",
+         "forged_writer")
 
 
 def poison(msg: object) -> bool:
@@ -45,17 +53,40 @@ def poison(msg: object) -> bool:
     return False
 
 
+def nudge(msg: object) -> bool:
+    """Change the first float found by +1 (a plausible, well-formed lie); False if there is none."""
+    for name in getattr(msg, "__dataclass_fields__", {}):
+        v = getattr(msg, name)
+        if isinstance(v, float):
+            setattr(msg, name, v + 1.0)
+            return True
+        if isinstance(v, list) and v and isinstance(v[0], float):
+            v[0] += 1.0
+            return True
+        if hasattr(v, "__dataclass_fields__") and nudge(v):
+            return True
+    return False
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--connect", required=True)
     ap.add_argument("--domain", type=int, default=0, help="ROS 2 domain id of the simulation")
     ap.add_argument("--rate", type=float, default=300.0, help="bad samples per second, all keys together")
     ap.add_argument("--seconds", type=float, default=600.0)
+    ap.add_argument("--auth", help="Zenoh config file with the run's user and password (an insider)")
+    ap.add_argument("--kinds", default=",".join(KINDS), help="comma-separated, of: " + ", ".join(KINDS))
     args = ap.parse_args()
+    kinds = [k for k in args.kinds.split(",") if k in KINDS] or list(KINDS)
     rng = random.Random(1)
     gid = os.urandom(16)
-    session = transport.open_session(ZenohConfig(connect=[args.connect]))
-    latest: dict[str, bytes] = {}
+    zc = ZenohConfig(mode="client", connect=[args.connect], auth=args.auth)
+    try:
+        session = transport.open_session(zc)
+    except ConnectionError as e:
+        print(json.dumps({"connected": False, "error": str(e).splitlines()[0]}), flush=True)
+        return 0
+    latest: dict[str, tuple[bytes, transport.Attachment]] = {}
     lock = threading.Lock()
 
     def on_sample(s: zenoh.Sample) -> None:
@@ -63,7 +94,7 @@ def main() -> int:
         if att is None or att.gid == gid:
             return  # keep real samples only, not our own
         with lock:
-            latest[str(s.key_expr)] = s.payload.to_bytes()
+            latest[str(s.key_expr)] = (s.payload.to_bytes(), att)
 
     sub = session.declare_subscriber(f"{args.domain}/**", on_sample)  # every data key of the ROS 2 domain
     pubs: dict[str, zenoh.Publisher] = {}
@@ -80,12 +111,12 @@ def main() -> int:
         if not items:
             stop.wait(0.05)
             continue
-        key, good = rng.choice(items)
+        key, (good, real) = rng.choice(items)
         try:
             cls = message_type(key)
         except UnknownKey:
             continue
-        kind = KINDS[sent.total() % len(KINDS)]
+        kind = kinds[sent.total() % len(kinds)]
         att = None
         if kind == "empty":
             data = b""
@@ -109,6 +140,17 @@ def main() -> int:
             if not poison(m):
                 continue
             data = msgs.encode(m)
+        elif kind == "forged_writer":
+            # its writer's own gid and next sequence number, one value changed: what only the
+            # credentials keep out (docs/security.md)
+            try:
+                m = msgs.decode(cls, good)
+            except msgs.BadMessage:
+                continue
+            if not nudge(m):
+                continue
+            data = msgs.encode(m)
+            att = transport.attachment_bytes(real.seq + 1, real.gid)
         else:
             data = good  # a real sample, replayed by a stranger
             if kind == "copy_foreign_writer":

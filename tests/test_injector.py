@@ -1,7 +1,12 @@
-"""End to end under attack: a separate process floods every key of the running arm scenario with
-garbage, mutated samples and well-formed samples from an unannounced writer. The task is still
+"""End to end under attack, against ``hilsim up``'s own router (a user and password made for the run).
+
+Two injector processes (tests/injector.py) attack the running arm scenario: an outsider without the
+run's credentials, with every kind of bad input including forged samples (a real writer's gid and
+its next sequence number), cannot even connect; an insider given the credentials floods every key
+with garbage, mutated samples and well-formed samples from an unannounced writer. The task is still
 done (judged by the physics truth), no service crashes or errs, and the services count what they
-rejected."""
+rejected. (What an insider's forged gid does, nothing here can stop: tests/test_trust.py and
+docs/security.md.)"""
 
 from __future__ import annotations
 
@@ -17,33 +22,42 @@ import numpy as np
 import pytest
 from util import Observer
 
-from hilsim.core import recording, transport
+from hilsim.core import recording
 from hilsim.core.keys import Keys
 from hilsim.core.scenario import load_scenario
 from hilsim.record.rows import part
 
 pytestmark = pytest.mark.e2e
 REPO = Path(__file__).resolve().parent.parent
+INJECTOR = [sys.executable, str(REPO / "tests" / "injector.py")]
+# every kind but the forged writer: given the credentials, that one is believed (docs/security.md)
+INSIDER_KINDS = "empty,random,truncated,bitflip,huge,nan,copy_no_attachment,copy_foreign_writer"
 
 
 def test_the_arm_reaches_its_targets_while_every_key_is_attacked(tmp_path: Path) -> None:
-    ep = f"tcp/127.0.0.1:{transport.free_port()}"
-    router = transport.open_router(ep)
-    obs = Observer(ep)
     run = tmp_path / "run"
-    up = subprocess.Popen([sys.executable, "-m", "hilsim.cli", "up", "arm", "--router", ep, "--out", str(run)],
+    up = subprocess.Popen([sys.executable, "-m", "hilsim.cli", "up", "arm", "--out", str(run)],
                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO,
                           start_new_session=True)
     inj: subprocess.Popen[str] | None = None
+    obs: Observer | None = None
     lines: list[str] = []
     try:
         assert up.stdout is not None
         for line in up.stdout:
             lines.append(line)
+            if line.startswith("zenoh router:"):
+                ep = line.split()[2]
+                obs = Observer(ep, run / "zenoh-client.json5")  # the test holds the run's credentials too
             if line.startswith("ready:"):
                 break
-        inj = subprocess.Popen([sys.executable, str(REPO / "tests" / "injector.py"), "--connect", ep, "--rate", "80"],
-                               stdout=subprocess.PIPE, text=True, start_new_session=True)
+        assert obs is not None, "".join(lines)
+        # the outsider: forged writers too, but no credentials
+        outsider = subprocess.run([*INJECTOR, "--connect", ep, "--rate", "80", "--seconds", "5"],
+                                  capture_output=True, text=True, timeout=60)
+        refused = json.loads(outsider.stdout.strip().splitlines()[-1])
+        inj = subprocess.Popen([*INJECTOR, "--connect", ep, "--rate", "80", "--auth", str(run / "zenoh-client.json5"),
+                                "--kinds", INSIDER_KINDS], stdout=subprocess.PIPE, text=True, start_new_session=True)
         out, _ = up.communicate(timeout=280)
         out = "".join(lines) + out
         inj.send_signal(signal.SIGINT)
@@ -53,12 +67,13 @@ def test_the_arm_reaches_its_targets_while_every_key_is_attacked(tmp_path: Path)
             if p is not None and p.poll() is None:
                 os.killpg(p.pid, signal.SIGKILL)
                 p.communicate()
-        obs.close()
-        router.close()
+        if obs is not None:
+            obs.close()
+    assert refused.get("connected") is False and "Unable to connect" in refused.get("error", ""), refused
     assert up.returncode == 0, out
     assert "targets reached: 3/3" in out, out
     assert "died" not in out, out
-    # the injector really attacked, with every kind of bad input
+    # the insider really attacked, with every kind of bad input but the forged writer
     assert len(sent) == 8 and min(sent.values()) >= 5, sent
     # judged by the physics truth, not the planner's word
     sc = load_scenario("arm")

@@ -318,9 +318,10 @@ def test_compose_rover_runs_the_navigator() -> None:
     nav = comp["navigator"]
     assert not nav.get("profiles")  # not a hardware profile: part of the rover scenario itself
     cmd = [a.split(":-", 1)[1].rstrip("}") if a.startswith("${") else a for a in nav["command"]]
-    args = build_parser().parse_args(cmd)
-    assert args.cmd == "run" and args.service == "navigator"
-    assert "navigator" in load_scenario(REPO / args.config).services
+    assert cmd[0] == "--hold"  # python -m hilsim.run.deploy --hold: `hilsim up … --only navigator`, held
+    args = build_parser().parse_args(cmd[1:])
+    assert args.cmd == "up" and args.only == "navigator"
+    assert "navigator" in load_scenario(REPO / args.scenario).services
     assert "navigator" in comp["physics"]["depends_on"]
 
 

@@ -56,9 +56,10 @@ def sim_rate(marks: list[tuple[int, float]], from_ns: int = 1_000_000_000, windo
 class Observer:
     """The test's own view of a run: physics truth, the joint server's reports, task results."""
 
-    def __init__(self, endpoint: str) -> None:
+    def __init__(self, endpoint: str, auth: Path | None = None) -> None:
+        """``auth``: the run's credentials (``<run dir>/zenoh-client.json5``), for ``hilsim up``'s own router."""
         self.keys = Keys()
-        self.session = transport.open_session(ZenohConfig(connect=[endpoint]))
+        self.session = transport.open_session(ZenohConfig(connect=[endpoint], auth=auth))
         self.lock = threading.Lock()
         self.truth: list[tuple[int, list[float]]] = []
         self.server: list[tuple[int, list[float]]] = []

@@ -181,6 +181,7 @@ class Service:
         self.errors = 0
         self.overruns = 0
         self.last_error = ""
+        self.final = False  # the health about to be published is the last (at exit)
         self.failed: str | None = None  # the error that stopped it (fail, or loop raising)
         self.sim_ns = 0  # latest sim time this service knows of
         self.session: zenoh.Session | None = None
@@ -485,6 +486,7 @@ class Service:
             "stale_dropped": sum(self.stale.values()),
             "seq_gaps": sum(self.seq_gaps.values()),
             "last_error": self.last_error,
+            **({"final": "1"} if self.final else {}),
         }
         values.update(self.health_values())
         values.update({f"rejected:{k}": v for k, v in self.rejected.items()})
@@ -601,6 +603,7 @@ class Service:
             with self.lock:
                 pass  # a handler still running finishes; later ones see stop_event and return
             try:
+                self.final = True  # its last word: hilsim up's summary takes its figures from it
                 self.publish_health()
             except Exception:
                 pass

@@ -3,7 +3,11 @@
 The :class:`Follower` prints each goal's result, every fault and the lockstep pauses as they happen,
 keeps every service's last health, and says when the run has ended (the task result of every robot,
 physics done, or a stalled lockstep). Only the services' own samples are believed
-(:mod:`hilsim.core.provenance`); the others are counted. The launcher (:mod:`hilsim.run.launcher`)
+(:mod:`hilsim.core.provenance`); the others are counted. What the summary reports comes from the
+service that knows it: sim time and counts from each service's *final* health (``final: 1``, sent at
+its exit; nothing later replaces it), a goal's result from its first report. That a sample is the
+service's own rests on the run's router letting only the run's processes write (docs/security.md):
+a gid and a sequence number are public, any writer can copy them. The launcher (:mod:`hilsim.run.launcher`)
 supervises the processes and records their deaths and restarts in the same outcome;
 :mod:`hilsim.run.summary` prints it at the end.
 
@@ -72,6 +76,12 @@ class Follower:
         self.outcome = Outcome()
         self.untrusted = 0  # samples on the keys it follows from writers other than the services
         self.paused_for = ""  # lockstep: the services physics waits for to come back (its health)
+        # lockstep: services silent for clock.ack_timeout that are to be restarted (taken by the launcher)
+        self.silent: set[str] = set()
+        self._silent_seen: set[str] = set()  # as physics' last health said
+        self.stalled_for: set[str] = set()  # lockstep: services physics waited for in vain (the run ends)
+        # per service, the writer of its final health (published at its exit): the summary's figures
+        self.final: dict[str, bytes] = {}
 
     def subscribe(self, session: zenoh.Session) -> list[Any]:
         """Declare its subscribers on ``session`` (the caller undeclares them)."""
@@ -129,6 +139,9 @@ class Follower:
                 if len(self.robots) == 1:
                     self.outcome.task = res
             elif res.goal_id != "task":  # the planner repeats the task's result on planner/result
+                if any(r.goal_id == res.goal_id and who == robot
+                       for r, who in zip(self.outcome.results, self.outcome.result_robots, strict=True)):
+                    return  # a goal ends once: its first result stands
                 self.outcome.results.append(res)
                 self.outcome.result_robots.append(robot)
                 err = max((abs(e) for e in res.execution_error), default=float("nan"))
@@ -165,14 +178,30 @@ class Follower:
             return
         # a robot's service (robots > 1) by <service>@<robot>: the robots' health apart
         sid = fleet.service_id(self.sc, str(sample.key_expr), "health")
+        att = transport.read_attachment(sample)
+        writer = att.gid if att is not None else b""
         for st in h.status:
             vals = {kv.key: kv.value for kv in st.values}
+            name = sid if st.name == sid.split("@")[0] else st.name
             with self.lock:
-                self.outcome.health[sid if st.name == sid.split("@")[0] else st.name] = vals
+                if self.final.get(name) == writer:
+                    continue  # its process's final report is in: nothing that comes later replaces it
+                if vals.get("final") == "1":
+                    self.final[name] = writer
+                else:
+                    self.final.pop(name, None)  # a new process of it (restarted): its reports count again
+                self.outcome.health[name] = vals
                 if st.name == "physics" and vals.get("state") == "done":
                     self.outcome.physics_done = True
                 if st.name == "physics" and vals.get("state") == "stalled" and not self.outcome.stalled:
                     self.outcome.stalled = vals.get("last_error", "lockstep stalled")
+                    # whom it waited for: silent (stopped or hung), they are killed at the end (hilsim.run.launcher)
+                    self.stalled_for = {s for s in (vals.get("waiting_for", "") + "," + vals.get("paused_for", ""))
+                                        .split(",") if s}
+                if st.name == "physics":  # silent for clock.ack_timeout, to be restarted (hilsim.run.launcher)
+                    silent = {s for s in vals.get("silent", "").split(",") if s}
+                    if silent != self._silent_seen:  # news once per silence (health repeats it each second)
+                        self.silent, self._silent_seen = set(silent), silent
                 if st.name == "physics":
                     self._paused(vals)
         self.changed.set()

@@ -352,6 +352,23 @@ class Launcher:
             dead = True
         return dead
 
+    def kill_silent(self) -> None:
+        """Kill (SIGKILL) the process of a service physics says is silent for ``clock.ack_timeout``
+        while its restart policy is on-failure: stopped (SIGSTOP) or hung, it never exits by itself,
+        and SIGKILL reaches even a stopped process; :meth:`check_children` then restarts it. Not one
+        that is starting again (not announced yet): a restart may take longer than ``ack_timeout``."""
+        with self.lock:  # taken: physics says it once per silence
+            silent, self.follower.silent = self.follower.silent, set()
+        if not silent:
+            return
+        for c in self.children.values():
+            who = sorted(silent & set(fleet.members(self.sc, c.name)))
+            if not who or not c.ready or c.restart_at is not None or c.proc.poll() is not None:
+                continue
+            self.say(f"error: {', '.join(who)} (pid {c.proc.pid}) silent for clock.ack_timeout "
+                     f"({self.sc.clock.ack_timeout:g} s): stopped or hung; killing it to restart it")
+            c.proc.kill()
+
     def restarting(self) -> list[str]:
         """Services that died and are not back yet (restart pending or not announced)."""
         return [c.name for c in self.children.values() if c.restarts and (c.restart_at is not None or not c.ready)]
@@ -363,6 +380,7 @@ class Launcher:
         while True:
             if self.outcome.interrupted or self.check_children():
                 return
+            self.kill_silent()
             if self.follower.ended():  # the task, the duration, or a stalled lockstep
                 return
             if wall_timeout is not None and time.monotonic() - t0 > wall_timeout:
@@ -405,6 +423,11 @@ class Launcher:
                 if c.proc.poll() is None:
                     if self.hurry:
                         self.kill_all()
+                    elif self._silent(c):
+                        # stopped or hung: resumed, it would send what it held before going silent (stale
+                        # samples, sequence gaps: losses the stop invented); it has nothing left to finish
+                        self.say(f"  killing {name} (pid {c.proc.pid}): silent, it cannot stop by itself")
+                        c.proc.kill()
                     else:
                         c.proc.send_signal(signal.SIGINT)
                         c.proc.send_signal(signal.SIGCONT)  # a stopped (suspended) service must handle it too
@@ -422,6 +445,17 @@ class Launcher:
             if self._router is not None:
                 self._router.close()
                 transport.remove_pointer(self._pointer)
+
+    def _silent(self, c: Child) -> bool:
+        """A service physics waited for in vain (the run stalled on it), or whose process is stopped (SIGSTOP)."""
+        with self.lock:
+            named = set(self.follower.stalled_for) & set(fleet.members(self.sc, c.name))
+        if named:
+            return True
+        try:  # /proc/<pid>/stat: "pid (name) STATE …"; T: stopped by a signal, t: by a debugger
+            return Path(f"/proc/{c.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()[0] in ("T", "t")
+        except (OSError, IndexError):
+            return False
 
     def interrupt(self, signum: int) -> None:
         """A stop signal (``hilsim up``'s watcher thread calls this, never a signal handler): the
