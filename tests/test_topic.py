@@ -18,6 +18,7 @@ from util import LEAN, REPO, finish, up
 from hilsim.core import transport
 
 pytestmark = pytest.mark.e2e
+INSIDER_KINDS = "empty,random,truncated,bitflip,huge,nan,copy_no_attachment,copy_foreign_writer"
 HZ = re.compile(r"average rate: ([\d.]+) Hz \(wall\).*?\|  ([\d.]+) Hz \(sim time\)(?:  \|  ignored (\d+) samples)?")
 
 
@@ -46,8 +47,10 @@ def test_an_impostor_on_the_clock_changes_neither_hz_nor_the_summary() -> None:
             head.append(line)
             if line.startswith("ready:"):
                 break
+        # an impostor that does not forge its writer (that one only the credentials keep out: test_trust.py)
         inj = subprocess.Popen([sys.executable, str(REPO / "tests" / "injector.py"), "--connect", ep,
-                                "--rate", "400"], stdout=subprocess.PIPE, text=True, start_new_session=True)
+                                "--rate", "400", "--kinds", INSIDER_KINDS], stdout=subprocess.PIPE, text=True,
+                               start_new_session=True)
         rightful = hz(ep)
         anyone = hz(ep, "--any-writer")
         out = "".join(head) + finish(p, 60)

@@ -1,8 +1,9 @@
 """Zenoh, configured one way for every hilsim program.
 
 Default (embedded, nothing to install): ``hilsim up`` opens a Zenoh *router* on a loopback
-port inside the launcher process; every service is a *peer* that connects to it, listens on
-an ephemeral loopback port and has multicast scouting off, so nothing leaves the machine.
+port inside the launcher process, with a user and password made for the run (below); every service
+is a *client* of it with multicast scouting off, so nothing leaves the machine. (Without credentials,
+e.g. ``--router`` to a plain router, a *peer* that also listens on an ephemeral loopback port.)
 To join another network, set ``zenoh.connect`` in the scenario or ``HILSIM_ZENOH_CONNECT``
 (e.g. ``tcp/192.0.2.10:7447``) and the same programs connect there instead (docs/deployment.md).
 With ``zenoh.tls`` (or ``HILSIM_TLS_*``) every process is a TLS client of the router with its own
@@ -124,16 +125,17 @@ class RouterUsers(NamedTuple):
 def access_rules(users: RouterUsers) -> dict[str, Any]:
     """Zenoh access control by username: the run's user everything, the guest (if any) reading only,
     anybody else nothing (no other user can authenticate anyway)."""
+    every = ["**", "@ros2_lv/**"]  # `**` matches no chunk that starts with '@': the ROS 2 graph, named
     rules: list[dict[str, Any]] = [{"id": "everything", "messages": ALL_MESSAGES, "flows": ["ingress", "egress"],
-                                    "permission": "allow", "key_exprs": ["**"]}]
+                                    "permission": "allow", "key_exprs": every}]
     subjects: list[dict[str, Any]] = [{"id": "run", "usernames": [users.run_user]}]
     policies: list[dict[str, Any]] = [{"id": "the run's processes", "rules": ["everything"], "subjects": ["run"]}]
     if users.guest_user is not None:
         rules += [{"id": "observe", "messages": ["declare_subscriber", "declare_liveliness_subscriber",
                                                 "liveliness_query"], "flows": ["ingress"], "permission": "allow",
-                   "key_exprs": ["**"]},
+                   "key_exprs": every},
                   {"id": "deliver", "messages": ["put", "delete", "reply", "liveliness_token"], "flows": ["egress"],
-                   "permission": "allow", "key_exprs": ["**"]}]
+                   "permission": "allow", "key_exprs": every}]
         subjects.append({"id": "guest", "usernames": [users.guest_user]})
         policies.append({"id": "guests read", "rules": ["observe", "deliver"], "subjects": ["guest"]})
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
@@ -215,6 +217,13 @@ def write_pointer(endpoint: str, run_dir: Path, client_config: Path) -> Path | N
         return None
     path = pointer_path(port)
     path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+    for old in path.parent.glob("*.json"):  # those of launchers that were killed (no stop, no removal)
+        try:
+            os.kill(int(json.loads(old.read_text())["pid"]), 0)
+        except ProcessLookupError:
+            old.unlink(missing_ok=True)
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
     write_private(path, json.dumps({"endpoint": endpoint, "run_dir": str(run_dir.resolve()),
                                     "client_config": str(client_config.resolve()), "pid": os.getpid()}) + "\n")
     return path
@@ -244,7 +253,9 @@ def find_credentials(endpoints: list[str]) -> Path | None:
             if st.st_uid != os.getuid() or stat.S_IMODE(st.st_mode) & 0o077:
                 continue
             info = json.loads(path.read_text())
-            os.kill(int(info["pid"]), 0)  # the launcher that wrote it still runs
+            os.kill(int(info["pid"]), 0)  # the launcher that wrote it still runs (not another process
+            if b"hilsim" not in Path(f"/proc/{int(info['pid'])}/cmdline").read_bytes():  # with its pid)
+                continue
             client = Path(info["client_config"])
         except (OSError, ValueError, KeyError, TypeError):
             continue

@@ -4,8 +4,9 @@ This module supervises the processes (the :class:`Launcher`: start, liveliness, 
 holds the command; following what the services report is :mod:`hilsim.run.follow`, the summary
 printed at the end :mod:`hilsim.run.summary`, the embedded router :mod:`hilsim.run.router`.
 
-The launcher opens an embedded Zenoh router on a free loopback port (or joins ``--router``),
-writes the resolved scenario to ``runs/<timestamp>/scenario.yaml``, starts one
+The launcher opens an embedded Zenoh router on a free loopback port (or joins ``--router``) that
+admits only the run's processes (a user and password made for the run, :func:`open_run_router`;
+docs/security.md), writes the resolved scenario to ``runs/<timestamp>/scenario.yaml``, starts one
 ``hilsim run SERVICE`` process per service of the scenario and per external joint server it
 names (in the reverse of the order the service classes declare for stopping), waits for each
 liveliness token, then follows the task result, every service's health and its faults. It stops
@@ -22,7 +23,10 @@ Restart policy (``restart.services``, :class:`hilsim.core.config.RestartConfig`)
 with ``HILSIM_RESTART=<attempt>`` in its environment (:mod:`hilsim.core.restart`); its log continues
 in the same file. In lockstep physics pauses sim time while it is gone and resumes when it is
 back. Without the policy, or once the attempts are used up, a dead service ends the run. Each
-restart is printed as it happens and listed in the summary.
+restart is printed as it happens and listed in the summary. A lockstep participant that is alive but
+silent (stopped, hung) for ``clock.ack_timeout``, as physics says: without the policy a fault ends the
+run (the silent process killed at the stop, not resumed); with it, it is killed (SIGKILL, which even a
+stopped process gets) and so restarted (:meth:`Launcher.kill_silent`).
 
 Several machines (``--only physics,logger``, docs/deployment.md): only those services start here;
 the others are expected from other hosts on the same Zenoh network, and the launcher waits for

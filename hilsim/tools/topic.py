@@ -1,8 +1,9 @@
 """``hilsim topic list|echo|hz``: look at a running simulation the way ``ros2 topic`` does.
 
-Connects as a Zenoh peer to ``--connect`` (default: ``HILSIM_ZENOH_CONNECT`` or the
-launcher's well-known ``tcp/127.0.0.1:7447``, see :func:`hilsim.core.transport.tool_endpoints`)
-and never publishes anything. Topics are ROS 2 names (``/arm/joint_states``) in the domain
+Connects to ``--connect`` (default: ``HILSIM_ZENOH_CONNECT`` or the launcher's well-known
+``tcp/127.0.0.1:7447``, see :func:`hilsim.core.transport.tool_endpoints`), with the credentials of the
+run whose router that is (:func:`hilsim.core.transport.tool_zenoh`), and never publishes anything.
+Topics are ROS 2 names (``/arm/joint_states``) in the domain
 ``--domain`` (``ROS_DOMAIN_ID``); ``list`` reads the ROS 2 graph (rmw_zenoh's liveliness tokens) as
 ``ros2 topic list`` does, so a ROS 2 node's topics show up beside hilsim's. ``echo``/``hz`` take a
 topic name (its key is ``<domain>/<name>/*/*``: any type) or a Zenoh key expression, and decode
