@@ -125,7 +125,9 @@ class RouterUsers(NamedTuple):
 def access_rules(users: RouterUsers) -> dict[str, Any]:
     """Zenoh access control by username: the run's user everything, the guest (if any) reading only,
     anybody else nothing (no other user can authenticate anyway)."""
-    every = ["**", "@ros2_lv/**"]  # `**` matches no chunk that starts with '@': the ROS 2 graph, named
+    # `**` matches no chunk that starts with '@': the ROS 2 graph, and the advanced publishers' caches and
+    # detection (transient-local: /tf_static, robot_description), named
+    every = ["**", "@ros2_lv/**", "**/@adv/**", "@adv/**"]
     rules: list[dict[str, Any]] = [{"id": "everything", "messages": ALL_MESSAGES, "flows": ["ingress", "egress"],
                                     "permission": "allow", "key_exprs": every}]
     subjects: list[dict[str, Any]] = [{"id": "run", "usernames": [users.run_user]}]
