@@ -68,6 +68,7 @@ from hilsim.core.keys import Keys
 from hilsim.core.provenance import Provenance
 from hilsim.core.restart import RESTART_ENV, STATE_DIR
 from hilsim.core.scenario import load_scenario, write_scenario
+from hilsim.core.service import watch_signals
 from hilsim.run.follow import Follower, Outcome, Restart
 from hilsim.run.router import cmd_router, open_default_router, open_run_router
 from hilsim.run.summary import summarise
@@ -527,46 +528,9 @@ def default_run_dir(sc: Scenario) -> Path:
 
 def _stop_signals(on_signal: Callable[[int], None]) -> Callable[[], None]:
     """Take SIGINT and SIGTERM, however often they come, by calling ``on_signal(signum)`` from a
-    watcher thread; returns what puts the previous handlers back.
-
-    Never in a handler of the main thread: one that raised (KeyboardInterrupt) cut the launcher's
-    own stopping short at a second Ctrl-C, leaving its Zenoh session open and its process waiting
-    for that session's threads for good; one that takes a lock may deadlock on it
-    (:func:`hilsim.core.service.on_stop_signals`). The handlers do nothing; the interpreter writes
-    the signal's number to a wake-up pipe, which the thread reads. Explicit for SIGINT too: a
-    launcher started in the background of a script inherits SIGINT ignored."""
-    if threading.current_thread() is not threading.main_thread():
-        return lambda: None  # signals reach the main thread only: its caller's business
-    r, w = os.pipe()
-    os.set_blocking(w, False)
-    old_fd = signal.set_wakeup_fd(w, warn_on_full_buffer=False)
-    stops = (signal.SIGINT, signal.SIGTERM)
-    old = {s: signal.signal(s, lambda *_: None) for s in stops}
-
-    def watch() -> None:
-        while True:
-            try:
-                data = os.read(r, 64)
-            except OSError:
-                return
-            if not data:
-                return
-            for b in data:
-                if b in stops:
-                    on_signal(b)
-
-    t = threading.Thread(target=watch, daemon=True, name="stop-signals")
-    t.start()
-
-    def restore() -> None:
-        signal.set_wakeup_fd(old_fd)
-        for s, h in old.items():
-            signal.signal(s, h)
-        os.close(w)  # the watcher reads the end of the pipe and returns
-        t.join(1.0)
-        os.close(r)
-
-    return restore
+    watcher thread (:func:`hilsim.core.service.watch_signals`); returns what puts the previous
+    handlers back."""
+    return watch_signals(on_signal, (signal.SIGINT, signal.SIGTERM))
 
 
 def _interactive_hint(la: Launcher, example: list[float] | None) -> str:
