@@ -240,12 +240,17 @@ class Keys:
         """Every ROS 2 graph token of the domain (publishers among them: :mod:`hilsim.core.provenance`)."""
         return ros2wire.graph_key(self.domain)
 
+    def entity_token(self, kind: str, key: str, *, zid: str, node_id: int, entity_id: int, node: str,
+                     enclave: str = "/", qos: ros2wire.Qos = ros2wire.QOS_DEFAULT) -> str:
+        """The graph token (``MP``, ``MS``) of node ``node`` in this robot's namespace on the data key ``key``."""
+        parts = key.split("/")
+        return ros2wire.entity_token(kind, self.domain, zid, node_id, entity_id, enclave, self.namespace, node,
+                                     "/" + "/".join(parts[1:-2]), parts[-2], parts[-1], qos)
+
     def writer_token(self, key: str, node: str = "tool", zid: str = "1", entity_id: int = 1) -> tuple[str, bytes]:
         """The graph token (``MP``) a tool or test declares before writing ``key`` as node ``node`` of
         this robot's namespace, and the gid its samples then carry (the token's hash, as rmw_zenoh's)."""
-        parts = key.split("/")
-        token = ros2wire.entity_token("MP", self.domain, zid, 0, entity_id, "/", self.namespace, node,
-                                      "/" + "/".join(parts[1:-2]), parts[-2], parts[-1], ros2wire.QOS_DEFAULT)
+        token = self.entity_token("MP", key, zid=zid, node_id=0, entity_id=entity_id, node=node)
         return token, ros2wire.entity_gid(token)
 
     @property

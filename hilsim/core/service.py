@@ -239,12 +239,10 @@ class Service:
     def graph_token(self, kind: str, key: str, qos: wire.Qos | None = None) -> str:
         """The rmw_zenoh liveliness token of this node's publisher (``MP``) or subscription (``MS``) on a
         concrete data key, as a ROS 2 node on rmw_zenoh_cpp declares it (:mod:`hilsim.core.ros2.wire`)."""
-        parts = key.split("/")
         if qos is None:
             qos = wire.QOS_CLOCK if key == self.keys.clock else wire.QOS_DEFAULT
-        return wire.entity_token(kind, self.keys.domain, self._zid, self._node_id, next(_ENTITY_IDS),
-                                 self.sc.ros2.enclave, self.keys.namespace, self.node_name,
-                                 "/" + "/".join(parts[1:-2]), parts[-2], parts[-1], qos)
+        return self.keys.entity_token(kind, key, zid=self._zid, node_id=self._node_id, entity_id=next(_ENTITY_IDS),
+                                      node=self.node_name, enclave=self.sc.ros2.enclave, qos=qos)
 
     def _declare_node(self, session: Any) -> None:
         info = getattr(session, "info", None)
