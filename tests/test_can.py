@@ -295,11 +295,12 @@ def test_a_bus_missing_at_start_then_bus_off_faults_and_recovers(rig: Callable[.
                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
     r = rig(**{"bridge-can.open_timeout": 5.0})  # a USB adapter plugged in after the start is waited for
     tries = {"n": 0}
+    plugged = threading.Event()  # the test plugs the adapter in once it has seen the fault
     real_open = can_bus.open_bus
 
     def flaky(cfg: BusConfig) -> can.BusABC:
         tries["n"] += 1
-        if tries["n"] <= 2:  # not there for the first two attempts, as a USB adapter being plugged in
+        if not plugged.is_set():  # not there yet, as a USB adapter about to be plugged in
             return can_bus.open_bus(BusConfig(interface="socketcan", channel="hilsimnone0"))
         return real_open(cfg)
 
@@ -307,8 +308,11 @@ def test_a_bus_missing_at_start_then_bus_off_faults_and_recovers(rig: Callable[.
     r.start(r.emulator, r.bridge)
     wait_for(lambda: r.said(40, "CAN bus virtual:"), what="bus fault")
     assert r.said(40, "not available") and r.bridge.state == "fault"
+    wait_for(lambda: tries["n"] >= 2, what="a retry while the bus is missing")
+    assert r.bridge.state == "fault"
+    plugged.set()
     wait_for(lambda: r.said(20, "joint_1 (node 0) recovered (CAN bus down"), timeout=8, what="recovery after bus up")
-    assert r.said(20, "up again") and tries["n"] == 3
+    assert r.said(20, "up again")
     # the controller goes bus-off: SocketCAN reports it with an error frame
     bus = can.Bus(interface="virtual", channel=r.channel)
     try:
