@@ -141,6 +141,7 @@ class PhysicsService(Service):
         self.end_ns = round(sc.duration * 1e9) if sc.duration else None
         self.last_progress = time.monotonic()
         self.waiting_reported = False
+        self.pending: list[tuple[int, World, msgs.JointState]] = []  # lockstep: (due step [ns], robot, command)
         self.silent: list[str] = []  # lockstep participants silent for clock.ack_timeout, to be restarted
         robot_keys = [Keys.of(sc, r) for r in fleet.robot_names(sc)]
         self.robots = [Robot(self, k, v, k.robot if sc.robots > 1 else None)
@@ -240,20 +241,26 @@ class PhysicsService(Service):
                 self.participants[svc] = p
 
     def _on_command(self, world: World, cmd: msgs.JointState, key: str, att: Attachment | None) -> None:
+        writer = att.gid.hex() if att is not None else None
+        acks = [n for n, p in self.participants.items() if p.via == "joint_commands" and p.gid == writer]
+        stamp = msgs.ns_of(cmd.header.stamp)
         if self.participants and self.started and not self.done:
-            # lockstep: a command belongs to the step it answers; one for another step is stale
-            # (or not what it claims to be) and must not act on this one
-            stamp = msgs.ns_of(cmd.header.stamp)
-            if stamp != self.world.time_ns:
+            # lockstep: a command belongs to the step it answers and acts from that step + its
+            # writer's lag (clock.controller_lag: the one-sample computation delay); one for
+            # another step is stale (or not what it claims to be) and must not act on this one
+            now = self.world.time_ns
+            due = stamp + max((self.participants[n].lag for n in acks), default=0) * self.sc.dt_ns
+            if due < now or stamp > now:
                 raise msgs.BadMessage(f"command stamped t={stamp / 1e9:.3f}s, but the current step is "
-                                      f"t={self.world.time_ns / 1e9:.3f}s")
-        world.command(cmd)
-        if att is None:
-            return
-        writer = att.gid.hex()
-        for name, p in self.participants.items():
-            if p.via == "joint_commands" and p.gid == writer:
-                self._ack(name, msgs.ns_of(cmd.header.stamp))
+                                      f"t={now / 1e9:.3f}s")
+            if due > now:  # arrived before physics reached its step: acts there, whatever the timing
+                self.pending.append((due, world, cmd))
+            else:
+                world.command(cmd)
+        else:
+            world.command(cmd)
+        for name in acks:
+            self._ack(name, stamp)
 
     def _on_sync(self, clk: msgs.Clock, key: str, att: Attachment | None) -> None:
         name = fleet.service_id(self.sc, key, "sync")
@@ -343,6 +350,11 @@ class PhysicsService(Service):
         if self.end_ns is not None and self.world.time_ns >= self.end_ns:
             self._finish()
             return
+        if self.pending:  # lagging commands due at this step act on it
+            now = self.world.time_ns
+            for _, world, cmd in [c for c in self.pending if c[0] <= now]:
+                world.command(cmd)
+            self.pending = [c for c in self.pending if c[0] > now]
         self.world.step()
         if self.participants:
             now = time.perf_counter_ns()

@@ -58,7 +58,8 @@ def test_bench_loop_measures_every_figure_it_prints(tmp_path: Path) -> None:
                         "--realtime-seconds", "0", "--json"], capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr[-2000:]
     res = json.loads(r.stdout)
-    for k in ("bare", "in_process", "distributed", "composed", "composed_recorder"):
+    for k in ("bare", "in_process", "distributed", "distributed_lag1", "composed", "composed_lag1",
+              "composed_recorder"):
         assert math.isfinite(res[f"{k}_rtf"]) and res[f"{k}_rtf"] > 0.01, (k, res)
     assert res["ring_round_us"] > 5.0
     dist, comp = res["distributed_cpu_us_per_step"], res["composed_cpu_us_per_step"]

@@ -113,30 +113,44 @@ def _capture(endpoint: str, key: str, sink: list[bytes]) -> tuple[zenoh.Session,
     return ses, ses.declare_subscriber(key, lambda s: sink.append(s.payload.to_bytes()))
 
 
-def test_lockstep_runs_are_bit_identical(tmp_path: Path) -> None:
+@pytest.mark.parametrize("lag", [0, 1])
+def test_lockstep_runs_are_bit_identical(tmp_path: Path, lag: int) -> None:
     """Same seed, lockstep: the joint-state streams of two runs are equal byte for byte, the
     second with physics, sensors and the controller composed in one process (hilsim.run.compose):
-    composition changes how samples travel, never what happens."""
+    composition changes how samples travel, never what happens. With ``clock.controller_lag: 1``
+    too, and the physics truth shows the lag: the effort applied over the step that ends at t is
+    the command answering the measurement of t - (lag + 1) steps."""
     streams: list[list[bytes]] = []
     keys = Keys()
     for i, extra in enumerate([[], ["--compose", "physics,sensors,controller"]]):
         ep = f"tcp/127.0.0.1:{transport.free_port()}"
         router = transport.open_router(ep)
         got: list[bytes] = []
+        truth: list[bytes] = []
+        cmds: list[bytes] = []
         ses, sub = _capture(ep, keys.topic("joint_states"), got)
+        subs = [sub, ses.declare_subscriber(keys.topic("truth/joint_states"), lambda s: truth.append(s.payload.to_bytes())),
+                ses.declare_subscriber(keys.topic("joint_commands"), lambda s: cmds.append(s.payload.to_bytes()))]
         try:
             p = hilsim_up("arm", "--router", ep, "--duration", "6", "--seed", "7", "--no-logger",
-                          "--out", str(tmp_path / f"run{i}"), *extra)
+                          "--set", f"clock.controller_lag={lag}", "--out", str(tmp_path / f"run{i}"), *extra)
             stdout, _ = p.communicate(timeout=240)
             assert p.returncode == 3 and "result: STOPPED (duration)" in stdout, stdout  # --duration cut the task
             assert ("physics+sensors+controller (pid" in stdout) == bool(extra), stdout
             assert "task-1: reached" in stdout, stdout  # so the run includes a re-plan mid-stream
             time.sleep(0.3)
         finally:
-            sub.undeclare()
+            for s in subs:
+                s.undeclare()
             ses.close()
             router.close()
         streams.append(got)
+        applied = {msgs.ns_of(m.header.stamp): list(m.effort) for m in (msgs.decode(msgs.JointState, b) for b in truth)}
+        sent = {msgs.ns_of(m.header.stamp): list(m.effort) for m in (msgs.decode(msgs.JointState, b) for b in cmds)}
+        dt = 1_000_000
+        late = [t for t, u in sent.items() if t + (lag + 1) * dt in applied]
+        assert len(late) > 5000
+        assert all(applied[t + (lag + 1) * dt] == sent[t] for t in late), f"lag {lag}: a command acted at another step"
     # keyed by stamp, in case a capture missed the very first samples of a run
     runs = [{msgs.ns_of(msgs.decode(msgs.JointState, b).header.stamp): b for b in st} for st in streams]
     common = sorted(set(runs[0]) & set(runs[1]))

@@ -93,6 +93,11 @@ class ClockConfig(_Model):
         "dropped as stale and counted, so a service that fell behind catches up (streams only: a trajectory, "
         "given once, is never dropped); 0 = keep every sample",
     )
+    controller_lag: int = Field(
+        0, ge=0, le=1, description="lockstep: steps between the measurement a controller's command answers and the "
+        "step it acts on; 1 models the one-sample computation delay of a digital controller and lets physics, "
+        "sensors and controller work on neighbouring steps at once (docs/keys.md, docs/performance.md)",
+    )
     start_delay: float = Field(
         0.5, ge=0, description="wall seconds between every service being live and step 0 (peers finish connecting)"
     )

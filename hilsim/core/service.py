@@ -172,8 +172,10 @@ class Service:
     def lockstep_lag(cls, sc: Scenario) -> int:
         """Steps physics may run past a step this service owes before waiting for it (0: wait at
         that step). Only for a service whose output for step k takes effect at a later step it
-        stamps itself (the planner's trajectories), so that waiting later changes nothing."""
-        return 0
+        stamps itself (the planner's trajectories), so that waiting later changes nothing; or a
+        controller whose command physics applies ``clock.controller_lag`` steps after the
+        measurement it answers."""
+        return sc.clock.controller_lag if cls.ack_via == "joint_commands" else 0
 
     @classmethod
     def resolve(cls, sc: Scenario) -> type[Service]:
