@@ -131,3 +131,49 @@ def test_a_running_service_rejects_impostors_and_counts_gaps(scenario: Any, sess
         assert h["seq_gaps"] == "2" and h[f"rejected:{key}"] == "4"
     token.undeclare()
     sub.undeclare()
+
+
+def test_a_key_nobody_subscribes_to_is_not_put_until_someone_does(scenario: Any, session: zenoh.Session,
+                                                                  run_service: Any) -> None:
+    """Pay only for what is consumed: the controller's reference, read by nobody, is counted but
+    neither encoded nor put; a subscriber that appears mid-run (a ROS 2 node, a tool) receives the
+    very next sample, its sequence number continuing the count."""
+    sc = scenario()
+    keys = Keys.of(sc)
+    key, ref_key = keys.topic("joint_states"), keys.topic("controller/reference")
+    names = [f"joint_{i}" for i in range(1, 7)]
+    pub = transport.publisher(session, key)
+    token_key, gid = keys.writer_token(key)
+    token = session.liveliness().declare_token(token_key)
+    seq = iter(range(1, 10_000))
+
+    def send(k: int) -> None:
+        js = msgs.JointState(header=msgs.header(k * 1_000_000), name=names, position=[0.0] * 6, velocity=[0.0] * 6)
+        pub.put(msgs.encode(js), attachment=transport.attachment_bytes(next(seq), gid))
+
+    class Counting:  # what reaches Zenoh's put
+        def __init__(self, real: zenoh.Publisher) -> None:
+            self.real, self.n = real, 0
+
+        def put(self, *a: Any, **kw: Any) -> None:
+            self.n += 1
+            self.real.put(*a, **kw)
+
+    got: list[int] = []
+    with run_service(ControllerService(sc)) as svc:
+        assert wait_until(lambda: key in svc.provenance.restricted, 5)
+        ref = svc.ref_pub
+        ref._pub = counting = Counting(ref._pub)
+        for k in range(5):
+            send(k)
+        assert wait_until(lambda: svc.counts_out[ref_key] == 5, 5), dict(svc.counts_out)
+        assert counting.n == 0 and not ref.matching  # counted as published, never put
+        sub = session.declare_subscriber(
+            ref_key, lambda s: got.append(transport.read_attachment(s).seq))  # type: ignore[union-attr]
+        assert wait_until(lambda: ref.matching, 5)
+        send(5)
+        assert wait_until(lambda: got == [6], 5), got
+        assert counting.n == 1
+        sub.undeclare()
+        assert wait_until(lambda: not ref.matching, 5)
+    token.undeclare()

@@ -192,7 +192,7 @@ class TaskConfig(_Model):
 
 
 class LoggerConfig(_Model):
-    enabled: bool = True
+    enabled: bool = Field(True, description="false: no recorder in the run (as `hilsim up --no-logger`)")
     out_dir: Path = Path("runs")
     run_dir: Path | None = Field(None, description="write here instead of <out_dir>/<timestamp> (set by `hilsim up`)")
     record: list[str] = Field(default_factory=lambda: ["**"],
@@ -323,6 +323,12 @@ class Scenario(_Model):
         if len(set(v)) != len(v):
             raise ValueError("a service is listed twice")
         return v
+
+    @model_validator(mode="after")
+    def _recorder_off(self) -> Scenario:
+        if not self.logger.enabled and "logger" in self.services:  # the same as `hilsim up --no-logger`
+            self.services = [s for s in self.services if s != "logger"]
+        return self
 
     @model_validator(mode="after")
     def _fleet(self) -> Scenario:

@@ -65,20 +65,35 @@ class Publisher:
         self._lock = threading.Lock()
         # composed (hilsim.run.compose): also handed, unencoded, to the subscribers in this process
         self._local = getattr(self._pub, "deliver", None)
+        # pay only for what is consumed: encoded and put only while a subscriber anywhere matches
+        # (Zenoh's matching status; one that appears mid-run, e.g. a ROS 2 node, turns it on at once).
+        # A latched sample is kept for later subscribers, so it is always put.
+        self.matching = True
+        self._matching = None
+        if not latched and self._local is None and isinstance(self._pub, zenoh.Publisher):
+            self.matching = self._pub.matching_status.matching
+            self._matching = self._pub.declare_matching_listener(self._on_matching)
         # announce as a ROS 2 publisher does (its gid is its token's hash): receivers accept this key
         # only from announced writers (hilsim.core.provenance), and `ros2 topic list` sees it
         token = service.graph_token("MP", key, wire.QOS_LATCHED if latched else None)
         self.gid = wire.entity_gid(token)
         self._token = service.session.liveliness().declare_token(token)
 
+    def _on_matching(self, status: Any) -> None:
+        self.matching = bool(status.matching)
+
     def put(self, msg: Any) -> None:
         # one at a time: a key written from two threads (logs, health) must still reach receivers
         # with growing sequence numbers, or they reject one sample as a duplicate or out of order
         if self._local is None:
-            data = msgs.encode(msg)
-            with self._lock:
-                self.seq += 1
-                self._pub.put(data, attachment=transport.attachment_bytes(self.seq, self.gid))
+            if not self.matching:  # counted as published; a subscriber that comes later starts at a later number
+                with self._lock:
+                    self.seq += 1
+            else:
+                data = msgs.encode(msg)
+                with self._lock:
+                    self.seq += 1
+                    self._pub.put(data, attachment=transport.attachment_bytes(self.seq, self.gid))
         else:
             with self._lock:
                 self.seq += 1
@@ -90,6 +105,8 @@ class Publisher:
 
     def undeclare(self) -> None:
         self._token.undeclare()
+        if self._matching is not None:
+            self._matching.undeclare()
         self._pub.undeclare()
 
 
