@@ -113,6 +113,10 @@ def _capture(endpoint: str, key: str, sink: list[bytes]) -> tuple[zenoh.Session,
     return ses, ses.declare_subscriber(key, lambda s: sink.append(s.payload.to_bytes()))
 
 
+def _capture_on(ses: zenoh.Session, key: str, sink: list[bytes]) -> zenoh.Subscriber:
+    return ses.declare_subscriber(key, lambda s: sink.append(s.payload.to_bytes()))
+
+
 @pytest.mark.parametrize("lag", [0, 1])
 def test_lockstep_runs_are_bit_identical(tmp_path: Path, lag: int) -> None:
     """Same seed, lockstep: the joint-state streams of two runs are equal byte for byte, the
@@ -129,8 +133,8 @@ def test_lockstep_runs_are_bit_identical(tmp_path: Path, lag: int) -> None:
         truth: list[bytes] = []
         cmds: list[bytes] = []
         ses, sub = _capture(ep, keys.topic("joint_states"), got)
-        subs = [sub, ses.declare_subscriber(keys.topic("truth/joint_states"), lambda s: truth.append(s.payload.to_bytes())),
-                ses.declare_subscriber(keys.topic("joint_commands"), lambda s: cmds.append(s.payload.to_bytes()))]
+        subs = [sub, _capture_on(ses, keys.topic("truth/joint_states"), truth),
+                _capture_on(ses, keys.topic("joint_commands"), cmds)]
         try:
             p = hilsim_up("arm", "--router", ep, "--duration", "6", "--seed", "7", "--no-logger",
                           "--set", f"clock.controller_lag={lag}", "--out", str(tmp_path / f"run{i}"), *extra)
