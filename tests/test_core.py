@@ -206,6 +206,21 @@ def test_an_error_is_blamed_on_its_origin_file_overlay_or_option(tmp_path: Path)
         load_scenario("arm", {"duration": -1.0}, origins={"duration": "--duration -1"})
 
 
+def test_hilsim_up_will_not_record_a_run_over_another(tmp_path: Path) -> None:
+    """No lost data: ``--out`` naming the directory of an earlier run is refused before anything
+    starts (its bag would be counted with the new run's, its recording overwritten)."""
+    import subprocess
+    import sys
+
+    (tmp_path / "bag").mkdir()
+    (tmp_path / "bag" / "bag_0.mcap").write_bytes(b"x")
+    r = subprocess.run([sys.executable, "-m", "hilsim.cli", "up", "arm", "--out", str(tmp_path)], capture_output=True,
+                       text=True, timeout=60, cwd=REPO)
+    assert r.returncode == 2 and r.stderr.strip() == (
+        f"error: --out {tmp_path}: already holds a run's recording (bag); give a new directory or remove it"), r
+    assert (tmp_path / "bag" / "bag_0.mcap").read_bytes() == b"x" and not (tmp_path / "recording.rrd").exists()
+
+
 def test_hilsim_up_says_a_bad_set_in_one_line_and_exits_2() -> None:
     import subprocess
     import sys

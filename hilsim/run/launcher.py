@@ -591,6 +591,10 @@ def cmd_up(args: argparse.Namespace) -> int:
     if args.no_logger:
         sc.services = [s for s in sc.services if s != "logger"]
     run_dir = Path(args.out) if args.out else default_run_dir(sc)
+    held = [n for n in ("recording.rrd", "bag") if "logger" in sc.services and (run_dir / n).exists()]
+    if held:  # a recorder restarted within a run adds to them: a second run would be counted with the first
+        raise ConfigError(f"--out {run_dir}: already holds a run's recording ({', '.join(held)}); "
+                          "give a new directory or remove it")
     if sc.zenoh.tls is not None and not args.router:
         raise ConfigError("zenoh.tls is set: start the router with `hilsim router --config FILE` and pass its "
                           "tls/ endpoint with --router (docs/security.md)")
