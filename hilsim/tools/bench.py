@@ -43,7 +43,8 @@ from hilsim.tools import progress
 
 
 def _scenario(sim_seconds: float, **more: Any) -> Scenario:
-    o: dict[str, Any] = {"task.targets": [], "duration": sim_seconds}
+    # lag 0 unless a pipeline says otherwise: the figures stay comparable with every earlier sitting
+    o: dict[str, Any] = {"task.targets": [], "duration": sim_seconds, "clock.controller_lag": 0}
     o.update(more)
     return load_scenario("arm", o)
 
