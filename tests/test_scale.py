@@ -134,6 +134,10 @@ def test_bench_scale_reports_each_robot_count_against_one_robot_measured_in_the_
     assert math.isclose(two["step_p50_vs_1"], two["step_p50_us"] / one["step_p50_us"])
     g = res["goal_rtf_vs_1_at_least_0.25"]["1"]
     assert g["robots"] == 2 and g["rtf_vs_1"] == two["rtf_vs_1"] and g["met"] == (two["rtf_vs_1"] >= 0.25)
+    assert math.isclose(two["added_robot_cost_vs_first"], one["rtf"] / two["rtf"] - 1)
+    f = res["goal_fleet"]
+    assert f["robots"] == 2 and f["rtf"] == two["rtf"] and f["rtf_met"] == (two["rtf"] >= f["rtf_goal"])
+    assert f["added_cost_met"] == (two["added_robot_cost_vs_first"] <= 0.5)
 
 
 def test_a_bad_fleet_field_is_one_line() -> None:
