@@ -20,6 +20,7 @@ What the base does once for all:
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 import os
@@ -66,8 +67,9 @@ class Publisher:
         # composed (hilsim.run.compose): also handed, unencoded, to the subscribers in this process
         self._local = getattr(self._pub, "deliver", None)
         # pay only for what is consumed: encoded and put only while a subscriber anywhere matches
-        # (Zenoh's matching status; one that appears mid-run, e.g. a ROS 2 node, turns it on at once).
-        # A latched sample is kept for later subscribers, so it is always put.
+        # (Zenoh's matching status; one that appears mid-run, e.g. a ROS 2 node, turns it on at once;
+        # composed, the process's publisher for the outside keeps its own: ``remote``). A latched
+        # sample is kept for later subscribers, so it is always put.
         self.matching = True
         self._matching = None
         if not latched and self._local is None and isinstance(self._pub, zenoh.Publisher):
@@ -85,14 +87,13 @@ class Publisher:
     def put(self, msg: Any) -> None:
         # one at a time: a key written from two threads (logs, health) must still reach receivers
         # with growing sequence numbers, or they reject one sample as a duplicate or out of order
+        # Not matched: counted as published all the same (a subscriber that comes later starts at a
+        # later sequence number), neither encoded nor put.
         if self._local is None:
-            if not self.matching:  # counted as published; a subscriber that comes later starts at a later number
-                with self._lock:
-                    self.seq += 1
-            else:
-                data = msgs.encode(msg)
-                with self._lock:
-                    self.seq += 1
+            data = msgs.encode(msg) if self.matching else None
+            with self._lock:
+                self.seq += 1
+                if data is not None:
                     self._pub.put(data, attachment=transport.attachment_bytes(self.seq, self.gid))
         else:
             with self._lock:
@@ -106,7 +107,8 @@ class Publisher:
     def undeclare(self) -> None:
         self._token.undeclare()
         if self._matching is not None:
-            self._matching.undeclare()
+            with contextlib.suppress(zenoh.ZError):  # gone with its session already
+                self._matching.undeclare()
         self._pub.undeclare()
 
 
