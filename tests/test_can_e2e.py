@@ -24,7 +24,7 @@ import can
 import numpy as np
 import pytest
 import zenoh
-from util import LEAN, finish, network_namespace, up
+from util import LEAN, finish, network_namespace, until_ready, up
 
 from hilsim.bridges.can_bus import BusConfig, resolve_bus
 from hilsim.bridges.can_profiles import Estimate, FrameError, Heartbeat, make_profile
@@ -96,15 +96,6 @@ def observed(router: str) -> Iterator[tuple[str, Observer]]:
     obs = Observer(router)
     yield router, obs
     obs.close()
-
-
-def until_ready(p: subprocess.Popen[str], lines: list[str]) -> str:
-    assert p.stdout is not None
-    for line in p.stdout:
-        lines.append(line)
-        if line.startswith("ready:"):
-            return line
-    raise AssertionError("".join(lines))
 
 
 def test_arm_reaches_its_targets_with_joint_1_on_a_can_drive(observed: tuple[str, Observer], tmp_path: Path) -> None:

@@ -15,7 +15,7 @@ from typing import Any
 
 import psutil
 import pytest
-from util import finish, up, wait_until
+from util import finish, until_ready, up, wait_until
 
 from hilsim.core.keys import Keys
 
@@ -34,14 +34,8 @@ def test_a_missed_target_exits_1_with_the_reason(tmp_path: Path) -> None:
 
 def _started(tmp_path: Path) -> tuple[subprocess.Popen[str], list[psutil.Process]]:
     p = up("arm", "--no-logger", "--out", str(tmp_path / "run"), "--set", "task.targets=[]")
-    assert p.stdout is not None
-    lines = []
-    for line in p.stdout:
-        lines.append(line)
-        if line.startswith("ready:"):
-            break
-    else:
-        raise AssertionError("".join(lines))
+    lines: list[str] = []
+    until_ready(p, lines)
     kids = psutil.Process(p.pid).children(recursive=True)
     assert len(kids) >= 4, kids  # physics, sensors, controller, planner
     return p, kids
@@ -150,11 +144,7 @@ def test_a_second_stop_signal_kills_every_service_at_once(tmp_path: Path, sig: s
                          start_new_session=True, env={**os.environ, "HILSIM_LOGGER_DELAY_US": "20000"})
     lines: list[str] = []
     try:
-        assert p.stdout is not None
-        for line in p.stdout:
-            lines.append(line)
-            if line.startswith("ready:"):
-                break
+        until_ready(p, lines)
         kids = psutil.Process(p.pid).children(recursive=True)
         assert len(kids) >= 5, (kids, lines)
         time.sleep(2.0)  # the recorder falls behind

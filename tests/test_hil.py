@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from util import LEAN, Observer, finish, up
+from util import LEAN, Observer, finish, until_ready, up
 
 from hilsim.core import transport
 from hilsim.core.scenario import load_scenario
@@ -67,11 +67,7 @@ def test_a_silent_joint_server_is_a_fault_not_a_hang(router: str, tmp_path: Path
            "--out", str(tmp_path / "run"))
     lines: list[str] = []
     try:
-        assert p.stdout is not None
-        for line in p.stdout:
-            lines.append(line)
-            if line.startswith("ready:"):
-                break
+        until_ready(p, lines)
         pid = int(lines[-1].split("motor-model (pid ")[1].split(")")[0])
         time.sleep(1.5)
         os.kill(pid, signal.SIGSTOP)

@@ -19,7 +19,6 @@ import json
 import math
 import os
 import re
-import shutil
 import signal
 import subprocess
 import sys
@@ -28,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from util import network_namespace
 
 from hilsim.bridges import ros2_dds
 from hilsim.core import msgs, transport
@@ -123,31 +123,14 @@ def netns() -> Iterator[str]:
     """A network namespace where whatever DDS does stays: ``lo``, and a stand-in for the machine's LAN
     interface (a veth pair inside the namespace, with an address and the multicast route, as eth0 has;
     IPv6 off so the kernel sends nothing of its own), on which nothing may be sent."""
-    if shutil.which("ip") is None or os.geteuid() != 0:
-        pytest.skip("ip netns unavailable (needs root and iproute2): DDS is tested only inside a namespace")
-    ns = f"hsdds{os.getpid() % 100000}"
-    try:
-        _ip("netns", "add", ns)
-    except subprocess.CalledProcessError as e:
-        pytest.skip(f"ip netns unavailable here: {e.stderr.strip()}")
-    try:
-        _ip("-n", ns, "link", "set", "lo", "up")
-        subprocess.run(["ip", "netns", "exec", ns, "sysctl", "-qw", "net.ipv6.conf.all.disable_ipv6=1"], check=True,
-                       timeout=20)
+    with network_namespace("dds", ipv6=False) as ns:
         _ip("-n", ns, "link", "add", LAN, "type", "veth", "peer", "name", "lan1")
         _ip("-n", ns, "addr", "add", "10.99.0.1/24", "dev", LAN)
         _ip("-n", ns, "link", "set", "lan1", "up")
         _ip("-n", ns, "link", "set", LAN, "up")
         _ip("-n", ns, "route", "add", "224.0.0.0/4", "dev", LAN)
         yield ns
-    finally:
-        for pid in _ip("netns", "pids", ns, check=False).stdout.split():
-            try:
-                os.kill(int(pid), signal.SIGKILL)
-            except (ProcessLookupError, ValueError):
-                pass
-        _ip("netns", "del", ns, check=False)
-        assert ns not in _ip("netns", "list", check=False).stdout
+    assert ns not in _ip("netns", "list", check=False).stdout
 
 
 @pytest.mark.e2e

@@ -160,6 +160,17 @@ def network_namespace(tag: str, *, ipv6: bool = True) -> Iterator[str]:
         ip("netns", "del", ns, check=False)
 
 
+def until_ready(p: subprocess.Popen[str], lines: list[str]) -> str:
+    """Read ``hilsim up``'s output into ``lines`` up to its ``ready:`` line (returned); fail with all it
+    printed if it ends before."""
+    assert p.stdout is not None
+    for line in p.stdout:
+        lines.append(line)
+        if line.startswith("ready:"):
+            return line
+    raise AssertionError("".join(lines))
+
+
 def finish(p: subprocess.Popen[str], timeout: float) -> str:
     """Wait for ``hilsim up`` to end; past ``timeout`` kill its process group and fail with
     everything it printed (a hang on a slow machine must say where it got to)."""
