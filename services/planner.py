@@ -1,8 +1,9 @@
 """Planner service: move goals → collision-free path (OMPL / improved RRT*) → ruckig trajectory → execution.
 
 Reads:
-- ``joint_states`` (sensor_msgs/JointState, 6 joints): sim time, the start state of a plan and
-  execution monitoring. Every ``planner.rate_hz`` step's joint state is a *decision tick*: goals
+- ``joint_states_throttle`` (sensor_msgs/JointState, 6 joints): the sensors' ``joint_states`` of
+  every ``planner.rate_hz`` step only, not all 1 kHz of them: sim time, the start state of a plan
+  and execution monitoring (in sim time, at ``planner.rate_hz``). Each is a *decision tick*: goals
   start there, and in lockstep mode the tick is acknowledged only once the trajectory is out
   (planning takes no sim time). Deciding on the joint state itself, not on the clock, means a
   plan always starts from the state of its own step: reproducible bit for bit. Physics waits for
@@ -156,7 +157,9 @@ class PlannerService(Service):
         self.pub_result = self.publisher(k.topic("planner/result"))
         self.pub_task_result = self.publisher(k.topic("task/result"))
         # its decision ticks: an error there would stop every goal and the task, so it ends the service
-        self.subscribe(k.topic("joint_states"), msgs.JointState, self.on_joint_states, n_joints=self.n, fatal=True)
+        # (joint_states_throttle: the sensors' joint_states of those steps only, not all 1 kHz of them)
+        self.subscribe(k.topic("joint_states_throttle"), msgs.JointState, self.on_joint_states,
+                       n_joints=self.n, fatal=True)
         self._controller_seen = False
         self._declared.append(self.session.liveliness().declare_subscriber(
             k.alive("controller"), self._on_controller, history=True))

@@ -6,8 +6,9 @@ Reads (``<prefix>/<robot>/…``):
   sensors (:mod:`hilsim.sim.sensing`, :mod:`hilsim.sim.sensors_mobile`);
   ``hw/<server>/joint_states`` (sensor_msgs/JointState) — joints served by external servers.
 Writes:
-  ``joint_states`` (encoders), ``imu``, ``scan`` (sensor_msgs/LaserScan), ``gps/fix``
-  (sensor_msgs/NavSatFix) — each stamped with the truth stamp, at the sensor's rate
+  ``joint_states`` (encoders), ``joint_states_throttle`` (the same messages of the planner's
+  decision steps only, ``planner.rate_hz``; in scenarios with a planner), ``imu``, ``scan``
+  (sensor_msgs/LaserScan), ``gps/fix`` (sensor_msgs/NavSatFix) — each stamped with the truth stamp, at the sensor's rate
   (the physics steps ``k`` with ``k % decimation == 0``). ``joint_states`` is *one* message with
   every joint: the simulated joints from the encoders, the external joints as their server last
   measured them (a real encoder needs no emulated noise), merged at each step;
@@ -73,6 +74,8 @@ class SensorService(Service):
         # external joints: their latest measurement (position, velocity, effort), by name
         self._external = bool(scenario.external_servers())
         self._measured: dict[str, tuple[float, float, float]] = {}
+        # the planner's ticks: joint_states of every planner_decimation-th step, on their own key
+        self._throttle: Publisher | None = None
 
     def setup(self) -> None:
         topics = {s.truth_topic: s.truth_type for s in self.sensors}
@@ -80,6 +83,8 @@ class SensorService(Service):
         for s in self.sensors:
             pub = self.publisher(self.keys.topic(s.output_topic)) if s.enabled else None
             self._by_truth[s.truth_topic].append((s, pub))
+            if pub is not None and s.output_topic == "joint_states" and "planner" in self.sc.services:
+                self._throttle = self.publisher(self.keys.topic("joint_states_throttle"))
         for topic, cls in topics.items():
             self.subscribe(self.keys.truth(topic), cls, self._make_handler(topic))
         if self._external:
@@ -109,6 +114,7 @@ class SensorService(Service):
         sensors = self._by_truth.get(topic, [])
         ack = topic == ACK_TRUTH and self.lockstep
         merge = bool(self._external)
+        throttle, dt_ns, dec = self._throttle, self.sc.dt_ns, self.sc.planner_decimation
 
         def handle(msg: Any, key: str) -> None:
             stamp = msgs.ns_of(msg.header.stamp)
@@ -121,6 +127,8 @@ class SensorService(Service):
                     if merge and s.output_topic == "joint_states":
                         self._merge_external(out)
                     pub.put(out)
+                    if throttle is not None and s.output_topic == "joint_states" and (stamp // dt_ns) % dec == 0:
+                        throttle.put(out)
             if ack:
                 self.ack(stamp)
 

@@ -574,6 +574,21 @@ def test_an_arm_run_bag_reads_back_and_matches_the_rrd(arm_run: tuple[Path, str]
                                                                      "/imu/truth/linear_acceleration/z")
 
 
+@pytest.mark.e2e
+def test_the_planner_ticks_are_the_joint_states_of_its_steps(arm_run: tuple[Path, str]) -> None:
+    """``joint_states_throttle`` (the planner's only input) carries exactly the sensors' joint states
+    of the planner's decision steps (every 10th at 100 Hz), not the 1 kHz stream."""
+    run, _ = arm_run
+    by_topic: dict[str, dict[int, Any]] = {"/arm/joint_states": {}, "/arm/joint_states_throttle": {}}
+    for topic, _, _, m in _rosbags_read(run / "bag"):
+        if topic in by_topic:
+            by_topic[topic][m.header.stamp.sec * 10**9 + m.header.stamp.nanosec] = _plain(m)
+    every, ticks = by_topic["/arm/joint_states"], by_topic["/arm/joint_states_throttle"]
+    due = {t for t in every if (t // 1_000_000) % 10 == 0}
+    assert len(every) > 900 and set(ticks) == due and len(ticks) == len(due) > 90, (len(every), sorted(ticks)[:5])
+    assert all(ticks[t] == every[t] for t in ticks)
+
+
 def _types(run: Path) -> list[str]:
     with Reader(run / "bag") as r:
         return [c.msgtype for c in r.connections]

@@ -286,7 +286,7 @@ def _crashing_services(fatal: bool, in_loop: bool = False) -> tuple[Any, Any, li
 @pytest.mark.parametrize("how", ["loop", "fatal handler", "handler"])
 def test_a_service_whose_loop_raises_is_a_fault_and_exits_1(how: str) -> None:
     """An exception in a service's loop (or in the handler of the subscription that is its loop: the
-    planner's decision ticks on joint_states) is a published fault and the service's end, exit code
+    planner's decision ticks on joint_states_throttle) is a published fault and the service's end, exit code
     1, which ends the run (test_a_service_that_raises_ends_the_run_non_zero); an exception in any
     other handler is a fault it survives."""
     import threading

@@ -1,6 +1,6 @@
 """The planner service over Zenoh, in lockstep, with the test playing physics and a perfect controller.
 
-The test publishes ``joint_states`` (and the clock) for each step, waits for the planner's
+The test publishes ``joint_states_throttle`` (and the clock) for each step, waits for the planner's
 ``sync/planner`` acknowledgement, and moves the joint state along the latest published trajectory.
 """
 
@@ -54,7 +54,7 @@ class FakeSim:
         self.trajs: list[msgs.JointTrajectory] = []
         self.acks: set[int] = set()
         self.cond = threading.Condition()
-        self.pub_js = session.declare_publisher(keys.topic("joint_states"))
+        self.pub_js = session.declare_publisher(keys.topic("joint_states_throttle"))  # the ticks: every step here
         self.pub_clock = session.declare_publisher(keys.clock)
         self.subs = [
             session.declare_subscriber(keys.sync("planner"), self._on_ack),

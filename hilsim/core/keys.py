@@ -33,6 +33,9 @@ DEFAULT_PREFIX = "hilsim"
 # topic -> message type. Topics are relative to <prefix>/<robot>/ unless listed in GLOBAL_TOPICS.
 TOPICS: dict[str, type] = {
     "joint_states": msgs.JointState,
+    # joint_states of the planner's decision steps only (planner.rate_hz), named as topic_tools'
+    # throttle names its output: the planner decides at 100 Hz and need not take 1 kHz
+    "joint_states_throttle": msgs.JointState,
     "joint_commands": msgs.JointState,
     "joint_trajectory": msgs.JointTrajectory,
     "controller/reference": msgs.JointState,
