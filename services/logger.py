@@ -1,8 +1,11 @@
 """The logger service: records every message of the simulation into a Rerun ``.rrd`` file and a
 rosbag2 bag (MCAP) of the raw samples.
 
-Reads: everything under ``<prefix>/`` (``logger.record`` key expressions, ``**`` by default),
-including each sample's attachment (sequence number and writer id, ``hilsim.core.transport``).
+Reads: every data key of the domain (``logger.record`` key expressions under ``<domain>/``, ``**`` by
+default), including each sample's attachment (sequence number and writer id, ``hilsim.core.transport``).
+With ``logger.batch`` > 0 instead: the services' batches and batching tokens
+(``<prefix>/batch/<domain>/<zid>/<node id>``, ``hilsim.core.batch``), the ROS 2 graph's publisher
+tokens (``@ros2_lv/<domain>/…/MP/…``), and key by key, the keys with a writer no batch covers.
 Writes: only its own health and log keys (``<prefix>/<robot>/health/logger``,
 ``<prefix>/<robot>/log/logger``), and files in the run directory (``logger.run_dir``, or
 ``<logger.out_dir>/<YYYYmmdd-HHMMSS>``):
@@ -17,8 +20,8 @@ Writes: only its own health and log keys (``<prefix>/<robot>/health/logger``,
 - ``record_summary.json`` ``{key: {received, recorded, bagged, rejected, lost, dropped, before_first,
   unannounced}}`` (``bagged``: messages of the key written to the bag, counted as the batches
   reached the file; ``unannounced``: samples from a writer that did not announce itself for the key,
-  recorded all the same; their sequence numbers are not ours to count losses by)
-  written at exit.
+  recorded all the same; their sequence numbers are not ours to count losses by; with batches also
+  ``duplicates``) written at exit.
 
 This module is the service's wiring: subscriptions, the queue, the worker thread, loss
 accounting, health and lifecycle. What is written for each kind of message (and the entity
@@ -42,6 +45,19 @@ values checked there (``RowWriter.raw``/``drain``). A payload that does not deco
 counts as recorded once its batch reached the file (the bag's chunk is written and flushed with the
 same batch, so a recorder killed with SIGKILL leaves both files holding the same samples up to its
 last flush; ``hilsim bag recover`` or ``hilsim up`` make the bag whole).
+
+Batches (``logger.batch`` > 0; docs/recording.md, "Batches"). The services do not put a sample on
+its key for the recorder: they append it to their batch, put on their batch key when full, when
+``logger.batch_max_age_ms`` old and at their stop. The recorder subscribes to the batch keys, and per
+key only to writers whose publisher token is not a batching node's (ROS 2 nodes, tools, bridges) or
+that are transient-local (a late-joiner subscription). Each sample unpacked from a batch goes through
+:meth:`_take` like one received on its key; since one can come both ways (a key written by a batching
+service and another writer, or a batching token seen after the node's publisher tokens), samples are
+taken once per (key, writer gid, sequence number) (:meth:`_sequence_once`; ``duplicates``). A frame
+that does not decode is recorded as a rejected sample of its key. Trade-offs: a writer without a
+publisher token on a key only batching services announce is not seen (consumers reject it anyway);
+a service killed with SIGKILL loses its unsent batch (at most ``batch_max_age_ms`` of samples), which
+no sequence gap shows.
 
 Losses. Lockstep: publishers block when the logger is slow (Zenoh congestion control BLOCK)
 and the queue is unbounded, so nothing is lost (``lost`` is 0; anything else is a fault).

@@ -149,7 +149,7 @@ def _finals(bag: dict[str, list[tuple[bytes | None, int, bytes]]], service: str,
     return values
 
 
-def _run(tmp_path: Path, name: str, batch_size: int, during: Any = None) -> dict[str, Any]:
+def _run(tmp_path: Path, name: str, batch_size: int, during: Any = None, compose: str | None = None) -> dict[str, Any]:
     ep = f"tcp/127.0.0.1:{transport.free_port()}"
     router = transport.open_router(ep)
     out = tmp_path / name
@@ -157,7 +157,7 @@ def _run(tmp_path: Path, name: str, batch_size: int, during: Any = None) -> dict
     extra: dict[str, Any] = {}
     try:
         p = up("arm", "--router", ep, "--duration", DURATION, "--seed", "7", "--out", str(out),
-               "--set", f"logger.batch={batch_size}")
+               "--set", f"logger.batch={batch_size}", *(["--compose", compose] if compose else []))
         try:
             until_ready(p, lines)
             if during is not None:
@@ -218,7 +218,10 @@ def _actors(ep: str) -> dict[str, Any]:
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[str, Any]]:
     tmp = tmp_path_factory.mktemp("batch")
-    return {"off": _run(tmp, "off", 0), "on": _run(tmp, "on", 256, _actors)}
+    return {"off": _run(tmp, "off", 0), "on": _run(tmp, "on", 256, _actors),
+            # composed apart from the recorder, its services batch for it; composed with it, only the planner
+            "composed": _run(tmp, "composed", 256, compose="physics,sensors,controller"),
+            "composed_recorder": _run(tmp, "composed_recorder", 256, compose="physics,sensors,controller,logger")}
 
 
 # keys whose samples depend on wall time (health figures, log lines) or on the test's own writers
@@ -259,6 +262,28 @@ def test_batches_record_what_samples_record(runs: dict[str, dict[str, Any]]) -> 
             key = k.removeprefix("published:")
             if k.startswith("published:") and "/health/" not in k and key != keys.tf:  # /tf: the node's too
                 assert on["summary"][key]["received"] == int(v), (service, key)
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize("run", ["composed", "composed_recorder"])
+def test_composed_runs_batch_the_same(runs: dict[str, dict[str, Any]], run: str) -> None:
+    """Composed apart from the recorder, the process's services send it batches; composed with it,
+    they hand it message objects and the planner, apart, sends batches: the same samples either way."""
+    off, got = runs["off"], runs[run]
+    for k, c in got["summary"].items():
+        assert c["received"] == c["recorded"] == c["bagged"] and c["lost"] == 0, (k, c)
+    sim_off, sim = _sim_keys(off["summary"]), _sim_keys(got["summary"]) | {Keys().tf}
+    assert sim_off <= sim, sim_off - sim
+    for k in sim_off:
+        assert len(got["bag"][k]) == len(off["bag"][k]), k
+    keys = Keys()
+    for k in (keys.clock, keys.topic("joint_states"), keys.truth("joint_states"), keys.topic("controller/reference"),
+              keys.sync("planner")):
+        assert [d for _, _, d in got["bag"][k]] == [d for _, _, d in off["bag"][k]], k
+    planner = _finals(got["bag"], "planner")
+    assert int(planner["batches"]) >= 1, planner  # the planner, in a process of its own, batches
+    controller = _finals(got["bag"], "controller")
+    assert ("batches" in controller) == (run == "composed"), controller
 
 
 @pytest.mark.e2e
