@@ -181,7 +181,24 @@ def _actors(ep: str) -> dict[str, Any]:
     ses = transport.open_session(ZenohConfig(connect=[ep]))
     got: list[float] = []
     lock = threading.Lock()
+    node = Ros2Node(ep, name="lab_node", namespace="/lab")
+    subs: list[Any] = []
 
+    def close() -> None:
+        for sub in subs:
+            sub.undeclare()
+        ses.close()
+        node.close()
+
+    try:
+        return _act(ses, node, subs, keys, got, lock) | {"close": close}
+    except BaseException:
+        close()  # no session may outlive the test, even a failing one
+        raise
+
+
+def _act(ses: zenoh.Session, node: Ros2Node, subs: list[Any], keys: Keys, got: list[float],
+         lock: threading.Lock) -> dict[str, Any]:
     def on_tf(s: zenoh.Sample) -> None:
         with lock:
             got.append(time.monotonic())
@@ -193,13 +210,13 @@ def _actors(ep: str) -> dict[str, Any]:
     assert wait_until(lambda: sim_ns[0] >= 500_000_000, 20), sim_ns
     clock.undeclare()
     t_sub = time.monotonic()
-    sub = ses.declare_subscriber(keys.tf, on_tf)
-    node = Ros2Node(ep, name="lab_node", namespace="/lab")
+    subs.append(ses.declare_subscriber(keys.tf, on_tf))
     chatter = node.publisher("/lab/chatter", "std_msgs/msg/String")
     chatter_pub = node._decl[-1]
     tf = node.publisher("/tf", "tf2_msgs/msg/TFMessage")
     # the recorder subscribes to the node's keys once it sees their publisher tokens
-    assert wait_until(lambda: chatter_pub.matching_status.matching, 10), "the recorder never subscribed /lab/chatter"
+    # (if it never does, the chatter test says so)
+    wait_until(lambda: chatter_pub.matching_status.matching, 10)
     time.sleep(0.5)  # /tf's token came with chatter's; give its subscription the same time
     for i in range(N_ROS):
         chatter(ros_msg("std_msgs/msg/String", data=f"hello {i}"))
@@ -207,12 +224,7 @@ def _actors(ep: str) -> dict[str, Any]:
     ses.put(keys.batch("feedbeef", 99), b"HSB\x01 not a batch at all")
     assert wait_until(lambda: len(got) > 0, 5)
 
-    def close() -> None:
-        sub.undeclare()
-        ses.close()
-        node.close()
-
-    return {"tf_first_s": got[0] - t_sub, "tf_got": got, "close": close}
+    return {"tf_first_s": got[0] - t_sub, "tf_got": got}
 
 
 @pytest.fixture(scope="module")
