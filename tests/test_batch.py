@@ -127,6 +127,16 @@ def test_a_sample_that_comes_twice_is_taken_once(scenario: Any, tmp_path: Path) 
     assert svc.before_first[key] == 2
 
 
+def test_batches_are_recorded_within_logger_record(scenario: Any, tmp_path: Path) -> None:
+    from hilsim.services.logger import LoggerService
+
+    svc = LoggerService(scenario("arm", {"logger.run_dir": str(tmp_path / "run"), "logger.batch": 8,
+                                         "logger.record": ["arm/**"]}))
+    keys = Keys()
+    assert svc._records_key(keys.topic("joint_states")) and svc._records_key(keys.health("physics"))
+    assert not svc._records_key(keys.clock) and not svc._records_key(keys.for_robot("arm2").topic("imu"))
+
+
 # ---------------------------------------------------------------------------------- real runs
 DURATION = "4"  # sim seconds: long enough for the mid-run actors below
 N_ROS = 20
