@@ -50,7 +50,8 @@ Batches (``logger.batch`` > 0; docs/recording.md, "Batches"). The services do no
 its key for the recorder: they append it to their batch, put on their batch key when full, when
 ``logger.batch_max_age_ms`` old and at their stop. The recorder subscribes to the batch keys, and per
 key only to writers whose publisher token is not a batching node's (ROS 2 nodes, tools, bridges) or
-that are transient-local (a late-joiner subscription). Each sample unpacked from a batch goes through
+that are transient-local (a late-joiner subscription, for a recorder restarted mid-run; batching
+services put their latched samples in the batch as well). Each sample unpacked from a batch goes through
 :meth:`_take` like one received on its key; since one can come both ways (a key written by a batching
 service and another writer, or a batching token seen after the node's publisher tokens), samples are
 taken once per (key, writer gid, sequence number) (:meth:`_sequence_once`; ``duplicates``). A frame

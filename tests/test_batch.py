@@ -264,13 +264,15 @@ def test_batches_record_what_samples_record(runs: dict[str, dict[str, Any]]) -> 
             assert c["lost"] == 0 and c["dropped"] == 0, (k, c)
         assert sum(len(v) for v in r["bag"].values()) == sum(c["bagged"] for c in r["summary"].values())
     sim_off, sim_on = _sim_keys(off["summary"]), _sim_keys(on["summary"])
-    # the latched keys (robot_description, tf_static): the batching recorder subscribes to them as a
-    # late joiner, so it has them even when their one sample went out before its subscription reached them
+    # the latched keys (robot_description, tf_static), sent once at start: in the batch too, so the
+    # batching recorder has them, once, even when their put went out before a subscription reached them
     assert sim_off <= sim_on and all("robot_description" in k or "tf_static" in k for k in sim_on - sim_off)
+    keys = Keys()
+    for k in (keys.topic("robot_description"), keys.tf_static):
+        assert on["summary"][k]["received"] == len(on["bag"][k]) == 1, (k, on["summary"].get(k))
     assert len(sim_off) >= 12, sim_off
     for k in sim_off:  # every sample; the same bytes where they hold no wall time (a plan's duration)
         assert len(on["bag"][k]) == len(off["bag"][k]) == on["summary"][k]["received"], k
-    keys = Keys()
     same = [keys.clock, keys.topic("joint_states"), keys.topic("joint_commands"), keys.topic("imu"),
             keys.truth("joint_states"), keys.truth("imu"), keys.topic("controller/reference"), keys.sync("planner")]
     for k in same:

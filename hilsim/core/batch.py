@@ -1,7 +1,7 @@
 """Batches for the recorder (``logger.batch``): a service's samples sent on one key, many at a time.
 
 When the run's recorder takes batches, every hilsim service (but the recorder) keeps a
-:class:`Batcher`: each sample a non-latched publisher of the service sends is appended to it, with
+:class:`Batcher`: each sample a publisher of the service sends is appended to it, with
 its key, sequence number, source time and writer gid (the attachment it would carry on its own
 key), and the batch is put on the service's batch key (``Keys.batch``:
 ``<prefix>/batch/<domain>/<zid>/<node id>``) once it holds ``logger.batch`` samples or its first

@@ -70,9 +70,12 @@ class Publisher:
         # only from announced writers (hilsim.core.provenance), and `ros2 topic list` sees it
         token = service.graph_token("MP", key, wire.QOS_LATCHED if latched else None)
         self.gid = wire.entity_gid(token)
-        # the recorder takes batches (logger.batch): every sample also goes to the service's batch;
-        # a latched one is put as before, for the recorder's late-joiner subscription to fetch
-        self._batch = None if latched else service.batcher
+        # the recorder takes batches (logger.batch): every sample also goes to the service's batch. A
+        # latched one is put as before too (always: it is kept for late subscribers); in the batch as
+        # well, because the recorder's late-joiner subscription, made when it sees the publisher's
+        # token, can miss it (seen: its query for the cache came before the put, the put before the
+        # subscription reached us); the recorder drops the second copy
+        self._batch = service.batcher
         self._bidx = self._batch.writer(key, self.gid) if self._batch is not None else 0
         # pay only for what is consumed: encoded and put only while a subscriber anywhere matches
         # (Zenoh's matching status; one that appears mid-run, e.g. a ROS 2 node, turns it on at once;
