@@ -15,7 +15,12 @@ What the base does once for all:
   once a second and at exit; warnings and errors also go to ``<prefix>/<robot>/log/<service>``;
 - a liveliness token ``<prefix>/<robot>/alive/<service>`` is declared once inputs exist,
   which is how ``hilsim up`` knows the service is ready;
-- SIGINT / SIGTERM end :meth:`loop`; everything declared is undeclared and the session closed.
+- when the run's recorder takes batches (``logger.batch``), every sample also goes into the
+  service's batch, sent on ``<prefix>/batch/<domain>/<zid>/<node id>`` (:mod:`hilsim.core.batch`; its
+  liveliness token of the same name is declared before any publisher), and is put on its own key
+  only while a subscriber matches it; health then says per key how many were put (``put:<key>``);
+- SIGINT / SIGTERM end :meth:`loop`; everything declared is undeclared and the session closed (the
+  last batch sent first).
 """
 
 from __future__ import annotations
