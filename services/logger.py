@@ -1,8 +1,11 @@
 """The logger service: records every message of the simulation into a Rerun ``.rrd`` file and a
 rosbag2 bag (MCAP) of the raw samples.
 
-Reads: everything under ``<prefix>/`` (``logger.record`` key expressions, ``**`` by default),
-including each sample's attachment (sequence number and writer id, ``hilsim.core.transport``).
+Reads: every data key of the domain (``logger.record`` key expressions under ``<domain>/``, ``**`` by
+default), including each sample's attachment (sequence number and writer id, ``hilsim.core.transport``).
+With ``logger.batch`` > 0 instead: the services' batches and batching tokens
+(``<prefix>/batch/<domain>/<zid>/<node id>``, ``hilsim.core.batch``), the ROS 2 graph's publisher
+tokens (``@ros2_lv/<domain>/…/MP/…``), and key by key, the keys with a writer no batch covers.
 Writes: only its own health and log keys (``<prefix>/<robot>/health/logger``,
 ``<prefix>/<robot>/log/logger``), and files in the run directory (``logger.run_dir``, or
 ``<logger.out_dir>/<YYYYmmdd-HHMMSS>``):
@@ -17,8 +20,8 @@ Writes: only its own health and log keys (``<prefix>/<robot>/health/logger``,
 - ``record_summary.json`` ``{key: {received, recorded, bagged, rejected, lost, dropped, before_first,
   unannounced}}`` (``bagged``: messages of the key written to the bag, counted as the batches
   reached the file; ``unannounced``: samples from a writer that did not announce itself for the key,
-  recorded all the same; their sequence numbers are not ours to count losses by)
-  written at exit.
+  recorded all the same; their sequence numbers are not ours to count losses by; with batches also
+  ``duplicates``) written at exit.
 
 This module is the service's wiring: subscriptions, the queue, the worker thread, loss
 accounting, health and lifecycle. What is written for each kind of message (and the entity
@@ -42,6 +45,20 @@ values checked there (``RowWriter.raw``/``drain``). A payload that does not deco
 counts as recorded once its batch reached the file (the bag's chunk is written and flushed with the
 same batch, so a recorder killed with SIGKILL leaves both files holding the same samples up to its
 last flush; ``hilsim bag recover`` or ``hilsim up`` make the bag whole).
+
+Batches (``logger.batch`` > 0; docs/recording.md, "Batches"). The services do not put a sample on
+its key for the recorder: they append it to their batch, put on their batch key when full, when
+``logger.batch_max_age_ms`` old and at their stop. The recorder subscribes to the batch keys, and per
+key only to writers whose publisher token is not a batching node's (ROS 2 nodes, tools, bridges) or
+that are transient-local (a late-joiner subscription, for a recorder restarted mid-run; batching
+services put their latched samples in the batch as well). Each sample unpacked from a batch goes through
+:meth:`_take` like one received on its key; since one can come both ways (a key written by a batching
+service and another writer, or a batching token seen after the node's publisher tokens), samples are
+taken once per (key, writer gid, sequence number) (:meth:`_sequence_once`; ``duplicates``). A frame
+that does not decode is recorded as a rejected sample of its key. Trade-offs: a writer without a
+publisher token on a key only batching services announce is not seen (consumers reject it anyway);
+a service killed with SIGKILL loses its unsent batch (at most ``batch_max_age_ms`` of samples), which
+no sequence gap shows.
 
 Losses. Lockstep: publishers block when the logger is slow (Zenoh congestion control BLOCK)
 and the queue is unbounded, so nothing is lost (``lost`` is 0; anything else is a fault).
@@ -75,12 +92,14 @@ from pathlib import Path
 from typing import Any
 
 import zenoh
+import zenoh.ext as zenoh_ext
 
-from hilsim.core import msgs, transport
+from hilsim.core import batch, msgs, transport
 from hilsim.core.config import Scenario
-from hilsim.core.keys import UnknownKey, message_type
+from hilsim.core.keys import Keys, UnknownKey, message_type
 from hilsim.core.recording import RECORDING_NAME, SUMMARY_NAME, disable_analytics, part_name
 from hilsim.core.restart import restarted
+from hilsim.core.ros2 import wire
 from hilsim.core.scenario import write_scenario
 from hilsim.core.service import LEVEL_WARN, Service
 
@@ -104,11 +123,13 @@ REALTIME_QUEUE_LIMIT = 50_000
 QUIET_S = 0.25
 DRAIN_LIMIT_S = 5.0
 DELAY_ENV = "HILSIM_LOGGER_DELAY_US"  # fault injection: slow the receive callback (µs per sample)
+MAX_HOLES = 10_000  # batching: holes kept per writer in its sequence numbers, to fill from the other way
 
 
 class LoggerService(Service):
     name = "logger"
     stop_rank = 100  # stopped last: it drains and closes the recording
+    records = True
 
     def __init__(self, scenario: Scenario) -> None:
         super().__init__(scenario)
@@ -150,6 +171,18 @@ class LoggerService(Service):
         self._finished = False
         self._closed = False  # set once the subscribers are gone: late samples are dropped
         self._last_arrival = 0.0  # time.monotonic() of the latest sample
+        # logger.batch: the services send batches; keys are subscribed one by one for the other writers
+        self.batching = scenario.logger.batch > 0
+        self.duplicates: Counter[str] = Counter()  # batching: samples that came both ways, taken once
+        self._holes: dict[tuple[str, bytes], list[list[int]]] = {}  # batching: (key, gid) -> [lo, hi, pre]
+        self._route_lock = threading.Lock()
+        self._batching_nodes: set[tuple[str, str]] = set()  # (zid, node id) of the batching services
+        self._plain: dict[str, dict[bytes, tuple[str, str]]] = {}  # key -> its non-batching writers' nodes
+        self._key_subs: dict[str, list[Any]] = {}  # key -> its own subscription (batching)
+        self._recorded_keys: dict[str, bool] = {}  # key -> whether logger.record covers it
+        self._record_exprs = [zenoh.KeyExpr(self.keys.scoped(e)) for e in scenario.logger.record]
+        self._malformed_warned = False
+        self._routes_closed = False
 
     # ------------------------------------------------------------------ setup
     def _choose_run_dir(self) -> Path:
@@ -204,11 +237,15 @@ class LoggerService(Service):
         # composed: samples of this process's own services never cross Zenoh (hilsim.run.compose)
         local = getattr(self.session, "local_subscriber", None)
         for expr in self.sc.logger.record:
-            subs = [self.session.declare_subscriber(self.keys.scoped(expr), self._on_sample)]
+            subs = []
+            if not self.batching:
+                subs.append(self.session.declare_subscriber(self.keys.scoped(expr), self._on_sample))
             if local is not None:
                 subs.append(local(self.keys.scoped(expr), self._on_local))
             self._subs.extend(subs)
             self._declared.extend(subs)
+        if self.batching:
+            self._take_batches()
         limit = f"queue limit {self.queue_limit}" if self.queue_limit else "unbounded queue"
         self.log.info(
             "recording %s to %s (clock %s, %s)",
@@ -257,6 +294,101 @@ class LoggerService(Service):
             self.warn(f"world geometry of {self.sc.world.model} not recorded: {type(e).__name__}: {e}")
             return None
 
+    # ------------------------------------------------------------------ batches (logger.batch)
+    def _take_batches(self) -> None:
+        """Subscribe to the services' batches, and to each key that has a writer no batch covers: the
+        ROS 2 graph's publisher tokens say who writes what (hilsim.core.provenance), the batching
+        services' tokens (``Keys.batch``) which nodes batch. The batching tokens first, with their
+        history, so that at start-up the writers of those nodes are known as covered."""
+        assert self.session is not None
+        sub = self.session.declare_subscriber(self.keys.all_batches, self._on_batch)
+        self._subs.append(sub)
+        self._declared.append(sub)
+        live = self.session.liveliness()
+        self._declared.append(live.declare_subscriber(self.keys.all_batches, self._on_batch_token, history=True))
+        self._declared.append(live.declare_subscriber(self.keys.all_writers, self._on_writer_token, history=True))
+
+    def _records_key(self, key: str) -> bool:
+        got = self._recorded_keys.get(key)
+        if got is None:
+            try:
+                ke = zenoh.KeyExpr(key)
+                got = any(e.intersects(ke) for e in self._record_exprs)
+            except zenoh.ZError:
+                got = False
+            self._recorded_keys[key] = got
+        return got
+
+    def _on_batch_token(self, sample: zenoh.Sample) -> None:
+        node = Keys.batch_node(str(sample.key_expr))
+        if node is None:
+            return
+        with self._route_lock:
+            if sample.kind != zenoh.SampleKind.PUT:
+                self._batching_nodes.discard(node)
+                return
+            self._batching_nodes.add(node)
+            # its publishers seen before its token (a race): their keys need no subscription of ours
+            # unless another writer does (the batch brings what the subscription did, duplicates dropped)
+            for key, writers in list(self._plain.items()):
+                for gid in [g for g, n in writers.items() if n == node]:
+                    del writers[gid]
+                if not writers:
+                    del self._plain[key]
+                    for d in self._key_subs.pop(key, []):
+                        try:
+                            d.undeclare()
+                        except zenoh.ZError:
+                            pass
+
+    def _on_writer_token(self, sample: zenoh.Sample) -> None:
+        key_expr = str(sample.key_expr)
+        if "/MP/" not in key_expr:
+            return
+        try:
+            tok = wire.parse_token(key_expr)
+        except ValueError:
+            return
+        if tok.topic is None or tok.dds_type is None or tok.type_hash is None:
+            return
+        key = wire.topic_key(tok.domain, tok.topic, tok.dds_type, tok.type_hash)
+        if sample.kind != zenoh.SampleKind.PUT or not self._records_key(key):
+            return  # a writer gone: its key's subscription stays (its last samples may be in flight)
+        latched = tok.qos is not None and tok.qos.durability == wire.Durability.TRANSIENT_LOCAL
+        node = (tok.zid, tok.node_id)
+        if getattr(self.session, "local_subscriber", None) is not None and tok.zid == self._zid:
+            return  # composed: this process's own services, taken as message objects
+        with self._route_lock:
+            if self._routes_closed or (node in self._batching_nodes and not latched):
+                return
+            self._plain.setdefault(key, {})[tok.gid] = node
+            if key not in self._key_subs:
+                self._key_subs[key] = [self._subscribe_key(key, latched)]
+
+    def _subscribe_key(self, key: str, latched: bool) -> Any:
+        assert self.session is not None
+        real = self.session if isinstance(self.session, zenoh.Session) else getattr(self.session, "session", None)
+        if latched and isinstance(real, zenoh.Session):
+            # transient-local, as rmw_zenoh subscribes: the publisher's cache gives what it sent before
+            return zenoh_ext.declare_advanced_subscriber(
+                real, key, self._on_sample, history=zenoh_ext.HistoryConfig(detect_late_publishers=True))
+        return self.session.declare_subscriber(key, self._on_sample)
+
+    def _on_batch(self, sample: zenoh.Sample) -> None:
+        raw = sample.payload.to_bytes()
+        try:
+            records = batch.decode(raw)
+        except batch.BatchError as e:
+            # recorded as a rejected sample of the batch key (bag and rows), and the recording goes on
+            if not self._malformed_warned:
+                self._malformed_warned = True
+                self.warn(f"malformed batch on {sample.key_expr}: {e} (further ones are only counted)")
+            self._take(str(sample.key_expr), None, raw)
+            return
+        for r in records:
+            if self._records_key(r.key):
+                self._take(r.key, transport.Attachment(r.seq, r.source_ns, r.gid), r.payload)
+
     # ------------------------------------------------------------------ receiving (Zenoh thread)
     def _on_sample(self, sample: zenoh.Sample) -> None:
         # Only queue: decoding here would slow Zenoh's delivery to every other subscriber.
@@ -276,7 +408,11 @@ class LoggerService(Service):
         with self.lock:
             prov = self.provenance
             if att is not None and (k not in prov.restricted or att.gid in prov.writers.get(k, ())):
-                self._sequence(k, att)
+                if not self.batching:
+                    self._sequence(k, att)
+                elif not self._sequence_once(k, att):
+                    self.duplicates[k] += 1  # it came both in a batch and on its key: taken once
+                    return
             elif k in prov.restricted:
                 # recorded like everything received, but a stranger's gaps are no loss of ours
                 self.unannounced[k] += 1
@@ -300,6 +436,38 @@ class LoggerService(Service):
             # older than the newest of its writer (Zenoh keeps one writer's order, so not
             # expected): it fills a gap counted before
             self.gaps[key] -= 1
+
+    def _sequence_once(self, key: str, att: transport.Attachment) -> bool:
+        """As :meth:`_sequence`, for samples that may come twice (in a batch and on their key, in any
+        order): False for one already taken. Kept per writer: the newest sequence number and the
+        holes below it, as [lo, hi, pre] (pre: before the first sample taken, not a loss)."""
+        w = (key, att.gid)
+        seq = att.seq
+        last = self._last_seq.get(w)
+        if last is None:
+            self.before_first[key] += max(seq - 1, 0)
+            self._last_seq[w] = seq
+            self._holes[w] = [[1, seq - 1, 1]] if seq > 1 else []
+            return True
+        if seq > last:
+            if seq > last + 1:
+                self.gaps[key] += seq - last - 1
+                holes = self._holes[w]
+                holes.append([last + 1, seq - 1, 0])
+                if len(holes) > MAX_HOLES:  # a long lossy realtime run: the oldest stay lost for good
+                    del holes[0]
+            self._last_seq[w] = seq
+            return True
+        holes = self._holes[w]
+        for i, (lo, hi, pre) in enumerate(holes):
+            if lo <= seq <= hi:  # fills a hole: one less lost (or published before the first)
+                holes[i:i + 1] = [h for h in ([lo, seq - 1, pre], [seq + 1, hi, pre]) if h[0] <= h[1]]
+                if pre:
+                    self.before_first[key] -= 1
+                else:
+                    self.gaps[key] -= 1
+                return True
+        return False
 
     def lost(self) -> Counter[str]:
         """Samples lost per key: gaps in the sequence numbers plus drops at the full queue."""
@@ -422,6 +590,8 @@ class LoggerService(Service):
             "recorded": sum(self.recorded.values()),
             "lost": sum(lost.values()),
             "dropped": sum(self.dropped.values()),
+            **({"duplicates": sum(self.duplicates.values()), "key_subscriptions": len(self._key_subs)}
+               if self.batching else {}),
             "rrd": str(self.rrd_path),
             **({"bagged": sum(self.bagged.values()), "bag": str(self.bag.path)} if self.bag is not None else {}),
             **{f"lost:{k}": v for k, v in sorted(lost.items())},
@@ -443,7 +613,11 @@ class LoggerService(Service):
             return
         self._finished = True
         self._await_quiet()
-        for sub in self._subs:
+        with self._route_lock:  # no key subscription declared after this
+            self._routes_closed = True
+            key_subs = [d for ds in self._key_subs.values() for d in ds]
+            self._key_subs.clear()
+        for sub in [*self._subs, *key_subs]:
             try:
                 sub.undeclare()
             except zenoh.ZError:
@@ -493,6 +667,7 @@ class LoggerService(Service):
             bagged = Counter(self.bagged)
             dropped, before = Counter(self.dropped), Counter(self.before_first)
             unannounced = Counter(self.unannounced)
+            duplicates = Counter(self.duplicates)
         lost = self.lost()
         keys = sorted(set(received) | set(recorded) | set(lost))
         summary = {
@@ -505,6 +680,7 @@ class LoggerService(Service):
                 "dropped": dropped[k],
                 "before_first": before[k],
                 "unannounced": unannounced[k],
+                **({"duplicates": duplicates[k]} if self.batching else {}),
             }
             for k in keys
         }

@@ -55,15 +55,18 @@ def test_bench_loop_measures_every_figure_it_prints(tmp_path: Path) -> None:
     import sys
 
     r = subprocess.run([sys.executable, "-m", "hilsim.cli", "bench", "loop", "--sim-seconds", "0.3",
-                        "--realtime-seconds", "0", "--json"], capture_output=True, text=True, timeout=300)
+                        "--realtime-seconds", "0", "--json"], capture_output=True, text=True, timeout=480)
     assert r.returncode == 0, r.stderr[-2000:]
     res = json.loads(r.stdout)
     for k in ("bare", "in_process", "distributed", "distributed_lag1", "composed", "composed_lag1",
-              "composed_recorder"):
+              "composed_recorder", "distributed_batch", "distributed_lag1_batch", "composed_batch",
+              "composed_recorder_batch"):
         assert math.isfinite(res[f"{k}_rtf"]) and res[f"{k}_rtf"] > 0.01, (k, res)
     assert res["ring_round_us"] > 5.0
     dist, comp = res["distributed_cpu_us_per_step"], res["composed_cpu_us_per_step"]
     assert {"physics", "sensors", "controller", "planner", "logger"} <= set(dist), dist
+    for k in ("distributed_batch", "distributed_lag1_batch"):
+        assert set(res[f"{k}_cpu_us_per_step"]) == set(dist), res
     assert {"physics+sensors+controller", "planner", "logger"} <= set(comp), comp
     assert all(v > 1.0 for n, v in {**dist, **comp}.items() if n != "router+launcher"), (dist, comp)
     assert res["distributed_cpu_floor_us"] == sum(dist.values()) / res["cores"]

@@ -30,7 +30,7 @@ LAYERS: list[list[str]] = [
 ]
 # inside the core, bottom to top: a module imports only modules listed before it
 CORE_ORDER = ["msgs", "ros2", "geometry", "recording", "inproc", "fleet", "keys", "config", "registry",
-              "scenario", "restart", "transport", "provenance", "service"]
+              "scenario", "restart", "transport", "provenance", "batch", "service"]
 
 
 def module_name(path: Path) -> str:

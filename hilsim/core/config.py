@@ -199,6 +199,11 @@ class LoggerConfig(_Model):
                               description="key expressions under <domain id>/, e.g. arm/** (hilsim.core.keys)")
     bag: bool = Field(True, description="also write <run dir>/bag/, a rosbag2 bag (MCAP) of every sample's raw CDR "
                       "(docs/recording.md)")
+    batch: int = Field(0, ge=0, le=65535, description="samples per batch the run's services send the recorder on one "
+                       "key each instead of every sample on its own key (0: off, the recorder subscribes to every key; "
+                       "docs/recording.md)")
+    batch_max_age_ms: float = Field(50.0, gt=0, le=10_000, description="a batch not full is sent when its first "
+                                    "sample is this old (wall ms), so a slow key's samples do not wait")
 
 
 class Ros2Config(_Model):

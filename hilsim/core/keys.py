@@ -237,6 +237,26 @@ class Keys:
     def all_alive(self) -> str:
         return f"{self.prefix}/{self.robot}/alive/*"
 
+    def batch(self, zid: str, node_id: int | str) -> str:
+        """The key on which the ROS 2 node ``node_id`` of Zenoh session ``zid`` (a hilsim service) sends
+        the recorder its samples in batches (``logger.batch``, :mod:`hilsim.core.batch`); the same key
+        is its liveliness token, which tells the recorder that this node's publishers need no
+        subscription of their own. Under the prefix, not the domain: no ROS 2 tool takes it for a topic."""
+        return f"{self.prefix}/batch/{self.domain}/{zid}/{node_id}"
+
+    @property
+    def all_batches(self) -> str:
+        """Every batch key (and batching node's token) of the domain, all robots."""
+        return f"{self.prefix}/batch/{self.domain}/*/*"
+
+    @staticmethod
+    def batch_node(key: str) -> tuple[str, str] | None:
+        """(zid, node id) of a batch key or token (:meth:`batch`); None for any other key."""
+        parts = key.split("/")
+        if len(parts) < 5 or parts[-4] != "batch":
+            return None
+        return parts[-2], parts[-1]
+
     # ---------------------------------------------------------- the ROS 2 graph
     @property
     def all_writers(self) -> str:

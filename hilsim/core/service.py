@@ -15,7 +15,12 @@ What the base does once for all:
   once a second and at exit; warnings and errors also go to ``<prefix>/<robot>/log/<service>``;
 - a liveliness token ``<prefix>/<robot>/alive/<service>`` is declared once inputs exist,
   which is how ``hilsim up`` knows the service is ready;
-- SIGINT / SIGTERM end :meth:`loop`; everything declared is undeclared and the session closed.
+- when the run's recorder takes batches (``logger.batch``), every sample also goes into the
+  service's batch, sent on ``<prefix>/batch/<domain>/<zid>/<node id>`` (:mod:`hilsim.core.batch`; its
+  liveliness token of the same name is declared before any publisher), and is put on its own key
+  only while a subscriber matches it; health then says per key how many were put (``put:<key>``);
+- SIGINT / SIGTERM end :meth:`loop`; everything declared is undeclared and the session closed (the
+  last batch sent first).
 """
 
 from __future__ import annotations
@@ -35,7 +40,7 @@ from typing import Any, ClassVar, TypeVar
 import zenoh
 from pydantic import BaseModel, ValidationError
 
-from hilsim.core import msgs, transport
+from hilsim.core import batch, msgs, transport
 from hilsim.core.config import ConfigError, Scenario, format_error
 from hilsim.core.fleet import split_id
 from hilsim.core.keys import Keys
@@ -66,6 +71,17 @@ class Publisher:
         self._lock = threading.Lock()
         # composed (hilsim.run.compose): also handed, unencoded, to the subscribers in this process
         self._local = getattr(self._pub, "deliver", None)
+        # announce as a ROS 2 publisher does (its gid is its token's hash): receivers accept this key
+        # only from announced writers (hilsim.core.provenance), and `ros2 topic list` sees it
+        token = service.graph_token("MP", key, wire.QOS_LATCHED if latched else None)
+        self.gid = wire.entity_gid(token)
+        # the recorder takes batches (logger.batch): every sample also goes to the service's batch. A
+        # latched one is put as before too (always: it is kept for late subscribers); in the batch as
+        # well, because the recorder's late-joiner subscription, made when it sees the publisher's
+        # token, can miss it (seen: its query for the cache came before the put, the put before the
+        # subscription reached us); the recorder drops the second copy
+        self._batch = service.batcher
+        self._bidx = self._batch.writer(key, self.gid) if self._batch is not None else 0
         # pay only for what is consumed: encoded and put only while a subscriber anywhere matches
         # (Zenoh's matching status; one that appears mid-run, e.g. a ROS 2 node, turns it on at once;
         # composed, the process's publisher for the outside keeps its own: ``remote``). A latched
@@ -75,16 +91,15 @@ class Publisher:
         if not latched and self._local is None and isinstance(self._pub, zenoh.Publisher):
             self.matching = self._pub.matching_status.matching
             self._matching = self._pub.declare_matching_listener(self._on_matching)
-        # announce as a ROS 2 publisher does (its gid is its token's hash): receivers accept this key
-        # only from announced writers (hilsim.core.provenance), and `ros2 topic list` sees it
-        token = service.graph_token("MP", key, wire.QOS_LATCHED if latched else None)
-        self.gid = wire.entity_gid(token)
         self._token = service.session.liveliness().declare_token(token)
 
     def _on_matching(self, status: Any) -> None:
         self.matching = bool(status.matching)
 
     def put(self, msg: Any) -> None:
+        if self._batch is not None:
+            self._put_batched(msg)
+            return
         # one at a time: a key written from two threads (logs, health) must still reach receivers
         # with growing sequence numbers, or they reject one sample as a duplicate or out of order
         # Not matched: counted as published all the same (a subscriber that comes later starts at a
@@ -103,6 +118,34 @@ class Publisher:
                 if self._pub.remote:  # encoded only while a subscriber outside the process exists
                     self._pub.put(msgs.encode(msg), attachment=att.encode())
         self._svc.counts_out[self.key] += 1
+
+    def _put_batched(self, msg: Any) -> None:
+        # Encoded once, for the batch (the recorder) and, only while some other subscriber matches
+        # (the recorder does not subscribe to this key now), for the key itself: a key only the
+        # recorder reads costs an append, not a put. Sequence numbers and source times are the same
+        # on both ways, so the recorder drops one it gets twice (a subscriber appearing, a race).
+        b = self._batch
+        assert b is not None
+        svc = self._svc
+        with self._lock:
+            self.seq += 1
+            t_ns = time.time_ns()
+            if self._local is None:
+                data = msgs.encode(msg)
+                if self.matching:
+                    self._pub.put(data, attachment=transport.Attachment(self.seq, t_ns, self.gid).encode())
+                    svc.counts_put[self.key] += 1
+            else:
+                att = transport.Attachment(self.seq, t_ns, self.gid)
+                self._local(msg, att)
+                data = msgs.encode(msg)
+                if self._pub.remote:
+                    self._pub.put(data, attachment=att.encode())
+                    svc.counts_put[self.key] += 1
+            full = b.add(self._bidx, self.seq, t_ns, data)
+        if full:  # sent outside our lock: another publisher of the service may be adding meanwhile
+            b.flush()
+        svc.counts_out[self.key] += 1
 
     def undeclare(self) -> None:
         self._token.undeclare()
@@ -177,6 +220,8 @@ class Service:
 
     name: ClassVar[str] = "service"
     stop_rank: ClassVar[int] = 50
+    # the recorder: it takes the others' batches and never batches itself (logger.batch)
+    records: ClassVar[bool] = False
     # how a lockstep participant acknowledges a step: "sync" (a Clock on sync/<name>) or a topic
     # it publishes exactly once per step anyway (the controller: joint_commands)
     ack_via: ClassVar[str] = "sync"
@@ -219,6 +264,8 @@ class Service:
         self.counts_out: Counter[str] = Counter()
         self.rejected: Counter[str] = Counter()
         self.stale: Counter[str] = Counter()  # realtime: samples dropped as older than clock.max_age
+        self.counts_put: Counter[str] = Counter()  # batching: samples also put on their own key, per key
+        self.batcher: batch.Batcher | None = None  # the recorder takes batches (logger.batch)
         self.seq_gaps: Counter[str] = Counter()  # samples missing from a writer's sequence, per key
         self.provenance = Provenance()
         self.errors = 0
@@ -271,6 +318,27 @@ class Service:
         self._node_id = next(_ENTITY_IDS)
         self._declared.append(session.liveliness().declare_token(wire.node_token(
             self.keys.domain, self._zid, self._node_id, self.sc.ros2.enclave, self.keys.namespace, self.node_name)))
+        if self._takes_batches(session):
+            # before any publisher announces itself: the recorder learns this node batches first
+            # (a race would only cost it a subscription it drops again, and duplicates it drops)
+            key = self.keys.batch(self._zid, self._node_id)
+            pub = transport.publisher(session, key, drop_when_congested=self.sc.clock.mode == "realtime")
+            token = session.liveliness().declare_token(key)
+            lc = self.sc.logger
+            self.batcher = batch.Batcher(pub, token, lc.batch, lc.batch_max_age_ms / 1000.0)
+            self._declared.append(self.batcher)
+
+    def _takes_batches(self, session: Any) -> bool:
+        """Whether this service sends the recorder batches: the run has a recorder with ``logger.batch``
+        on, this is not it, and it is not composed with it (hilsim.run.compose: the recorder then
+        takes this process's messages as objects); never on an in-process bus (no recorder there)."""
+        lc = self.sc.logger
+        if self.records or not (lc.enabled and lc.batch > 0 and "logger" in self.sc.services):
+            return False
+        if getattr(session, "recorder_inside", False):
+            return False
+        real = session if isinstance(session, zenoh.Session) else getattr(session, "session", None)
+        return isinstance(real, zenoh.Session)
 
     # ------------------------------------------------------------------ declarations
     def publisher(self, key: str, *, latched: bool = False) -> Publisher:
@@ -535,6 +603,10 @@ class Service:
         values.update({f"seq_gaps:{k}": v for k, v in self.seq_gaps.items()})
         # per key, how many samples this service has sent: what a recorder can be checked against
         values.update({f"published:{k}": v for k, v in self.counts_out.items()})
+        if self.batcher is not None:  # batching: of those, how many also went out on the key itself
+            values["batches"] = self.batcher.batches
+            values["batched"] = self.batcher.samples
+            values.update({f"put:{k}": self.counts_put[k] for k in self.counts_out})
         st = msgs.DiagnosticStatus(
             level=level,
             name=self.name,
@@ -651,6 +723,12 @@ class Service:
             try:
                 self.teardown()
             finally:
+                if self.batcher is not None:
+                    # the last batch (final health among it) before any publisher or token goes
+                    try:
+                        self.batcher.flush()
+                    except Exception as e:
+                        self.log.warning("last batch not sent: %s", e)
                 for d in reversed(self._declared):
                     try:
                         d.undeclare()

@@ -90,6 +90,9 @@ class ComposedSession:
         self._queue: queue.SimpleQueue[tuple[str, Any, transport.Attachment] | None] = queue.SimpleQueue()
         self._lock = threading.Lock()
         self.delivered = 0
+        # the recorder is one of this process's services: the others then send it no batches
+        # (logger.batch), it takes their messages as objects
+        self.recorder_inside = False
         self._thread = threading.Thread(target=self._dispatch, daemon=True, name="compose-dispatch")
         self._thread.start()
 
@@ -162,6 +165,7 @@ def run(names: list[str], sc: Any) -> int:
         log.error("%s", e)
         return 2
     cs = ComposedSession(real)
+    cs.recorder_inside = any(getattr(s, "records", False) for s in services)
     rcs: dict[str, int] = {}
     threads: list[threading.Thread] = []
     for s in order:

@@ -9,7 +9,10 @@ holding position under 1 kHz PID control with its sensors:
 - ``composed``: ``hilsim up arm --compose physics,sensors,controller`` — those three in one
   process (:mod:`hilsim.run.compose`), planner and logger separate, recording everything;
 - ``distributed_lag1``, ``composed_lag1``: the same with ``clock.controller_lag: 1`` (the pipelined
-  lockstep: the controller's command acts one step after the measurement it answers).
+  lockstep: the controller's command acts one step after the measurement it answers);
+- ``distributed_batch``, ``distributed_lag1_batch``, ``composed_batch``, ``composed_recorder_batch``: those
+  with the recorder taking batches (``logger.batch``: ``BATCH`` samples per batch; docs/recording.md),
+  the distributed ones with their CPU per step and process too.
 Ratios are distributed / in_process and distributed / bare: compare ratios, not absolute times.
 
 ``ring``: a bare zenoh-python ring of three processes (:mod:`hilsim.tools.ring`), the transport floor
@@ -40,6 +43,8 @@ import psutil
 from hilsim.core.config import Scenario
 from hilsim.core.scenario import load_scenario
 from hilsim.tools import progress
+
+BATCH = 256  # logger.batch of the *_batch pipelines
 
 
 def _scenario(sim_seconds: float, **more: Any) -> Scenario:
@@ -134,28 +139,30 @@ def _launch(sc: Scenario, run_dir: Path, cpu: dict[str, float] | None = None) ->
     return la.outcome.health.get("physics", {})
 
 
-def bench_distributed(sim_seconds: float, tmp: Path, cpu: dict[str, float] | None = None, bag: bool = True) -> float:
-    """``hilsim up arm``; ``bag``: the recorder writes its bag too (``logger.bag``)."""
-    h = _launch(_scenario(sim_seconds, **{"logger.bag": bag}), tmp / ("distributed" if bag else "distributed-nobag"),
-                cpu)
+def bench_distributed(sim_seconds: float, tmp: Path, cpu: dict[str, float] | None = None, bag: bool = True,
+                      batch: int = 0) -> float:
+    """``hilsim up arm``; ``bag``: the recorder writes its bag too (``logger.bag``); ``batch``: ``logger.batch``."""
+    name = ("distributed" if bag else "distributed-nobag") + (f"-batch{batch}" if batch else "")
+    h = _launch(_scenario(sim_seconds, **{"logger.bag": bag, "logger.batch": batch}), tmp / name, cpu)
     return float(h["real_time_factor"])
 
 
 def bench_composed(sim_seconds: float, tmp: Path, with_recorder: bool = False,
-                   cpu: dict[str, float] | None = None, lag: int = 0) -> float:
+                   cpu: dict[str, float] | None = None, lag: int = 0, batch: int = 0) -> float:
     """Physics, sensors and controller in one process (hilsim.run.compose), the planner separate, recording
     everything; ``with_recorder``: the recorder in that process too (its samples never cross Zenoh);
-    ``lag``: ``clock.controller_lag``."""
+    ``lag``: ``clock.controller_lag``; ``batch``: ``logger.batch``."""
     group = ["physics", "sensors", "controller", *(["logger"] if with_recorder else [])]
-    h = _launch(_scenario(sim_seconds, compose=[group], **{"clock.controller_lag": lag}),
-                tmp / ("+".join(group) + f"-lag{lag}"), cpu)
+    h = _launch(_scenario(sim_seconds, compose=[group], **{"clock.controller_lag": lag, "logger.batch": batch}),
+                tmp / ("+".join(group) + f"-lag{lag}" + (f"-batch{batch}" if batch else "")), cpu)
     return float(h["real_time_factor"])
 
 
-def bench_pipelined(sim_seconds: float, tmp: Path, cpu: dict[str, float] | None = None) -> float:
+def bench_pipelined(sim_seconds: float, tmp: Path, cpu: dict[str, float] | None = None, batch: int = 0) -> float:
     """``hilsim up arm`` with ``clock.controller_lag: 1``: physics steps on while sensors and
-    controller work on the step before (the pipelined lockstep, docs/keys.md)."""
-    h = _launch(_scenario(sim_seconds, **{"clock.controller_lag": 1}), tmp / "distributed-lag1", cpu)
+    controller work on the step before (the pipelined lockstep, docs/keys.md); ``batch``: ``logger.batch``."""
+    h = _launch(_scenario(sim_seconds, **{"clock.controller_lag": 1, "logger.batch": batch}),
+                tmp / ("distributed-lag1" + (f"-batch{batch}" if batch else "")), cpu)
     return float(h["real_time_factor"])
 
 
@@ -242,6 +249,19 @@ def cmd_loop(args: argparse.Namespace) -> int:
         say("  composed with the recorder (physics, sensors, controller, logger in one process) …")
         res["composed_recorder_rtf"] = bench_composed(sim, Path(d), with_recorder=True)
         say(f"    {res['composed_recorder_rtf']:.2f}x real time")
+        say(f"  the same recording pipelines with the recorder taking batches (logger.batch {BATCH}) …")
+        cpu = {}
+        res["distributed_batch_rtf"] = bench_distributed(sim, Path(d), cpu, batch=BATCH)
+        res["distributed_batch_cpu_us_per_step"] = {n: 1e6 * s / steps for n, s in cpu.items()}
+        say(f"    distributed {res['distributed_batch_rtf']:.2f}x real time")
+        cpu = {}
+        res["distributed_lag1_batch_rtf"] = bench_pipelined(sim, Path(d), cpu, batch=BATCH)
+        res["distributed_lag1_batch_cpu_us_per_step"] = {n: 1e6 * s / steps for n, s in cpu.items()}
+        say(f"    distributed, pipelined {res['distributed_lag1_batch_rtf']:.2f}x real time")
+        res["composed_batch_rtf"] = bench_composed(sim, Path(d), batch=BATCH)
+        say(f"    composed {res['composed_batch_rtf']:.2f}x real time")
+        res["composed_recorder_batch_rtf"] = bench_composed(sim, Path(d), with_recorder=True, batch=BATCH)
+        say(f"    composed with the recorder {res['composed_recorder_batch_rtf']:.2f}x real time")
         if args.realtime_seconds > 0:
             say(f"  realtime mode for {args.realtime_seconds:g} s …")
             res["realtime"] = bench_realtime(args.realtime_seconds, Path(d))
@@ -266,7 +286,8 @@ def cmd_loop(args: argparse.Namespace) -> int:
     print("| pipeline | real-time factor | vs in-process | vs bare |")
     print("|---|---|---|---|")
     for k in ("bare", "in_process", "distributed", "distributed_lag1", "composed", "composed_lag1",
-              "composed_recorder"):
+              "composed_recorder", "distributed_batch", "distributed_lag1_batch", "composed_batch",
+              "composed_recorder_batch"):
         v = res[f"{k}_rtf"]
         print(f"| {k} | {v:.2f}x | {v / res['in_process_rtf']:.3f} | {v / res['bare_rtf']:.3f} |")
     fl = res["ring_round_us"] + step_us["in_process"]
@@ -276,6 +297,9 @@ def cmd_loop(args: argparse.Namespace) -> int:
     dist, comp = res["distributed_cpu_us_per_step"], res["composed_cpu_us_per_step"]
     print(f"distributed CPU per step, all processes: {sum(dist.values()):.0f} µs = "
           f"{res['distributed_cpu_floor_us']:.0f} µs of wall time on {cores} cores at the least ({_each(dist)})")
+    for k in ("distributed_lag1", "distributed_batch", "distributed_lag1_batch"):
+        each = res[f"{k}_cpu_us_per_step"]
+        print(f"{k} CPU per step, all processes: {sum(each.values()):.0f} µs ({_each(each)})")
     print(f"composed CPU per step, all processes: {sum(comp.values()):.0f} µs: at 10x real time that is "
           f"{res['composed_cores_at_10x']:.2f} cores of this machine's {cores} ({_each(comp)})")
     c = res["sample_cost_us"]
