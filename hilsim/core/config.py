@@ -217,6 +217,15 @@ class Ros2Config(_Model):
         return v
 
 
+class FleetConfig(_Model):
+    """How a fleet (``robots`` > 1) is computed (:mod:`hilsim.core.fleet`)."""
+
+    arrays: bool = Field(False, description="robots > 1: a process serving every robot's sensors or controller "
+                         "(sensors@*, controller@*) steps them as numpy arrays and trades one fleet-wide sample per "
+                         "step with physics (fleet/truth/joint_states, fleet/joint_states, fleet/joint_commands); "
+                         "the per-robot keys are still published for whoever subscribes")
+
+
 RestartPolicy = Literal["no", "on-failure"]
 
 
@@ -301,6 +310,7 @@ class Scenario(_Model):
     task: TaskConfig = Field(default_factory=TaskConfig)
     logger: LoggerConfig = Field(default_factory=LoggerConfig)
     ros2: Ros2Config = Field(default_factory=Ros2Config)
+    fleet: FleetConfig = Field(default_factory=FleetConfig)
     restart: RestartConfig = Field(default_factory=RestartConfig)
     source: Path | None = Field(None, exclude=True, description="file this came from")
     fleet_member: bool = Field(False, exclude=True, description="set by hilsim.core.fleet: one robot's view of a "

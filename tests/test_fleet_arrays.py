@@ -1,0 +1,118 @@
+"""Robots as arrays (``fleet.arrays``, hilsim.core.fleet): every robot's encoders and PID in one numpy step,
+one fleet-wide sample per step between physics, sensors and controller, the per-robot keys still there."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from test_scale import LEFT, _truth_of
+from util import finish, up
+
+from hilsim.core import transport
+from hilsim.core.config import PidGains
+from hilsim.core.keys import Keys
+from hilsim.sim import control
+
+ROBOTS = ["arm0", "arm1", "arm2"]
+
+
+class _Member:
+    """What FleetControllerService reads of a robot's controller: its PIDs, effort joints, gains version."""
+
+    def __init__(self, pids: list[control.Pid], effort: list[bool]) -> None:
+        self.pids, self.effort_joint, self.gains_version = pids, effort, 0
+
+
+def _driver(members: list[_Member], dt: float) -> object:
+    from hilsim.services.controller import FleetControllerService
+
+    d = object.__new__(FleetControllerService)  # the PID arrays alone: no session, no scenario needed
+    d.members, d.n_robots, d.n, d.dt = members, len(members), len(members[0].pids), dt
+    d.effort = np.array([m.effort_joint for m in members], bool)
+    d.integral = np.zeros((d.n_robots, d.n))
+    d._gains()
+    return d
+
+
+def test_the_pid_as_arrays_is_the_scalar_pid_bit_for_bit() -> None:
+    """Every branch of Pid.update (integral clamp, conditional integration at both limits, ki = 0, an
+    infinite i_limit, a position joint's 0, live gain changes) over many random steps: the arrays give
+    the very floats the per-joint PIDs give."""
+    rng = np.random.default_rng(3)
+    n_robots, n, dt = 4, 6, 1e-3
+    gains = [PidGains(kp=100.0, ki=5.0, kd=5.0, i_limit=2.0), PidGains(kp=32.8, ki=0.0, kd=5.6, i_limit=1.5),
+             PidGains(kp=85.3, ki=0.3159, kd=2.171, i_limit=float("inf"), feedforward=0.7),
+             PidGains(kp=5.9, ki=0.0064, kd=0.41, i_limit=0.4, output_limit=1.0),
+             PidGains(kp=5.2, ki=40.0, kd=0.75, i_limit=0.3), PidGains(kp=7.8, ki=0.0076, kd=0.86, i_limit=1.2)]
+    scalar = [[control.Pid(gains[(j + k) % n], -3.0, 3.0) for j in range(n)] for k in range(n_robots)]
+    effort = [[not (k == 2 and j == 4) for j in range(n)] for k in range(n_robots)]  # one position joint
+    members = [_Member([control.Pid(gains[(j + k) % n], -3.0, 3.0) for j in range(n)], effort[k])
+               for k in range(n_robots)]
+    d = _driver(members, dt)
+    saturated = 0
+    for step in range(3000):
+        if step == 1500:  # a live change: both sides as ControllerService.on_set_parameters does it
+            for pids in ([scalar[1][0]], [members[1].pids[0]]):
+                pids[0].set("ki", 0.0)
+            for pids in ([scalar[3][4]], [members[3].pids[4]]):
+                pids[0].set("i_limit", 0.05)
+            members[1].gains_version += 1
+            members[3].gains_version += 1
+        scale = 0.05 if step % 500 < 250 else 2.0  # small errors, then large ones that saturate
+        ref_pos, pos = rng.normal(0, scale, (n_robots, n)), rng.normal(0, scale, (n_robots, n))
+        ref_vel, vel = rng.normal(0, 1, (n_robots, n)), rng.normal(0, 1, (n_robots, n))
+        want = [[scalar[k][j].update(ref_pos[k, j], ref_vel[k, j], pos[k, j], vel[k, j], dt) if effort[k][j] else 0.0
+                 for j in range(n)] for k in range(n_robots)]
+        if [m.gains_version for m in members] != d._versions:
+            d._gains()
+        got = d.pid(ref_pos, ref_vel, pos, vel)
+        assert got.tolist() == want, step
+        saturated += int(np.sum(np.abs(got) == 3.0))
+    assert saturated > 100  # the limits, and so the conditional integration, were exercised
+    assert d.integral.tolist() == [[p.integral for p in pids] for pids in scalar]
+
+
+def _run(tmp: Path, name: str, *extra: str, robots: list[str] = ROBOTS,
+         fleet_commands: bool = True) -> dict[str, dict[int, list[float]]]:
+    """One lockstep run of len(robots) arms, 0.5 s, seed 7: every robot's physics truth by stamp; and
+    whether the fleet command (the arrays' path) carried the steps (``fleet_commands``) or not."""
+    ep = f"tcp/127.0.0.1:{transport.free_port()}"
+    router = transport.open_router(ep)
+    ses, subs, truth = _truth_of(ep, robots)
+    fleet = []
+    subs.append(ses.declare_subscriber(Keys("hilsim", "arm").fleet("joint_commands"), lambda s: fleet.append(1)))
+    try:
+        out = finish(up("arm", "--router", ep, "--set", f"robots={len(robots)}", "--set", f"task.targets=[{LEFT}]",
+                        "--duration", "0.5", "--seed", "7", "--no-logger", "--out", str(tmp / name), *extra), 240)
+    finally:
+        for s in subs:
+            s.undeclare()
+        ses.close()
+        router.close()
+    assert "result: STOPPED (duration)" in out, out
+    assert len(fleet) >= 490 if fleet_commands else not fleet, (name, len(fleet))
+    return {r: {t: q for t, _, q in truth[r]} for r in robots}
+
+
+def _same(a: dict[str, dict[int, list[float]]], b: dict[str, dict[int, list[float]]]) -> None:
+    for r in a:
+        common = sorted(set(a[r]) & set(b[r]))
+        assert len(common) >= 490, (r, len(common))
+        assert [a[r][t] for t in common] == [b[r][t] for t in common], r
+        first, last = a[r][common[0]], a[r][common[-1]]
+        assert max(abs(x - y) for x, y in zip(first, last, strict=True)) > 0.01, (r, first, last)  # it moved
+
+
+@pytest.mark.parametrize("lag", [1, 0])
+def test_arrays_give_the_per_robot_paths_truth_bit_for_bit_distributed_and_composed(tmp_path: Path, lag: int) -> None:
+    """Three arms, one seed, clock.controller_lag 1 (as shipped) and 0: with fleet.arrays the physics truth
+    of every arm is the per-robot path's (arrays off), value for value, whether the services run apart
+    or physics, sensors and controllers share one process."""
+    lag_set = ("--set", f"clock.controller_lag={lag}")
+    compose = ("--compose", "physics,sensors,controller")
+    off = _run(tmp_path, "off", *lag_set, "--set", "fleet.arrays=false", fleet_commands=False)
+    on = _run(tmp_path, "on", *lag_set, "--set", "fleet.arrays=true")
+    _same(off, on)
+    _same(on, _run(tmp_path, "on-composed", *lag_set, "--set", "fleet.arrays=true", *compose))
