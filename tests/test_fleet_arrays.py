@@ -3,14 +3,16 @@ one fleet-wide sample per step between physics, sensors and controller, the per-
 
 from __future__ import annotations
 
+import json
+import threading
 from pathlib import Path
 
 import numpy as np
 import pytest
-from test_scale import LEFT, _truth_of
-from util import finish, up
+from test_scale import LEFT, OVER, _truth_of
+from util import REPO, finish, up
 
-from hilsim.core import transport
+from hilsim.core import msgs, transport
 from hilsim.core.config import PidGains
 from hilsim.core.keys import Keys
 from hilsim.sim import control
@@ -116,3 +118,58 @@ def test_arrays_give_the_per_robot_paths_truth_bit_for_bit_distributed_and_compo
     on = _run(tmp_path, "on", *lag_set, "--set", "fleet.arrays=true")
     _same(off, on)
     _same(on, _run(tmp_path, "on-composed", *lag_set, "--set", "fleet.arrays=true", *compose))
+
+
+def test_arrays_move_every_arm_to_its_target_and_keep_the_per_robot_keys(tmp_path: Path) -> None:
+    """Three arms as real processes, fleet.arrays on, each with a target of its own: judged by the physics
+    truth; a plain subscriber that turns up mid-run on arm2's joint_states gets its samples (lever 1 turns
+    the robot's own key on for it); the recorder has every robot's keys and the fleet's."""
+    scen = tmp_path / "three-arms.yaml"
+    scen.write_text(
+        f"extends: [{REPO / 'config' / 'arm.yaml'}]\n"
+        "robots: 3\n"
+        "fleet: {arrays: true}\n"
+        "planner: {planning_time: 0.3}\n"
+        f"task: {{targets: [{LEFT}]}}\n"
+        f"robot_overrides: {{arm1: {{task.targets: [{OVER}]}}}}\n")
+    ep = f"tcp/127.0.0.1:{transport.free_port()}"
+    router = transport.open_router(ep)
+    ses, subs, truth = _truth_of(ep, ROBOTS)
+    late: list[int] = []
+
+    def subscribe_late() -> None:  # once arm2 has run 0.3 s of sim time, as a ROS 2 node would join
+        while len(truth["arm2"]) < 300 and not stop.wait(0.05):
+            pass
+        if not stop.is_set():
+            subs.append(ses.declare_subscriber(Keys("hilsim", "arm2").topic("joint_states"),
+                                               lambda s: late.append(msgs.ns_of(
+                                                   msgs.decode(msgs.JointState, s.payload.to_bytes()).header.stamp))))
+
+    stop = threading.Event()
+    joiner = threading.Thread(target=subscribe_late)
+    joiner.start()
+    try:
+        out = finish(up(str(scen), "--router", ep, "--out", str(tmp_path / "run")), 240)
+    finally:
+        stop.set()
+        joiner.join()
+        for s in subs:
+            s.undeclare()
+        ses.close()
+        router.close()
+    assert "result: OK" in out, out
+    final = {}
+    for r, target in (("arm0", LEFT), ("arm1", OVER), ("arm2", LEFT)):
+        _stamp, names, q = max(truth[r])
+        assert names == [f"joint_{i}" for i in range(1, 7)]
+        assert np.abs(np.array(q) - target).max() < 0.01, (r, q, target)
+        final[r] = np.array(q)
+    assert np.abs(final["arm1"] - np.array(LEFT)).max() > 0.5  # arm1 went elsewhere
+    # the late subscriber: arm2's encoders at 1 kHz from when it joined to the end, in order
+    assert len(late) > 500 and late == sorted(late) and late[0] >= 0.3e9, (len(late), late[:3])
+    counts = json.loads((tmp_path / "run" / "record_summary.json").read_text())
+    for r in ROBOTS:
+        for topic in ("truth/joint_states", "joint_states", "joint_commands", "controller/reference"):
+            assert counts.get(Keys("hilsim", r).topic(topic), {}).get("recorded", 0) > 1000, (r, topic)
+    for topic in ("truth/joint_states", "joint_states", "joint_commands"):
+        assert counts.get(Keys("hilsim", "arm").fleet(topic), {}).get("recorded", 0) > 1000, topic
