@@ -173,3 +173,44 @@ def test_arrays_move_every_arm_to_its_target_and_keep_the_per_robot_keys(tmp_pat
             assert counts.get(Keys("hilsim", r).topic(topic), {}).get("recorded", 0) > 1000, (r, topic)
     for topic in ("truth/joint_states", "joint_states", "joint_commands"):
         assert counts.get(Keys("hilsim", "arm").fleet(topic), {}).get("recorded", 0) > 1000, topic
+
+
+def test_each_robots_controller_run_alone_keeps_the_per_robot_path(tmp_path: Path) -> None:
+    """fleet.arrays on, but every robot's controller runs as a process of its own (``hilsim run
+    controller@arm0``, as on robots' own computers): no fleet controller, so physics takes each robot's
+    joint_commands and waits for each controller; the sensors still run as arrays. The truth is the
+    all-arrays run's, bit for bit."""
+    import subprocess
+    import sys
+
+    robots = ROBOTS[:2]
+    ep = f"tcp/127.0.0.1:{transport.free_port()}"
+    router = transport.open_router(ep)
+    ses, subs, truth = _truth_of(ep, robots)
+    fleet: list[int] = []
+    subs.append(ses.declare_subscriber(Keys("hilsim", "arm").fleet("joint_commands"), lambda s: fleet.append(1)))
+    common = ("--set", "robots=2", "--set", f"task.targets=[{LEFT}]", "--set", "seed=7", "--set", "duration=0.5",
+              "--set", f"zenoh.connect=[{ep}]")
+    ctrls = [subprocess.Popen([sys.executable, "-m", "hilsim.cli", "run", f"controller@{r}", "--config", "arm",
+                               *common], cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                              start_new_session=True) for r in robots]
+    try:
+        out = finish(up("arm", "--router", ep, "--set", "robots=2", "--set", f"task.targets=[{LEFT}]",
+                        "--duration", "0.5", "--seed", "7", "--no-logger", "--out", str(tmp_path / "alone"),
+                        "--only", "physics,sensors@*,planner@*"), 240)
+    finally:
+        for p in ctrls:
+            p.terminate()
+        for p in ctrls:
+            try:
+                p.wait(20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+        for s in subs:
+            s.undeclare()
+        ses.close()
+        router.close()
+    assert "result: STOPPED (duration)" in out, out
+    assert not fleet, len(fleet)  # no fleet command: each controller's own carried the steps
+    alone = {r: {t: q for t, _, q in truth[r]} for r in robots}
+    _same(alone, _run(tmp_path, "arrays", robots=robots))

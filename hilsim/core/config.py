@@ -220,7 +220,7 @@ class Ros2Config(_Model):
 class FleetConfig(_Model):
     """How a fleet (``robots`` > 1) is computed (:mod:`hilsim.core.fleet`)."""
 
-    arrays: bool = Field(False, description="robots > 1: a process serving every robot's sensors or controller "
+    arrays: bool = Field(True, description="robots > 1: a process serving every robot's sensors or controller "
                          "(sensors@*, controller@*) steps them as numpy arrays and trades one fleet-wide sample per "
                          "step with physics (fleet/truth/joint_states, fleet/joint_states, fleet/joint_commands); "
                          "the per-robot keys are still published for whoever subscribes")
