@@ -53,7 +53,7 @@ def test_the_pid_as_arrays_is_the_scalar_pid_bit_for_bit() -> None:
     members = [_Member([control.Pid(gains[(j + k) % n], -3.0, 3.0) for j in range(n)], effort[k])
                for k in range(n_robots)]
     d = _driver(members, dt)
-    saturated = 0
+    saturated = clamped = 0
     for step in range(3000):
         if step == 1500:  # a live change: both sides as ControllerService.on_set_parameters does it
             for pids in ([scalar[1][0]], [members[1].pids[0]]):
@@ -62,8 +62,12 @@ def test_the_pid_as_arrays_is_the_scalar_pid_bit_for_bit() -> None:
                 pids[0].set("i_limit", 0.05)
             members[1].gains_version += 1
             members[3].gains_version += 1
-        scale = 0.05 if step % 500 < 250 else 2.0  # small errors, then large ones that saturate
+        # small errors, then a steady one (the integral winds up to its i_limit), then large ones that saturate
+        phase = step % 600
+        scale = 0.05 if phase < 400 else 2.0
         ref_pos, pos = rng.normal(0, scale, (n_robots, n)), rng.normal(0, scale, (n_robots, n))
+        if 200 <= phase < 400:
+            ref_pos = pos + 0.05 * (1 if step % 1200 < 600 else -1)
         ref_vel, vel = rng.normal(0, 1, (n_robots, n)), rng.normal(0, 1, (n_robots, n))
         want = [[scalar[k][j].update(ref_pos[k, j], ref_vel[k, j], pos[k, j], vel[k, j], dt) if effort[k][j] else 0.0
                  for j in range(n)] for k in range(n_robots)]
@@ -72,7 +76,9 @@ def test_the_pid_as_arrays_is_the_scalar_pid_bit_for_bit() -> None:
         got = d.pid(ref_pos, ref_vel, pos, vel)
         assert got.tolist() == want, step
         saturated += int(np.sum(np.abs(got) == 3.0))
+        clamped += sum(p.ki > 0 and abs(p.integral) == p.i_limit / p.ki for pids in scalar for p in pids)
     assert saturated > 100  # the limits, and so the conditional integration, were exercised
+    assert clamped > 100  # and the integral's clamp
     assert d.integral.tolist() == [[p.integral for p in pids] for pids in scalar]
 
 
