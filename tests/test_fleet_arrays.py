@@ -56,10 +56,11 @@ def test_the_pid_as_arrays_is_the_scalar_pid_bit_for_bit() -> None:
     saturated = clamped = 0
     for step in range(3000):
         if step == 1500:  # a live change: both sides as ControllerService.on_set_parameters does it
-            for pids in ([scalar[1][0]], [members[1].pids[0]]):
-                pids[0].set("ki", 0.0)
-            for pids in ([scalar[3][4]], [members[3].pids[4]]):
-                pids[0].set("i_limit", 0.05)
+            assert scalar[1][1].integral != 0.0 and abs(scalar[3][1].integral) > 0.05 / 40.0  # a change bites
+            for pid in (scalar[1][1], members[1].pids[1]):  # ki 0.3159 -> 0: its integral goes
+                pid.set("ki", 0.0)
+            for pid in (scalar[3][1], members[3].pids[1]):  # ki 40, i_limit 0.3 -> 0.05: clamped at once
+                pid.set("i_limit", 0.05)
             members[1].gains_version += 1
             members[3].gains_version += 1
         # small errors, then a steady one (the integral winds up to its i_limit), then large ones that saturate
