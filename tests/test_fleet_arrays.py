@@ -92,16 +92,35 @@ def _run(tmp: Path, name: str, *extra: str, robots: list[str] = ROBOTS,
     ses, subs, truth = _truth_of(ep, robots)
     fleet = []
     subs.append(ses.declare_subscriber(Keys("hilsim", "arm").fleet("joint_commands"), lambda s: fleet.append(1)))
+    # the last robot's own joint_commands, read by nobody (no recorder; physics takes the fleet's) until a
+    # plain subscriber joins mid-run: from then on they are put (lever 1), from the same values
+    late: list[int] = []
+    joined = threading.Event()
+    last = robots[-1]
+
+    def join() -> None:
+        while len(truth[last]) < 200 and not joined.wait(0.02):
+            pass
+        if not joined.is_set():
+            subs.append(ses.declare_subscriber(Keys("hilsim", last).topic("joint_commands"), lambda s: late.append(
+                msgs.ns_of(msgs.decode(msgs.JointState, s.payload.to_bytes()).header.stamp))))
+            joined.set()
+
+    joiner = threading.Thread(target=join)
+    joiner.start()
     try:
         out = finish(up("arm", "--router", ep, "--set", f"robots={len(robots)}", "--set", f"task.targets=[{LEFT}]",
                         "--duration", "0.5", "--seed", "7", "--no-logger", "--out", str(tmp / name), *extra), 240)
     finally:
+        joined.set()
+        joiner.join()
         for s in subs:
             s.undeclare()
         ses.close()
         router.close()
     assert "result: STOPPED (duration)" in out, out
     assert len(fleet) >= 490 if fleet_commands else not fleet, (name, len(fleet))
+    assert len(late) > 100 and late == sorted(late) and late[0] >= 0.15e9, (name, len(late), late[:3])
     return {r: {t: q for t, _, q in truth[r]} for r in robots}
 
 
