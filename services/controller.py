@@ -489,6 +489,7 @@ class FleetControllerService(Service):
 
     name = "controller"
     stop_rank = 21  # started before the robots' controllers it drives, stopped after them
+    acks_for_robots = True  # in lockstep its fleet sample is every robot's acknowledgement
     ack_via = "joint_commands"
     lockstep_period = ControllerService.lockstep_period
 

@@ -166,6 +166,7 @@ class FleetSensorService(Service):
 
     name = "sensors"
     stop_rank = 31  # started before the robots' services it drives, stopped after them
+    acks_for_robots = True  # in lockstep its fleet sample is every robot's acknowledgement
     lockstep_period = SensorService.lockstep_period
 
     def __init__(self, scenario: Scenario, members: list[SensorService]) -> None:

@@ -31,8 +31,11 @@ driver's acknowledgement of every robot at once), their joints named ``arm<k>/<j
 robot. The per-robot services of the process stay (health, liveliness, trajectories, actions,
 parameters, the IMU) but leave the per-step joint path to the driver, which still publishes every
 robot's ``joint_states``, ``joint_commands`` and ``controller/reference`` from the same values
-whenever someone subscribes them (a planner, the recorder, a ROS 2 node). ``hilsim run
-controller@arm3`` (one robot alone) keeps the per-robot path; physics serves both.
+whenever someone subscribes them (the recorder, a ROS 2 node). The planners of ``planner@*`` take
+``fleet/joint_states`` too, through their own driver, which hands each planner its robot's slice
+as the JointState it would have received; they acknowledge their ticks themselves, per robot, as
+before. ``hilsim run controller@arm3`` (one robot alone) keeps the per-robot path; physics serves
+both.
 
 With ``robots: 1`` (the default) nothing of this applies: the robot is ``<robot>`` itself and
 every key, process and result is what it always was.
@@ -55,7 +58,7 @@ OVERRIDABLE = ("task", "controller", "planner", "sensors")
 FLEET_WIDE = ("physics", "logger")  # one for the whole fleet; every other service runs per robot
 ALL = "*"  # <service>@*: the service of every robot, in one process
 # the kinds a process serving every robot steps as arrays (fleet.arrays), and the fleet topics
-ARRAY_KINDS = ("sensors", "controller")
+ARRAY_KINDS = ("sensors", "controller", "planner")
 
 
 def robot_names(sc: _Fleet) -> list[str]:

@@ -247,9 +247,11 @@ class Service:
         self._sync_pub: Publisher | None = None
         self._zid = ""
         self._node_id = 0
-        # robots as arrays (hilsim.core.fleet): a fleet driver in this process steps this robot's
-        # per-step joint path, so the service neither subscribes it nor acknowledges lockstep steps
+        # robots as arrays (hilsim.core.fleet): a fleet driver in this process hands this robot its
+        # per-step joint sample (the service does not subscribe it) and, if fleet_acked, also
+        # acknowledges the lockstep steps for it
         self.fleet_driven = False
+        self.fleet_acked = False
 
     # ------------------------------------------------------------------ to override
     def setup(self) -> None:
@@ -491,7 +493,7 @@ class Service:
     def lockstep(self) -> bool:
         """True when physics waits for this service (at its :meth:`lockstep_period`)."""
         return (self.sc.clock.mode == "lockstep" and self.lockstep_period(self.sc) is not None
-                and not self.fleet_driven)
+                and not self.fleet_acked)
 
     def ack_publisher(self) -> Publisher | None:
         """The publisher whose samples acknowledge steps (``ack_via``); the sync one by default."""

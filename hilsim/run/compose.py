@@ -173,6 +173,7 @@ def fleet_drivers(sc: Any, names: list[str], services: list[Any]) -> list[Any]:
             continue
         for s in group:
             s.fleet_driven = True
+            s.fleet_acked = getattr(driver, "acks_for_robots", True)
         out.append(driver(sc, group))
     return out
 
