@@ -238,7 +238,7 @@ def cmd_scale(args: argparse.Namespace) -> int:
                             f"{r['step_p99_us']:.0f} µs; recorder {r['recorder']['cpu_pct_of_core']:.0f} % of a core, "
                             f"{r['recorder']['recorded']} messages")
     results = [_results([best[n, s, a] for s in subs for n in robots], args, pipeline) for a in modes]
-    res = results[-1]  # the last mode's (arrays on, with --arrays both) at the top level, as always
+    res = dict(results[-1])  # the last mode's (arrays on, with --arrays both) at the top level, as always
     if len(results) > 1:
         res["by_arrays"] = {"on" if r["runs"][0]["arrays"] else "off": r for r in results}
     if args.json:
