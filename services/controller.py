@@ -13,6 +13,8 @@ Writes:
   any joint has a position or velocity interface (else they are empty: nobody reads them). In
   lockstep mode this message is the controller's acknowledgement of the step (no ``sync`` message);
   ``controller/reference`` (sensor_msgs/JointState: reference position and velocity), same stamp.
+  With ``fleet.arrays`` (robots > 1, :class:`FleetControllerService`) the fleet driver hands the
+  controller its measurement and runs its PID; both messages are then built only while subscribed.
 Serves:
   ``controller/set_parameters`` (SetParameters ``<joint>.<kp|ki|kd|i_limit|output_limit|feedforward>``
   → SetParametersResult): all-or-nothing, effective at the next control step; the gains in
@@ -266,6 +268,11 @@ class ControllerService(Service):
         """Publish the step's joint_commands (efforts ``u``; None: the fleet driver sent them in its fleet
         command and nobody subscribes this robot's) and controller/reference (built only if subscribed)."""
         self.steps += 1
+        ref_wanted = self.ref_pub.wanted()
+        if u is None and not ref_wanted:  # the fleet's usual step: nothing of this robot's is read
+            self.cmd_pub.skip()
+            self.ref_pub.skip()
+            return
         header = msgs.header(stamp)
         position, velocity = self.ref_pos.tolist(), self.ref_vel.tolist()
         if u is None:
@@ -275,7 +282,7 @@ class ControllerService(Service):
             self.cmd_pub.put(msgs.JointState(header=header, name=self.names, position=position, velocity=vel, effort=u))
         else:  # every joint takes effort: the setpoints would only cost encoding and decoding
             self.cmd_pub.put(msgs.JointState(header=header, name=self.names, effort=u))
-        if self.ref_pub.wanted():
+        if ref_wanted:
             self.ref_pub.put(msgs.JointState(header=header, name=self.names, position=position, velocity=velocity))
         else:
             self.ref_pub.skip()

@@ -27,6 +27,15 @@ world model; every key above that is under ``<prefix>/<robot>/`` is then read an
 robot ``<robot><k>`` (its joints by their single-robot names), the clock stays one, and a
 participant is ``<service>@<robot>`` (its tokens and acknowledgements under that robot's keys).
 
+Robots as arrays (``robots: N`` with ``fleet.arrays``, :mod:`hilsim.core.fleet`): physics also writes
+``<prefix>/<robot>/fleet/truth/joint_states`` (every robot's truth in one sample, joints
+``<robot><k>/<joint>``, after the robots' own truth) and reads ``<prefix>/<robot>/fleet/joint_commands``
+(each robot's slice acts as its own ``joint_commands`` would; in lockstep the acknowledgement of the
+fleet controller, one participant for every robot) and ``<prefix>/<robot>/sync/*`` (a fleet driver's
+acknowledgement); a robot's own ``truth/joint_states`` is then built only while someone subscribes it,
+and the robots' own ``joint_commands`` are read only when no fleet controller is alive at the start
+(each robot's controller run alone).
+
 Lockstep (default): step k+1 happens only once every participant acknowledged step k (see
 docs/keys.md). Participants announce themselves (``lockstep/<service>/<period>/<via>/<gid>``),
 so physics needs no list of them; a ``joint_commands`` sample acknowledges a step only when

@@ -8,6 +8,9 @@ Reads:
   plan always starts from the state of its own step: reproducible bit for bit. Physics waits for
   a tick's acknowledgement only ``lockstep_lag`` steps later (the trajectory acts later still).
 
+  With ``fleet.arrays`` (robots > 1) :class:`FleetPlannerFeed` hands it its robot's slice of
+  ``fleet/joint_states`` instead (the same message, its ticks and acknowledgements unchanged).
+
 Writes:
 - ``joint_trajectory`` (trajectory_msgs/JointTrajectory) for the joint trajectory controller,
   stamped to start ``START_DELAY`` after the tick it was planned on;

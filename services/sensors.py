@@ -16,6 +16,9 @@ Writes:
   ``t_k`` is handled (physics publishes ``truth/imu`` and ``truth/odom`` before it, so every truth
   of the step has been handled by then).
 
+With ``fleet.arrays`` (robots > 1, :class:`FleetSensorService`) the encoders of every robot are stepped
+by the fleet driver from ``fleet/truth/joint_states`` instead; the other sensors stay here.
+
 Noise comes from generators seeded by ``seed`` and the sensor name: the same scenario and the
 same truth give the same outputs, bit for bit.
 """
