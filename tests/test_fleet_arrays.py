@@ -4,6 +4,7 @@ one fleet-wide sample per step between physics, sensors and controller, the per-
 from __future__ import annotations
 
 import json
+import os
 import threading
 from pathlib import Path
 
@@ -240,3 +241,47 @@ def test_each_robots_controller_run_alone_keeps_the_per_robot_path(tmp_path: Pat
     assert not fleet, len(fleet)  # no fleet command: each controller's own carried the steps
     alone = {r: {t: q for t, _, q in truth[r]} for r in robots}
     _same(alone, _run(tmp_path, "arrays", robots=robots))
+
+
+def test_a_fleet_process_killed_mid_run_is_restarted_and_every_arm_arrives(tmp_path: Path) -> None:
+    """fleet.arrays, two arms, restart on-failure: controller@* (whose fleet driver is the one lockstep
+    participant acknowledging every arm's steps) and then sensors@* are SIGKILLed while the arms move;
+    each comes back, sim time waits for it and goes on, and every arm reaches its target."""
+    import re
+    import signal
+
+    import psutil
+    from test_restart import Output, ended
+    from util import wait_until
+
+    ep = f"tcp/127.0.0.1:{transport.free_port()}"
+    router = transport.open_router(ep)
+    ses, subs, truth = _truth_of(ep, ROBOTS[:2])
+    p = up("arm", "--router", ep, "--no-logger", "--out", str(tmp_path / "run"), "--set", "robots=2",
+           "--set", f"task.targets=[{LEFT}]", "--set", "planner.planning_time=0.3",
+           "--set", "restart.services.default=on-failure", "--set", "restart.backoff=0.2")
+    out = Output(p)
+    try:
+        ready = out.wait(r"^ready: (.*)$", 120)[1]
+        pids = {n: int(pid) for n, pid in re.findall(r"(\w+)@\* \(pid (\d+)\)", ready)}
+        at = 0.3e9
+        for name in ("controller", "sensors"):
+            assert wait_until(lambda t=at: bool(truth["arm1"]) and truth["arm1"][-1][0] >= t, 60), out.text()
+            psutil.Process(pids[name]).send_signal(signal.SIGKILL)
+            out.wait(rf"^  {name}@\* is back \(pid (\d+)\)", 60)
+            at = truth["arm1"][-1][0] + 0.3e9
+        text = ended(p, out, 180)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+        for s in subs:
+            s.undeclare()
+        ses.close()
+        router.close()
+    assert p.returncode == 0 and "result: OK" in text, text
+    for name in ("controller", "sensors"):
+        assert re.search(rf"^  restarted {name}@\* \(exit code -9", text, re.M), text
+    for r in ROBOTS[:2]:
+        q = max(truth[r])[2]
+        assert np.abs(np.array(q) - LEFT).max() < 0.01, (r, q)
