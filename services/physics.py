@@ -160,6 +160,8 @@ class PhysicsService(Service):
         self.pub_clock = self.publisher(self.keys.clock)
         self.contact_steps = 0
         self.arrays = fleet.arrays(sc)
+        if sc.robots > 1 and sc.fleet.arrays and not self.arrays:
+            self.log.info("fleet.arrays: %s; every robot runs on its own keys", fleet.array_misfit(sc))
         self.robot_commands = False  # whether the robots' own joint_commands are subscribed
         if not self.arrays:
             self._subscribe_robot_commands()

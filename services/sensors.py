@@ -181,7 +181,7 @@ class FleetSensorService(Service):
             enc = [s for s in m.sensors if isinstance(s, Encoder) and s.enabled and s.output_topic == ACK_TRUTH]
             if len(enc) != 1:
                 raise ConfigError(f"{scenario.source}: fleet.arrays: {m.sc.robot} needs exactly one enabled encoder "
-                                  f"sensor (has {len(enc)}); set fleet.arrays: false")
+                                  f"sensor (has {len(enc)})")
             self.encoders.append(enc[0])
         first = self.encoders[0]
         if any(e.decimation != first.decimation for e in self.encoders):

@@ -285,3 +285,19 @@ def test_a_fleet_process_killed_mid_run_is_restarted_and_every_arm_arrives(tmp_p
     for r in ROBOTS[:2]:
         q = max(truth[r])[2]
         assert np.abs(np.array(q) - LEFT).max() < 0.01, (r, q)
+
+
+def test_robots_the_arrays_cannot_take_together_run_robot_by_robot() -> None:
+    """fleet.arrays is decided from the scenario alone, the same in every process: robots with control or
+    encoder rates of their own (robot_overrides), or without one encoder each, run on their own keys."""
+    from hilsim.core import fleet
+    from hilsim.core.scenario import load_scenario
+
+    assert fleet.arrays(load_scenario("arm", {"robots": 2}))  # the default
+    assert not fleet.arrays(load_scenario("arm", {"robots": 2, "fleet.arrays": False}))
+    assert not fleet.arrays(load_scenario("arm"))  # one robot: nothing to batch
+    slow = {"arm1": {"controller.rate_hz": 500, "sensors.encoders.rate_hz": 500}}
+    sc = load_scenario("arm", {"robots": 2, "robot_overrides": slow})
+    assert not fleet.arrays(sc) and "rates differ" in str(fleet.array_misfit(sc))
+    sc = load_scenario("arm", {"robots": 2, "robot_overrides": {"arm0": {"sensors.encoders.enabled": False}}})
+    assert not fleet.arrays(sc) and "arm0 has 0 enabled encoder" in str(fleet.array_misfit(sc))
