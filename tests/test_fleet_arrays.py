@@ -3,6 +3,7 @@ one fleet-wide sample per step between physics, sensors and controller, the per-
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import threading
@@ -100,7 +101,7 @@ def _run(tmp: Path, name: str, *extra: str, robots: list[str] = ROBOTS,
     last = robots[-1]
 
     def join() -> None:
-        while len(truth[last]) < 200 and not joined.wait(0.02):
+        while len(truth[last]) < 100 and not joined.wait(0.02):
             pass
         if not joined.is_set():
             subs.append(ses.declare_subscriber(Keys("hilsim", last).topic("joint_commands"), lambda s: late.append(
@@ -121,7 +122,10 @@ def _run(tmp: Path, name: str, *extra: str, robots: list[str] = ROBOTS,
         router.close()
     assert "result: STOPPED (duration)" in out, out
     assert len(fleet) >= 490 if fleet_commands else not fleet, (name, len(fleet))
-    assert len(late) > 100 and late == sorted(late) and late[0] >= 0.15e9, (name, len(late), late[:3])
+    # how many depends on when this test's lagging view let it join; that they run on, step after step, to
+    # the end does not
+    assert len(late) >= 20 and late[0] >= 0.1e9 and late[-1] >= 0.49e9, (name, len(late), late[:3], late[-1:])
+    assert all(b - a == 1_000_000 for a, b in itertools.pairwise(late)), (name, late)
     return {r: {t: q for t, _, q in truth[r]} for r in robots}
 
 
