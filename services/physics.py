@@ -58,6 +58,7 @@ import zenoh
 
 from hilsim.core import fleet, msgs
 from hilsim.core.keys import Keys, topic_name
+from hilsim.core.scenario import array_misfit, fleet_arrays
 from hilsim.core.service import LEVEL_ERROR, Publisher, Service
 from hilsim.core.transport import Attachment
 from hilsim.sim.fleet_world import FleetWorld
@@ -159,9 +160,9 @@ class PhysicsService(Service):
         self.tf_period = max(1, round(1.0 / (rate * sc.clock.dt))) if rate > 0 else 0
         self.pub_clock = self.publisher(self.keys.clock)
         self.contact_steps = 0
-        self.arrays = fleet.arrays(sc)
+        self.arrays = fleet_arrays(sc)
         if sc.robots > 1 and sc.fleet.arrays and not self.arrays:
-            self.log.info("fleet.arrays: %s; every robot runs on its own keys", fleet.array_misfit(sc))
+            self.log.info("fleet.arrays: %s; every robot runs on its own keys", array_misfit(sc))
         self.robot_commands = False  # whether the robots' own joint_commands are subscribed
         if not self.arrays:
             self._subscribe_robot_commands()

@@ -124,7 +124,7 @@ def _run(tmp: Path, name: str, *extra: str, robots: list[str] = ROBOTS,
     assert len(fleet) >= 490 if fleet_commands else not fleet, (name, len(fleet))
     # how many depends on when this test's lagging view let it join; that they run on, step after step, to
     # the end does not
-    assert len(late) >= 20 and late[0] >= 0.1e9 and late[-1] >= 0.49e9, (name, len(late), late[:3], late[-1:])
+    assert len(late) >= 20 and late[0] >= 0.05e9 and late[-1] >= 0.49e9, (name, len(late), late[:3], late[-1:])
     assert all(b - a == 1_000_000 for a, b in itertools.pairwise(late)), (name, late)
     return {r: {t: q for t, _, q in truth[r]} for r in robots}
 
@@ -294,14 +294,13 @@ def test_a_fleet_process_killed_mid_run_is_restarted_and_every_arm_arrives(tmp_p
 def test_robots_the_arrays_cannot_take_together_run_robot_by_robot() -> None:
     """fleet.arrays is decided from the scenario alone, the same in every process: robots with control or
     encoder rates of their own (robot_overrides), or without one encoder each, run on their own keys."""
-    from hilsim.core import fleet
-    from hilsim.core.scenario import load_scenario
+    from hilsim.core.scenario import array_misfit, fleet_arrays, load_scenario
 
-    assert fleet.arrays(load_scenario("arm", {"robots": 2}))  # the default
-    assert not fleet.arrays(load_scenario("arm", {"robots": 2, "fleet.arrays": False}))
-    assert not fleet.arrays(load_scenario("arm"))  # one robot: nothing to batch
+    assert fleet_arrays(load_scenario("arm", {"robots": 2}))  # the default
+    assert not fleet_arrays(load_scenario("arm", {"robots": 2, "fleet.arrays": False}))
+    assert not fleet_arrays(load_scenario("arm"))  # one robot: nothing to batch
     slow = {"arm1": {"controller.rate_hz": 500, "sensors.encoders.rate_hz": 500}}
     sc = load_scenario("arm", {"robots": 2, "robot_overrides": slow})
-    assert not fleet.arrays(sc) and "rates differ" in str(fleet.array_misfit(sc))
+    assert not fleet_arrays(sc) and "rates differ" in str(array_misfit(sc))
     sc = load_scenario("arm", {"robots": 2, "robot_overrides": {"arm0": {"sensors.encoders.enabled": False}}})
-    assert not fleet.arrays(sc) and "arm0 has 0 enabled encoder" in str(fleet.array_misfit(sc))
+    assert not fleet_arrays(sc) and "arm0 has 0 enabled encoder" in str(array_misfit(sc))

@@ -224,7 +224,7 @@ class FleetConfig(_Model):
                          "(sensors@*, controller@*) steps them as numpy arrays and trades one fleet-wide sample per "
                          "step with physics (fleet/truth/joint_states, fleet/joint_states, fleet/joint_commands); "
                          "the per-robot keys are still published for whoever subscribes; robots with encoder or "
-                         "control rates of their own run robot by robot (hilsim.core.fleet.array_misfit)")
+                         "control rates of their own run robot by robot (hilsim.core.scenario.array_misfit)")
 
 
 RestartPolicy = Literal["no", "on-failure"]

@@ -43,7 +43,7 @@ every key, process and result is what it always was.
 
 from __future__ import annotations
 
-from typing import Any, Protocol
+from typing import Protocol
 
 
 class _Fleet(Protocol):
@@ -64,29 +64,6 @@ ARRAY_KINDS = ("sensors", "controller", "planner")
 def robot_names(sc: _Fleet) -> list[str]:
     """The robots of a scenario: its ``robot`` alone, or ``<robot>0`` … ``<robot>N-1``."""
     return [sc.robot] if sc.robots == 1 else [f"{sc.robot}{k}" for k in range(sc.robots)]
-
-
-def arrays(sc: _Fleet) -> bool:
-    """Whether the fleet's sensors, controllers and planners run as arrays: ``fleet.arrays``, robots > 1,
-    and robots the arrays can take together (:func:`array_misfit`). Every process decides it alike from
-    the scenario alone, so the fleet keys have writers wherever they have readers."""
-    cfg = getattr(sc, "fleet", None)
-    return sc.robots > 1 and bool(getattr(cfg, "arrays", False)) and array_misfit(sc) is None
-
-
-def array_misfit(sc: Any) -> str | None:
-    """Why the robots of a fleet cannot be stepped as arrays, or None: each needs exactly one enabled
-    encoder sensor, and all the same encoder rate and control rate (``robot_overrides`` may differ)."""
-    from hilsim.core.scenario import robot_scenario  # above this module: imported when asked
-
-    shapes = set()
-    for r in robot_names(sc):
-        rsc = robot_scenario(sc, r)
-        enc = [c.rate_hz for c in rsc.sensors.values() if c.type == "encoder" and c.enabled]
-        if len(enc) != 1:
-            return f"{r} has {len(enc)} enabled encoder sensors (arrays need exactly one)"
-        shapes.add((enc[0], rsc.controller.rate_hz))
-    return None if len(shapes) == 1 else "the robots' encoder or control rates differ"
 
 
 def joint_names(sc: _Fleet, joints: list[str]) -> list[str]:

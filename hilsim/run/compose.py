@@ -159,8 +159,9 @@ def fleet_drivers(sc: Any, names: list[str], services: list[Any]) -> list[Any]:
     for *every* robot (``sensors@*``, ``controller@*``) and whose class offers one, the fleet driver
     that steps them all; its robots' services leave their per-step path to it (``fleet_driven``)."""
     from hilsim.core import fleet
+    from hilsim.core.scenario import fleet_arrays
 
-    if not fleet.arrays(sc):
+    if not fleet_arrays(sc):
         return []
     out = []
     for kind in fleet.ARRAY_KINDS:
