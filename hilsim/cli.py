@@ -225,6 +225,11 @@ def build_parser() -> argparse.ArgumentParser:
     bsc.add_argument("--sim-seconds", type=float, default=2.0, help="sim seconds per run")
     bsc.add_argument("--compose", action="store_true", help="physics, sensors and controller in one process")
     bsc.add_argument("--repeat", type=int, default=1, help="runs of each configuration, interleaved; the best is kept")
+    bsc.add_argument("--arrays", choices=["scenario", "on", "off", "both"], default="scenario",
+                     help="fleet.arrays (robots as arrays): as the scenario says, on, off, or both side by side")
+    bsc.add_argument("--batch", type=int, default=None, metavar="N",
+                     help="logger.batch: samples per batch the services send the recorder (0: off; default: "
+                     "as the scenario says)")
     bsc.set_defaults(func=_lazy("hilsim.tools.bench_scale", "cmd_scale"))
     bc = bsub.add_parser("can", help="CAN bridge: frames per second and added latency vs python-can alone")
     bc.add_argument("--json", action="store_true")

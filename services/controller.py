@@ -13,6 +13,8 @@ Writes:
   any joint has a position or velocity interface (else they are empty: nobody reads them). In
   lockstep mode this message is the controller's acknowledgement of the step (no ``sync`` message);
   ``controller/reference`` (sensor_msgs/JointState: reference position and velocity), same stamp.
+  With ``fleet.arrays`` (robots > 1, :class:`FleetControllerService`) the fleet driver hands the
+  controller its measurement and runs its PID; both messages are then built only while subscribed.
 Serves:
   ``controller/set_parameters`` (SetParameters ``<joint>.<kp|ki|kd|i_limit|output_limit|feedforward>``
   → SetParametersResult): all-or-nothing, effective at the next control step; the gains in
@@ -106,6 +108,12 @@ class ControllerService(Service):
                               f"class named {cls.name!r} (got {law!r})")
         return law
 
+    @classmethod
+    def array_driver(cls, sc: Scenario) -> type[Service] | None:
+        """The fleet driver running every robot's PID as arrays (fleet.arrays); this law only, not a
+        subclass (another law's step is its own)."""
+        return FleetControllerService if cls is ControllerService else None
+
     def ack_publisher(self) -> Publisher | None:
         return self.cmd_pub
 
@@ -145,6 +153,7 @@ class ControllerService(Service):
         self.max_tracking_error = 0.0
         self.gaps = 0
         self.steps = 0
+        self.gains_version = 0
         try:
             self.params = Params.model_validate(scenario.controller.params)
         except ValidationError as e:
@@ -164,7 +173,8 @@ class ControllerService(Service):
     def setup(self) -> None:
         self.cmd_pub = self.publisher(self.keys.topic("joint_commands"))
         self.ref_pub = self.publisher(self.keys.topic("controller/reference"))
-        self.subscribe(self.keys.topic("joint_states"), msgs.JointState, self.on_joint_states, n_joints=self.n)
+        if not self.fleet_driven:  # robots as arrays: the fleet driver hands each robot its measurement
+            self.subscribe(self.keys.topic("joint_states"), msgs.JointState, self.on_joint_states, n_joints=self.n)
         # No n_joints here: a trajectory may name a subset of the joints.
         # a trajectory is given once: late (a loaded machine) it is still the task's (stream=False)
         self.subscribe(self.keys.topic("joint_trajectory"), msgs.JointTrajectory, self.on_trajectory, stream=False)
@@ -207,6 +217,27 @@ class ControllerService(Service):
         stamp = msgs.ns_of(msg.header.stamp)
         if not self._measure(msg, key, stamp):
             return
+        self.prepare(stamp)
+        u = [
+            pid.update(rp, rv, p, v, self.dt) if eff else 0.0
+            for pid, eff, rp, rv, p, v in zip(
+                self.pids, self.effort_joint, self.ref_pos.tolist(), self.ref_vel.tolist(), self.pos.tolist(),
+                self.vel.tolist(), strict=True,
+            )
+        ]
+        self.emit(stamp, u)
+
+    def measure_row(self, pos: np.ndarray, vel: np.ndarray | None, stamp: int) -> None:
+        """This robot's measurement from a fleet sample (model order, as :meth:`_measure` leaves it)."""
+        if vel is None:  # no velocity reported: backward difference, as _measure does
+            vel = (pos - self.pos) / ((stamp - self.last_ns) * 1e-9) if self.last_ns is not None and \
+                stamp > self.last_ns else self._zero
+        self.pos, self.vel = pos, vel
+
+    def prepare(self, stamp: int) -> None:
+        """One control step up to the PID, with self.pos/self.vel measured at ``stamp``: the reference
+        (self.ref_pos, self.ref_vel), the action goal, the tracking error. The fleet driver
+        (robots as arrays) calls it for each robot and runs every robot's PID at once."""
         if self.last_ns is not None and stamp - self.last_ns > self.hold_timeout_ns:
             self.gaps += 1
             self.warn(f"no joint_states for {(stamp - self.last_ns) * 1e-9:.3f} s of sim time")
@@ -224,29 +255,37 @@ class ControllerService(Service):
         self.tracking_error = float(np.max(np.abs(err)))
         if self.traj is not None or self.next_traj is not None:
             self.max_tracking_error = max(self.max_tracking_error, self.tracking_error)
-        header = msgs.header(stamp)
-        ref = msgs.JointState(
-            header=header, name=self.names, position=self.ref_pos.tolist(), velocity=self.ref_vel.tolist()
-        )
-        u = [
-            pid.update(rp, rv, p, v, self.dt) if eff else 0.0
-            for pid, eff, rp, rv, p, v in zip(
-                self.pids, self.effort_joint, ref.position, ref.velocity, self.pos.tolist(), self.vel.tolist(),
-                strict=True,
-            )
-        ]
-        if self.setpoints:
-            vel = ref.velocity
-            if self.any_velocity:
-                # a velocity drive needs the position error closed here, as ros2_control's JTC does
-                v_cmd = self.ref_vel + self.velocity_gain * (self.ref_pos - self.pos)
-                vel = np.where(self.velocity_joint, v_cmd, self.ref_vel).tolist()
-            cmd = msgs.JointState(header=header, name=self.names, position=ref.position, velocity=vel, effort=u)
-        else:  # every joint takes effort: the setpoints would only cost encoding and decoding
-            cmd = msgs.JointState(header=header, name=self.names, effort=u)
-        self.cmd_pub.put(cmd)
-        self.ref_pub.put(ref)
+
+    def velocity_command(self) -> np.ndarray:
+        """joint_commands' velocity: the reference, or for velocity joints ``v_ref + velocity_gain·(p_ref − p)``
+        (a velocity drive needs the position error closed here, as ros2_control's JTC does)."""
+        if not self.any_velocity:
+            return self.ref_vel
+        v_cmd = self.ref_vel + self.velocity_gain * (self.ref_pos - self.pos)
+        return np.where(self.velocity_joint, v_cmd, self.ref_vel)
+
+    def emit(self, stamp: int, u: list[float] | None) -> None:
+        """Publish the step's joint_commands (efforts ``u``; None: the fleet driver sent them in its fleet
+        command and nobody subscribes this robot's) and controller/reference (built only if subscribed)."""
         self.steps += 1
+        ref_wanted = self.ref_pub.wanted()
+        if u is None and not ref_wanted:  # the fleet's usual step: nothing of this robot's is read
+            self.cmd_pub.skip()
+            self.ref_pub.skip()
+            return
+        header = msgs.header(stamp)
+        position, velocity = self.ref_pos.tolist(), self.ref_vel.tolist()
+        if u is None:
+            self.cmd_pub.skip()
+        elif self.setpoints:
+            vel = self.velocity_command().tolist() if self.any_velocity else velocity
+            self.cmd_pub.put(msgs.JointState(header=header, name=self.names, position=position, velocity=vel, effort=u))
+        else:  # every joint takes effort: the setpoints would only cost encoding and decoding
+            self.cmd_pub.put(msgs.JointState(header=header, name=self.names, effort=u))
+        if ref_wanted:
+            self.ref_pub.put(msgs.JointState(header=header, name=self.names, position=position, velocity=velocity))
+        else:
+            self.ref_pub.skip()
 
     def _reference(self, stamp: int) -> None:
         if self.next_traj is not None and stamp >= self.next_traj.start_ns:
@@ -416,6 +455,7 @@ class ControllerService(Service):
         if req.parameters:
             self.log.info("gains changed: %s", ", ".join(f"{p.name}={p.value:g}" for p in req.parameters))
             self.live_gains.update({p.name: p.value for p in req.parameters})
+            self.gains_version += 1  # the fleet driver (robots as arrays) takes them at its next step
             keep(self.sc, self.name, {"gains": self.live_gains})
         return msgs.SetParametersResult(successful=True, reason=f"{len(req.parameters)} parameter(s) set")
 
@@ -439,3 +479,114 @@ class ControllerService(Service):
                                       if getattr(pid, f) is not None)
                for n, pid in zip(self.names, self.pids, strict=True)},
         }
+
+
+class FleetControllerService(Service):
+    """Robots as arrays (``fleet.arrays``, :mod:`hilsim.core.fleet`): every robot's PID in one step.
+
+    Reads ``<prefix>/<robot>/fleet/joint_states`` (every robot's encoders, joints ``arm<k>/<joint>``).
+    Writes ``<prefix>/<robot>/fleet/joint_commands`` (every robot's command, same layout and stamp: what
+    physics applies and, in lockstep, the acknowledgement of the step for every robot) and, from the
+    same values, each robot's ``joint_commands`` and ``controller/reference`` through that robot's own
+    publishers whenever anyone subscribes them. Each robot's reference, action goal and live gains
+    stay with its :class:`ControllerService` (:meth:`ControllerService.prepare`); the PID law is
+    :meth:`hilsim.sim.control.Pid.update` written elementwise over (robot, joint) arrays, the same
+    operations in the same order, so its efforts equal the per-robot path's bit for bit.
+    """
+
+    name = "controller"
+    stop_rank = 21  # started before the robots' controllers it drives, stopped after them
+    acks_for_robots = True  # in lockstep its fleet sample is every robot's acknowledgement
+    ack_via = "joint_commands"
+    lockstep_period = ControllerService.lockstep_period
+
+    def __init__(self, scenario: Scenario, members: list[ControllerService]) -> None:
+        super().__init__(scenario)
+        self.members = members
+        m0 = members[0]
+        if any(m.sc.control_decimation != m0.sc.control_decimation or m.names != m0.names for m in members):
+            raise ConfigError(f"{scenario.source}: fleet.arrays: every robot's controller needs the same rate_hz")
+        self.n_robots, self.n = len(members), m0.n
+        self.names = [f"{m.sc.robot}/{j}" for m in members for j in m.names]
+        self.dt = m0.dt
+        self.effort = np.array([m.effort_joint for m in members], bool)
+        self.setpoints = any(m.setpoints for m in members)
+        self.integral = np.zeros((self.n_robots, self.n))
+        self._versions: list[int] = []
+        self._gains()
+
+    def setup(self) -> None:
+        self.cmd_pub = self.publisher(self.keys.fleet("joint_commands"))
+        self.subscribe(self.keys.fleet("joint_states"), msgs.JointState, self.on_joint_states)
+
+    def ack_publisher(self) -> Publisher | None:
+        return self.cmd_pub
+
+    def _gains(self) -> None:
+        """The gains in force, as arrays (robot, joint), from each robot's PIDs (which live gain changes
+        set); the integral clamped as :meth:`hilsim.sim.control.Pid.set` clamps it at a change."""
+        def of(field: str) -> np.ndarray:
+            return np.array([[getattr(p, field) for p in m.pids] for m in self.members], float)
+
+        self.kp, self.ki, self.kd, self.ff = of("kp"), of("ki"), of("kd"), of("feedforward")
+        self.lo, self.hi, i_limit = of("lo"), of("hi"), of("i_limit")
+        self.integrating = self.ki > 0.0
+        with np.errstate(divide="ignore", invalid="ignore"):
+            self.bound = np.where(self.integrating, i_limit / np.where(self.integrating, self.ki, 1.0), np.inf)
+        self.integral = np.where(self.integrating, np.minimum(np.maximum(self.integral, -self.bound), self.bound), 0.0)
+        self._versions = [m.gains_version for m in self.members]
+
+    def pid(self, ref_pos: np.ndarray, ref_vel: np.ndarray, pos: np.ndarray, vel: np.ndarray) -> np.ndarray:
+        """:meth:`hilsim.sim.control.Pid.update` of every (robot, joint) at once; non-effort joints 0."""
+        e = ref_pos - pos
+        u_rest = self.kp * e + self.kd * (ref_vel - vel) + self.ff * ref_vel
+        old = self.integral
+        new = np.minimum(np.maximum(old + e * self.dt, -self.bound), self.bound)
+        u_new = u_rest + self.ki * new
+        # conditional integration: saturated and the error pushes further -> keep the old integral
+        keep = ((u_new > self.hi) & (e > 0.0)) | ((u_new < self.lo) & (e < 0.0))
+        u_int = np.where(keep, u_rest + self.ki * old, u_new)
+        # a joint without effort interface never runs its PID (the per-robot path skips it): no integral
+        self.integral = np.where(self.integrating & self.effort & ~keep, new, old)
+        u = np.where(self.integrating, u_int, u_rest)
+        return np.where(self.effort, np.minimum(np.maximum(u, self.lo), self.hi), 0.0)
+
+    def on_joint_states(self, msg: msgs.JointState, key: str) -> None:
+        stamp = msgs.ns_of(msg.header.stamp)
+        self.sim_ns = stamp
+        if list(msg.name) != self.names or len(msg.position) != len(self.names):
+            self.reject(key, f"fleet JointState of {len(msg.name)} joints is not the fleet's {len(self.names)} "
+                             f"({self.names[0]} …) with positions")
+            return
+        shape = (self.n_robots, self.n)
+        pos = np.asarray(msg.position, float).reshape(shape)
+        vel = np.asarray(msg.velocity, float).reshape(shape) if msg.velocity else None
+        for k, m in enumerate(self.members):
+            with m.lock:  # its trajectory, goal and gain handlers run in other threads
+                if m.stop_event.is_set():
+                    return
+                m.measure_row(pos[k], None if vel is None else vel[k], stamp)
+                m.prepare(stamp)
+        if [m.gains_version for m in self.members] != self._versions:
+            self._gains()
+        ref_pos = np.array([m.ref_pos for m in self.members])
+        ref_vel = np.array([m.ref_vel for m in self.members])
+        mvel = np.array([m.vel for m in self.members])
+        u = self.pid(ref_pos, ref_vel, np.array([m.pos for m in self.members]), mvel)
+        header = msgs.header(stamp)
+        effort = u.ravel().tolist()
+        if self.setpoints:
+            vcmd = np.array([m.velocity_command() for m in self.members])
+            cmd = msgs.JointState(header=header, name=self.names, position=ref_pos.ravel().tolist(),
+                                  velocity=vcmd.ravel().tolist(), effort=effort)
+        else:
+            cmd = msgs.JointState(header=header, name=self.names, effort=effort)
+        self.cmd_pub.put(cmd)  # physics' step (and, in lockstep, every robot's acknowledgement)
+        n = self.n
+        for k, m in enumerate(self.members):
+            with m.lock:
+                # lever 1: a robot's own joint_commands are built only for a subscriber of them
+                m.emit(stamp, effort[k * n:(k + 1) * n] if m.cmd_pub.wanted() else None)
+
+    def health_values(self) -> dict[str, Any]:
+        return {"robots": self.n_robots, "arrays": "yes"}

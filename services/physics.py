@@ -27,6 +27,15 @@ world model; every key above that is under ``<prefix>/<robot>/`` is then read an
 robot ``<robot><k>`` (its joints by their single-robot names), the clock stays one, and a
 participant is ``<service>@<robot>`` (its tokens and acknowledgements under that robot's keys).
 
+Robots as arrays (``robots: N`` with ``fleet.arrays``, :mod:`hilsim.core.fleet`): physics also writes
+``<prefix>/<robot>/fleet/truth/joint_states`` (every robot's truth in one sample, joints
+``<robot><k>/<joint>``, after the robots' own truth) and reads ``<prefix>/<robot>/fleet/joint_commands``
+(each robot's slice acts as its own ``joint_commands`` would; in lockstep the acknowledgement of the
+fleet controller, one participant for every robot) and ``<prefix>/<robot>/sync/*`` (a fleet driver's
+acknowledgement); a robot's own ``truth/joint_states`` is then built only while someone subscribes it,
+and the robots' own ``joint_commands`` are read only when no fleet controller is alive at the start
+(each robot's controller run alone).
+
 Lockstep (default): step k+1 happens only once every participant acknowledged step k (see
 docs/keys.md). Participants announce themselves (``lockstep/<service>/<period>/<via>/<gid>``),
 so physics needs no list of them; a ``joint_commands`` sample acknowledges a step only when
@@ -49,6 +58,7 @@ import zenoh
 
 from hilsim.core import fleet, msgs
 from hilsim.core.keys import Keys, topic_name
+from hilsim.core.scenario import array_misfit, fleet_arrays
 from hilsim.core.service import LEVEL_ERROR, Publisher, Service
 from hilsim.core.transport import Attachment
 from hilsim.sim.fleet_world import FleetWorld
@@ -150,12 +160,27 @@ class PhysicsService(Service):
         self.tf_period = max(1, round(1.0 / (rate * sc.clock.dt))) if rate > 0 else 0
         self.pub_clock = self.publisher(self.keys.clock)
         self.contact_steps = 0
+        self.arrays = fleet_arrays(sc)
+        if sc.robots > 1 and sc.fleet.arrays and not self.arrays:
+            self.log.info("fleet.arrays: %s; every robot runs on its own keys", array_misfit(sc))
+        self.robot_commands = False  # whether the robots' own joint_commands are subscribed
+        if not self.arrays:
+            self._subscribe_robot_commands()
         for r in self.robots:
-            def on_command(cmd: msgs.JointState, key: str, att: Attachment | None, r: Robot = r) -> None:
-                self._on_command(r.world, cmd, key, att)
-
-            self.subscribe(r.keys.topic("joint_commands"), msgs.JointState, on_command, with_attachment=True)
             self.subscribe(r.keys.sync("*"), msgs.Clock, self._on_sync, with_attachment=True)
+        if self.arrays:
+            # robots as arrays (hilsim.core.fleet): every robot's truth in one sample, every robot's command
+            # in one; a fleet driver's acknowledgement (sync) comes under the scenario's own namespace
+            w0 = views[0]
+            self.fleet_names = fleet.joint_names(sc, list(w0.joint_names))
+            self.fleet_n = len(w0.joint_names)
+            self._fq = np.concatenate([np.asarray(v.qpos_adr).ravel() for v in views])
+            self._fv = np.concatenate([np.asarray(v.dof_adr).ravel() for v in views])
+            self._fa = np.concatenate([np.arange(v._act.start, v._act.stop) for v in views])
+            self.pub_fleet_js = self.publisher(self.keys.fleet("truth/joint_states"))
+            self.subscribe(self.keys.fleet("joint_commands"), msgs.JointState, self._on_fleet_command,
+                           with_attachment=True)
+            self.subscribe(self.keys.sync("*"), msgs.Clock, self._on_sync, with_attachment=True)
         # the scenario's own namespace, or (robots > 1) every robot's: whose tokens physics follows
         ns = Keys.of(sc, "*") if sc.robots > 1 else self.keys
         # external joint servers (a single robot only): which joints each serves, when it last reported
@@ -240,7 +265,9 @@ class PhysicsService(Service):
             if svc in self.participants:  # a participant that came back (e.g. restarted): new writer id
                 self.participants[svc] = p
 
-    def _on_command(self, world: World, cmd: msgs.JointState, key: str, att: Attachment | None) -> None:
+    def _apply(self, commands: list[tuple[World, msgs.JointState]], cmd: msgs.JointState,
+               att: Attachment | None) -> None:
+        """Apply ``commands`` (robot, its command), all from the sample ``cmd``, at the step they act on."""
         writer = att.gid.hex() if att is not None else None
         acks = [n for n, p in self.participants.items() if p.via == "joint_commands" and p.gid == writer]
         stamp = msgs.ns_of(cmd.header.stamp)
@@ -254,13 +281,43 @@ class PhysicsService(Service):
                 raise msgs.BadMessage(f"command stamped t={stamp / 1e9:.3f}s, but the current step is "
                                       f"t={now / 1e9:.3f}s")
             if due > now:  # arrived before physics reached its step: acts there, whatever the timing
-                self.pending.append((due, world, cmd))
+                self.pending.extend((due, w, c) for w, c in commands)
             else:
-                world.command(cmd)
+                for w, c in commands:
+                    w.command(c)
         else:
-            world.command(cmd)
+            for w, c in commands:
+                w.command(c)
         for name in acks:
             self._ack(name, stamp)
+
+    def _subscribe_robot_commands(self) -> None:
+        """Each robot's own joint_commands (the per-robot path: arrays off, or a robot's controller run
+        alone, e.g. ``hilsim run controller@arm3``)."""
+        self.robot_commands = True
+        for r in self.robots:
+            def on_command(cmd: msgs.JointState, key: str, att: Attachment | None, r: Robot = r) -> None:
+                self._on_command(r.world, cmd, key, att)
+
+            self.subscribe(r.keys.topic("joint_commands"), msgs.JointState, on_command, with_attachment=True)
+
+    def _on_fleet_command(self, cmd: msgs.JointState, key: str, att: Attachment | None) -> None:
+        """Every robot's command in one sample (joints ``<robot>/<joint>``): each robot's slice acts as its
+        own joint_commands would; in lockstep it acknowledges the fleet driver's step for every robot."""
+        if list(cmd.name) != self.fleet_names:
+            raise msgs.BadMessage(f"fleet command names {len(cmd.name)} joints, not the fleet's "
+                                  f"{len(self.fleet_names)} ({self.fleet_names[0]} …)")
+        n = self.fleet_n
+        cuts = [(r.world, slice(k * n, (k + 1) * n)) for k, r in enumerate(self.robots)]
+        split = [(w, msgs.JointState(header=cmd.header, name=w.joint_names,
+                                     position=cmd.position[c] if cmd.position else [],
+                                     velocity=cmd.velocity[c] if cmd.velocity else [],
+                                     effort=cmd.effort[c] if cmd.effort else []))
+                 for w, c in cuts]
+        self._apply(split, cmd, att)
+
+    def _on_command(self, world: World, cmd: msgs.JointState, key: str, att: Attachment | None) -> None:
+        self._apply([(world, cmd)], cmd, att)
 
     def _on_sync(self, clk: msgs.Clock, key: str, att: Attachment | None) -> None:
         name = fleet.service_id(self.sc, key, "sync")
@@ -342,7 +399,19 @@ class PhysicsService(Service):
             elif r.contact_pairs is None:
                 r.contact_pairs = frozenset()
                 r.pub_contacts.put(w.contacts())
-            r.pub_js.put(w.joint_states())
+            if not self.arrays or r.pub_js.wanted():  # arrays: the fleet sample below carries it anyway
+                r.pub_js.put(w.joint_states())
+            else:
+                r.pub_js.skip()
+        if self.arrays:
+            if self.pub_fleet_js.wanted():
+                d = self.world.data
+                self.pub_fleet_js.put(msgs.JointState(
+                    header=msgs.header(self.world.time_ns, "world"), name=self.fleet_names,
+                    position=d.qpos[self._fq].tolist(), velocity=d.qvel[self._fv].tolist(),
+                    effort=d.actuator_force[self._fa].tolist()))
+            else:
+                self.pub_fleet_js.skip()
         self.pub_clock.put(msgs.Clock(clock=msgs.stamp(self.world.time_ns)))
 
     def _advance(self) -> None:
@@ -450,6 +519,12 @@ class PhysicsService(Service):
             with self.lock:
                 missing = [p for p in others if p not in self.present]
             if not missing:
+                with self.lock:
+                    # arrays: no fleet controller driving every robot (e.g. each robot's controller run
+                    # alone): physics listens to the robots' own commands. Before the start delay, so
+                    # their publishers learn of the subscription before step 0.
+                    if self.arrays and not self.robot_commands and "controller" not in self.present:
+                        self._subscribe_robot_commands()
                 if self.stop_event.wait(self.sc.clock.start_delay):
                     return False
                 self.fix_participants()
@@ -527,7 +602,8 @@ class PhysicsService(Service):
         if time.monotonic() - self.back_at < self.sc.clock.start_delay:
             return
         back = ", ".join(sorted(self.gone))
-        for s in self.gone:
+        # a fleet driver (robots as arrays) restarts with its robots' services: controller@arm0 -> controller
+        for s in {*self.gone, *(fleet.split_id(g)[0] for g in self.gone)}:
             if s in self.acked:
                 # a step before this one that a lagging participant owed died with it: the new
                 # process starts from this step and never saw that one

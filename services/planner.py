@@ -9,6 +9,9 @@ Reads:
   plan always starts from the state of its own step: reproducible bit for bit. Physics waits for
   a tick's acknowledgement only ``lockstep_lag`` steps later (the trajectory acts later still).
 
+  With ``fleet.arrays`` (robots > 1) :class:`FleetPlannerFeed` hands it its robot's slice of
+  ``fleet/joint_states_throttle`` instead (the same message, its ticks and acknowledgements unchanged).
+
 Writes:
 - ``joint_trajectory`` (trajectory_msgs/JointTrajectory) for the joint trajectory controller,
   stamped to start ``START_DELAY`` after the tick it was planned on;
@@ -105,6 +108,11 @@ class PlannerService(Service):
         return sc.planner_decimation  # it decides, and acknowledges, on its own ticks only
 
     @classmethod
+    def array_driver(cls, sc: Scenario) -> type[Service] | None:
+        """robots as arrays (fleet.arrays): every robot's planner fed from the one fleet joint_states."""
+        return FleetPlannerFeed
+
+    @classmethod
     def lockstep_lag(cls, sc: Scenario) -> int:
         # What the planner decides at tick t acts from t + START_DELAY_NS on (the trajectory's
         # stamp), so physics need not stop at t for it: it simulates on while the planner's round
@@ -157,9 +165,11 @@ class PlannerService(Service):
         self.pub_result = self.publisher(k.topic("planner/result"))
         self.pub_task_result = self.publisher(k.topic("task/result"))
         # its decision ticks: an error there would stop every goal and the task, so it ends the service
-        # (joint_states_throttle: the sensors' joint_states of those steps only, not all 1 kHz of them)
-        self.subscribe(k.topic("joint_states_throttle"), msgs.JointState, self.on_joint_states,
-                       n_joints=self.n, fatal=True)
+        # (joint_states_throttle: the sensors' joint_states of those steps only, not all 1 kHz of them;
+        # robots as arrays: FleetPlannerFeed hands it its robot's slice of fleet/joint_states_throttle)
+        if not self.fleet_driven:
+            self.subscribe(k.topic("joint_states_throttle"), msgs.JointState, self.on_joint_states,
+                           n_joints=self.n, fatal=True)
         self._controller_seen = False
         self._declared.append(self.session.liveliness().declare_subscriber(
             k.alive("controller"), self._on_controller, history=True))
@@ -557,3 +567,57 @@ class PlannerService(Service):
                 goal.goal_id, goal.planner, len(out.path), wall, out.iterations, traj.duration,
             )
 
+
+
+class FleetPlannerFeed(Service):
+    """Robots as arrays (``fleet.arrays``, :mod:`hilsim.core.fleet`): every robot's planner fed from one sample.
+
+    Reads ``<prefix>/<robot>/fleet/joint_states_throttle`` (every robot's encoders of the planners'
+    decision steps, joints ``arm<k>/<joint>``) and
+    hands each robot's :class:`PlannerService` its slice, the very JointState (names, values, stamp) the
+    robot's own ``joint_states`` carries, in robot order; writes nothing of its own. The planners keep
+    everything else, their lockstep role included (each acknowledges its ticks on its own ``sync/planner``):
+    one sample to decode per step instead of one per robot.
+    """
+
+    name = "planner"
+    stop_rank = 11  # started before the planners it feeds, stopped after them
+    acks_for_robots = False
+
+    def __init__(self, scenario: Scenario, members: list[PlannerService]) -> None:
+        super().__init__(scenario)
+        self.members = members
+        self.n = members[0].n
+        self.names: list[str] | None = None
+        self.robot_joints: list[list[str]] = []
+
+    def setup(self) -> None:
+        self.subscribe(self.keys.fleet("joint_states_throttle"), msgs.JointState, self.on_joint_states)
+
+    def on_joint_states(self, msg: msgs.JointState, key: str) -> None:
+        stamp = msgs.ns_of(msg.header.stamp)
+        self.sim_ns = stamp
+        n, k_n = self.n, len(self.members)
+        if self.names is None:
+            self.names = list(msg.name)
+            self.robot_joints = [[j.split("/", 1)[-1] for j in self.names[k * n:(k + 1) * n]] for k in range(k_n)]
+        if list(msg.name) != self.names or len(msg.name) != n * k_n or len(msg.position) != len(msg.name):
+            self.reject(key, f"fleet JointState of {len(msg.name)} joints is not {k_n} robots of {n} joints")
+            return
+        for k, m in enumerate(self.members):
+            c = slice(k * n, (k + 1) * n)
+            js = msgs.JointState(header=msg.header, name=self.robot_joints[k], position=msg.position[c],
+                                 velocity=msg.velocity[c] if msg.velocity else [],
+                                 effort=msg.effort[c] if msg.effort else [])
+            with m.lock:
+                if m.stop_event.is_set():
+                    continue
+                try:
+                    m.on_joint_states(js, key)
+                except Exception as e:  # its decision ticks, as its own subscription is: fatal to it
+                    m.fail(f"error handling {key}: {type(e).__name__}: {e}", exc=e)
+                    continue
+            m.counts_in[key] += 1
+
+    def health_values(self) -> dict[str, Any]:
+        return {"robots": len(self.members), "arrays": "yes"}

@@ -222,6 +222,16 @@ class Ros2Config(_Model):
         return v
 
 
+class FleetConfig(_Model):
+    """How a fleet (``robots`` > 1) is computed (:mod:`hilsim.core.fleet`)."""
+
+    arrays: bool = Field(True, description="robots > 1: a process serving every robot's sensors or controller "
+                         "(sensors@*, controller@*) steps them as numpy arrays and trades one fleet-wide sample per "
+                         "step with physics (fleet/truth/joint_states, fleet/joint_states, fleet/joint_commands); "
+                         "the per-robot keys are still published for whoever subscribes; robots with encoder or "
+                         "control rates of their own run robot by robot (hilsim.core.scenario.array_misfit)")
+
+
 RestartPolicy = Literal["no", "on-failure"]
 
 
@@ -306,6 +316,7 @@ class Scenario(_Model):
     task: TaskConfig = Field(default_factory=TaskConfig)
     logger: LoggerConfig = Field(default_factory=LoggerConfig)
     ros2: Ros2Config = Field(default_factory=Ros2Config)
+    fleet: FleetConfig = Field(default_factory=FleetConfig)
     restart: RestartConfig = Field(default_factory=RestartConfig)
     source: Path | None = Field(None, exclude=True, description="file this came from")
     fleet_member: bool = Field(False, exclude=True, description="set by hilsim.core.fleet: one robot's view of a "

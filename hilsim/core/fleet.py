@@ -21,6 +21,23 @@ serving every robot in threads that hand each other messages as a composed proce
 (:mod:`hilsim.run.compose`), so 8 arms take as many processes as one. ``hilsim run controller@arm3``
 runs one robot's controller alone (e.g. on another machine).
 
+Robots as arrays (``fleet.arrays: true``): a process serving every robot of a kind (``sensors@*``,
+``controller@*``, composed or not) also runs that kind's *fleet driver*, a service named like the kind
+in the scenario's own namespace (``<prefix>/arm/alive/controller``), which steps every robot's
+encoders or PID as numpy arrays and trades one sample per step with physics:
+``/<robot>/fleet/truth/joint_states`` (physics → sensors), ``/<robot>/fleet/joint_states`` (sensors →
+controller) and ``/<robot>/fleet/joint_commands`` (controller → physics; in lockstep the controller
+driver's acknowledgement of every robot at once), their joints named ``arm<k>/<joint>``, robot by
+robot. The per-robot services of the process stay (health, liveliness, trajectories, actions,
+parameters, the IMU) but leave the per-step joint path to the driver, which still publishes every
+robot's ``joint_states``, ``joint_commands`` and ``controller/reference`` from the same values
+whenever someone subscribes them (the recorder, a ROS 2 node). The planners of ``planner@*`` take
+``fleet/joint_states_throttle`` (the fleet samples of their decision steps) through their own
+driver, which hands each planner its robot's slice
+as the JointState it would have received; they acknowledge their ticks themselves, per robot, as
+before. ``hilsim run controller@arm3`` (one robot alone) keeps the per-robot path; physics serves
+both.
+
 With ``robots: 1`` (the default) nothing of this applies: the robot is ``<robot>`` itself and
 every key, process and result is what it always was.
 """
@@ -41,11 +58,18 @@ class _Fleet(Protocol):
 OVERRIDABLE = ("task", "controller", "planner", "sensors")
 FLEET_WIDE = ("physics", "logger")  # one for the whole fleet; every other service runs per robot
 ALL = "*"  # <service>@*: the service of every robot, in one process
+# the kinds a process serving every robot steps as arrays (fleet.arrays), and the fleet topics
+ARRAY_KINDS = ("sensors", "controller", "planner")
 
 
 def robot_names(sc: _Fleet) -> list[str]:
     """The robots of a scenario: its ``robot`` alone, or ``<robot>0`` … ``<robot>N-1``."""
     return [sc.robot] if sc.robots == 1 else [f"{sc.robot}{k}" for k in range(sc.robots)]
+
+
+def joint_names(sc: _Fleet, joints: list[str]) -> list[str]:
+    """The joints of a fleet-wide sample: ``<robot>/<joint>``, robot by robot, each in model order."""
+    return [f"{r}/{j}" for r in robot_names(sc) for j in joints]
 
 
 def per_robot(service: str) -> bool:

@@ -57,6 +57,12 @@ TOPICS: dict[str, type] = {
     "plan": msgs.Path,
     "navigator/feedback": msgs.MoveFeedback,
     "navigator/result": msgs.MoveResult,
+    # robots > 1 with fleet.arrays (hilsim.core.fleet): one sample per step for every robot, under the
+    # scenario's own namespace (/arm/fleet/…), its joints named <robot>/<joint> (arm0/joint_1, …)
+    "fleet/truth/joint_states": msgs.JointState,
+    "fleet/joint_states": msgs.JointState,
+    "fleet/joint_states_throttle": msgs.JointState,
+    "fleet/joint_commands": msgs.JointState,
 }
 # Keys whose last segment is a service name.
 PER_SERVICE_TOPICS: dict[str, type] = {
@@ -198,6 +204,11 @@ class Keys:
 
     def truth(self, name: str) -> str:
         return self.topic(f"truth/{name}")
+
+    def fleet(self, name: str) -> str:
+        """A fleet-wide topic (``truth/joint_states``, ``joint_states``, ``joint_commands``): with the
+        scenario's own keys, ``/<robot>/fleet/<name>`` (hilsim.core.fleet)."""
+        return self.topic(f"fleet/{name}")
 
     def health(self, service: str) -> str:
         return self._data(self.topic_name(f"health/{service}"), PER_SERVICE_TOPICS["health"])

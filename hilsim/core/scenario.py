@@ -363,3 +363,24 @@ def robot_scenario(sc: Scenario, robot: str) -> Scenario:
         raise ConfigError(format_error(sc.source or "scenario", e, prefix=f"robot_overrides.{robot}")) from None
     out.source, out.fleet_member = sc.source, True  # neither is in the dump
     return out
+
+
+def fleet_arrays(sc: Scenario) -> bool:
+    """Whether the fleet's sensors, controllers and planners run as arrays (:mod:`hilsim.core.fleet`):
+    ``fleet.arrays``, robots > 1, and robots the arrays can take together (:func:`array_misfit`). Every
+    process decides it alike from the scenario alone, so the fleet keys have writers wherever they have
+    readers."""
+    return sc.robots > 1 and sc.fleet.arrays and array_misfit(sc) is None
+
+
+def array_misfit(sc: Scenario) -> str | None:
+    """Why the robots of a fleet cannot be stepped as arrays, or None: each needs exactly one enabled
+    encoder sensor, and all the same encoder rate and control rate (``robot_overrides`` may differ)."""
+    shapes = set()
+    for r in fleet.robot_names(sc):
+        rsc = robot_scenario(sc, r)
+        enc = [c.rate_hz for c in rsc.sensors.values() if c.type == "encoder" and c.enabled]
+        if len(enc) != 1:
+            return f"{r} has {len(enc)} enabled encoder sensors (arrays need exactly one)"
+        shapes.add((enc[0], rsc.controller.rate_hz))
+    return None if len(shapes) == 1 else "the robots' encoder or control rates differ"

@@ -147,6 +147,22 @@ class Publisher:
             b.flush()
         svc.counts_out[self.key] += 1
 
+    def wanted(self) -> bool:
+        """Whether a sample put now would reach anyone (a matching subscriber outside, or, composed, one
+        in the process, or the recorder's batch): a caller may then skip even building the message
+        (:meth:`skip`)."""
+        if self._batch is not None:  # the recorder takes every sample in its batch
+            return True
+        if self._local is None:
+            return self.matching
+        return bool(self._pub.remote) or self._svc.session.has_local(self.key)
+
+    def skip(self) -> None:
+        """A sample nobody would receive: counted as :meth:`put` counts it, neither built nor sent."""
+        with self._lock:
+            self.seq += 1
+        self._svc.counts_out[self.key] += 1
+
     def undeclare(self) -> None:
         self._token.undeclare()
         if self._matching is not None:
@@ -281,6 +297,11 @@ class Service:
         self._sync_pub: Publisher | None = None
         self._zid = ""
         self._node_id = 0
+        # robots as arrays (hilsim.core.fleet): a fleet driver in this process hands this robot its
+        # per-step joint sample (the service does not subscribe it) and, if fleet_acked, also
+        # acknowledges the lockstep steps for it
+        self.fleet_driven = False
+        self.fleet_acked = False
 
     # ------------------------------------------------------------------ to override
     def setup(self) -> None:
@@ -542,7 +563,8 @@ class Service:
     @property
     def lockstep(self) -> bool:
         """True when physics waits for this service (at its :meth:`lockstep_period`)."""
-        return self.sc.clock.mode == "lockstep" and self.lockstep_period(self.sc) is not None
+        return (self.sc.clock.mode == "lockstep" and self.lockstep_period(self.sc) is not None
+                and not self.fleet_acked)
 
     def ack_publisher(self) -> Publisher | None:
         """The publisher whose samples acknowledge steps (``ack_via``); the sync one by default."""

@@ -120,6 +120,14 @@ class ComposedSession:
 
         return _Decl()
 
+    def has_local(self, key: str) -> bool:
+        """Whether a subscriber in the process receives ``key`` (what a publisher may skip on)."""
+        cbs = self._routes.get(key)
+        if cbs is None:
+            with self._lock:
+                cbs = self._routes[key] = [h for expr, h in self._subs if key_matches(expr, key)]
+        return bool(cbs)
+
     def __getattr__(self, name: str) -> Any:
         # liveliness, queryables, get, ...: the real session's, unchanged
         return getattr(self.session, name)
@@ -149,12 +157,38 @@ class ComposedSession:
         self.session.close()
 
 
+def fleet_drivers(sc: Any, names: list[str], services: list[Any]) -> list[Any]:
+    """Robots as arrays (``fleet.arrays``, :mod:`hilsim.core.fleet`): for each kind this process serves
+    for *every* robot (``sensors@*``, ``controller@*``) and whose class offers one, the fleet driver
+    that steps them all; its robots' services leave their per-step path to it (``fleet_driven``)."""
+    from hilsim.core import fleet
+    from hilsim.core.scenario import fleet_arrays
+
+    if not fleet_arrays(sc):
+        return []
+    out = []
+    for kind in fleet.ARRAY_KINDS:
+        group = [s for n, s in zip(names, services, strict=True) if fleet.split_id(n)[0] == kind]
+        if len(group) != sc.robots:  # some robots' services run elsewhere: each keeps its own path
+            continue
+        offer = getattr(type(group[0]), "array_driver", None)
+        driver = offer(sc) if offer is not None else None
+        if driver is None:
+            continue
+        for s in group:
+            s.fleet_driven = True
+            s.fleet_acked = getattr(driver, "acks_for_robots", True)
+        out.append(driver(sc, group))
+    return out
+
+
 def run(names: list[str], sc: Any) -> int:
     """``hilsim run a+b+c``: the services ``names`` in this process; returns the exit code."""
     from hilsim.core.service import instantiate, on_stop_signals
 
     # names: services, or with robots > 1 robots' services (controller@arm3: hilsim.core.fleet)
     services = [instantiate(n, sc) for n in names]
+    services += fleet_drivers(sc, names, services)
     # start as the launcher does (the reverse of stop_rank: physics last, once the others listen)
     order = sorted(services, key=lambda s: -s.stop_rank)
     stop = threading.Event()

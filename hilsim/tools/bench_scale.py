@@ -117,13 +117,20 @@ def _subscribe_main(endpoint: str, key: str, n: int) -> int:
     return 0
 
 
-def run_one(robots: int, subscribers: int, sim_seconds: float, tmp: Path, compose: bool) -> dict[str, Any]:
-    """One lockstep run of ``robots`` arms with ``subscribers`` extra subscribers: its figures."""
+def run_one(robots: int, subscribers: int, sim_seconds: float, tmp: Path, compose: bool,
+            arrays: bool | None = None, batch: int | None = None) -> dict[str, Any]:
+    """One lockstep run of ``robots`` arms with ``subscribers`` extra subscribers: its figures.
+    ``arrays``: ``fleet.arrays`` (robots as arrays, hilsim.core.fleet); ``batch``: ``logger.batch``
+    (the recorder takes batches, hilsim.core.batch); None: as the scenario says."""
     from hilsim.core import transport
     from hilsim.core.keys import Keys
     from hilsim.run.launcher import Launcher
 
     more: dict[str, Any] = {"robots": robots, "services": list(SERVICES)}
+    if arrays is not None:
+        more["fleet.arrays"] = arrays
+    if batch is not None:
+        more["logger.batch"] = batch
     if compose:
         more["compose"] = [["physics", "sensors", "controller"]]
     sc = _scenario(sim_seconds, **more)
@@ -161,6 +168,8 @@ def run_one(robots: int, subscribers: int, sim_seconds: float, tmp: Path, compos
     return {
         "robots": robots,
         "subscribers": subscribers,
+        "arrays": sc.fleet.arrays,
+        "batch": sc.logger.batch,
         "rtf": float(ph["real_time_factor"]),
         "step_p50_us": float(ph.get("step_p50_us", "nan")),
         "step_p99_us": float(ph.get("step_p99_us", "nan")),
@@ -212,25 +221,47 @@ def cmd_scale(args: argparse.Namespace) -> int:
 
     say(f"hilsim bench scale: arms holding position, lockstep 1 kHz, {sim:g} s sim per run, robots {robots}, "
         f"extra subscribers {subs}, {pipeline} ({os.cpu_count()} CPUs)")
-    best: dict[tuple[int, int], dict[str, Any]] = {}
+    # --arrays both: every configuration with fleet.arrays off and on, interleaved, reported side by side
+    modes: list[bool | None] = {"scenario": [None], "off": [False], "on": [True], "both": [False, True]}[args.arrays]
+    best: dict[tuple[int, int, bool | None], dict[str, Any]] = {}
     with TemporaryDirectory(prefix="hilsim-bench-scale-") as d:
         # --repeat: the rounds interleaved, the best of each kept (on a shared machine the load of
         # the moment moves the figures more than one more robot does)
         for k in range(args.repeat):
             for s in subs:
                 for n in robots:
-                    rnd = f" (round {k + 1}/{args.repeat})" if args.repeat > 1 else ""
-                    say(f"  {n} robot{'s' if n > 1 else ''}, {s} extra subscriber{'s' if s != 1 else ''}{rnd} …")
-                    r = run_one(n, s, sim, Path(d) / str(k), args.compose)
-                    if (n, s) not in best or r["rtf"] > best[n, s]["rtf"]:
-                        best[n, s] = r
-                    say(f"    {r['rtf']:.3f}x real time, step p50 {r['step_p50_us']:.0f} µs, p99 "
-                        f"{r['step_p99_us']:.0f} µs; recorder {r['recorder']['cpu_pct_of_core']:.0f} % of a core, "
-                        f"{r['recorder']['recorded']} messages")
-    runs = [best[n, s] for s in subs for n in robots]
+                    for a in modes:
+                        rnd = f" (round {k + 1}/{args.repeat})" if args.repeat > 1 else ""
+                        arr = "" if a is None else f", arrays {'on' if a else 'off'}"
+                        say(f"  {n} robot{'s' if n > 1 else ''}, {s} extra subscriber{'s' if s != 1 else ''}"
+                            f"{arr}{rnd} …")
+                        r = run_one(n, s, sim, Path(d) / f"{k}-{a}", args.compose, a, args.batch)
+                        if (n, s, a) not in best or r["rtf"] > best[n, s, a]["rtf"]:
+                            best[n, s, a] = r
+                        say(f"    {r['rtf']:.3f}x real time, step p50 {r['step_p50_us']:.0f} µs, p99 "
+                            f"{r['step_p99_us']:.0f} µs; recorder {r['recorder']['cpu_pct_of_core']:.0f} % of a core, "
+                            f"{r['recorder']['recorded']} messages")
+    results = [_results([best[n, s, a] for s in subs for n in robots], args, pipeline) for a in modes]
+    res = dict(results[-1])  # the last mode's (arrays on, with --arrays both) at the top level, as always
+    if len(results) > 1:
+        res["by_arrays"] = {"on" if r["runs"][0]["arrays"] else "off": r for r in results}
+    if args.json:
+        print(json.dumps(res, indent=2))
+        return 0
+    for r in results:
+        if len(results) > 1:
+            print(f"\nfleet.arrays: {'on' if r['runs'][0]['arrays'] else 'off'}")
+        _print(r, args, pipeline)
+    return 0
+
+
+def _results(runs: list[dict[str, Any]], args: argparse.Namespace, pipeline: str) -> dict[str, Any]:
+    """The figures of one set of runs (one per robots × subscribers), its ratios and goals."""
+    robots, subs, sim = sorted(set(args.robots)), sorted(set(args.subscribers)), args.sim_seconds
     add_ratios(runs)
     res: dict[str, Any] = {
         "sim_seconds": sim, "pipeline": pipeline, "robots": robots, "subscribers": subs, "repeat": args.repeat,
+        "arrays": runs[0]["arrays"],
         "machine": {"cpus": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
         "runs": runs,
     }
@@ -247,18 +278,20 @@ def cmd_scale(args: argparse.Namespace) -> int:
     res["goal_fleet"] = {"robots": top, "rtf": r0["rtf"], "rtf_goal": need, "rtf_met": r0["rtf"] >= need,
                          "added_robot_cost_vs_first": r0["added_robot_cost_vs_first"],
                          "added_cost_met": r0["added_robot_cost_vs_first"] <= 0.5} if r0 and top > 1 else None
-    if args.json:
-        print(json.dumps(res, indent=2))
-        return 0
+    return res
+
+
+def _print(res: dict[str, Any], args: argparse.Namespace, pipeline: str) -> None:
+    sim = args.sim_seconds
     print(f"\n{'best of ' + str(args.repeat) + ' runs each, ' if args.repeat > 1 else ''}{sim:g} s sim per run")
     print("| robots | extra subs | real-time factor | vs 1 robot | cost per robot vs 1 | step p50 / p99 [µs] "
           "| CPU s per sim s | recorder CPU (% core) | recorded msgs |")
     print("|---|---|---|---|---|---|---|---|---|")
-    for r in runs:
+    for r in res["runs"]:
         print(f"| {r['robots']} | {r['subscribers']} | {r['rtf']:.3f}x | {r['rtf_vs_1']:.3f} | "
               f"{r['cost_per_robot_vs_1']:.3f} | {r['step_p50_us']:.0f} / {r['step_p99_us']:.0f} | "
               f"{r['cpu_per_sim_s']:.2f} | {r['recorder']['cpu_pct_of_core']:.0f} | {r['recorder']['recorded']} |")
-    for s, g in goal.items():
+    for s, g in res["goal_rtf_vs_1_at_least_0.25"].items():
         print(f"goal {g['robots']} robots at >= 1/4 of one robot's real-time factor ({s} extra subscribers): "
               f"{g['rtf_vs_1']:.3f} — {'met' if g['met'] else 'NOT met'}")
     f = res["goal_fleet"]
@@ -267,7 +300,6 @@ def cmd_scale(args: argparse.Namespace) -> int:
               f"{'met' if f['rtf_met'] else 'NOT met'}; each robot past the first costs "
               f"{f['added_robot_cost_vs_first']:.3f} of the first (goal <= 0.5) — "
               f"{'met' if f['added_cost_met'] else 'NOT met'}")
-    return 0
 
 
 if __name__ == "__main__":
