@@ -230,6 +230,8 @@ def build_parser() -> argparse.ArgumentParser:
     bsc.add_argument("--batch", type=int, default=None, metavar="N",
                      help="logger.batch: samples per batch the services send the recorder (0: off; default: "
                      "as the scenario says)")
+    bsc.add_argument("--lag", type=int, choices=[0, 1], default=None,
+                     help="clock.controller_lag (default: as config/arm.yaml ships it)")
     bsc.set_defaults(func=_lazy("hilsim.tools.bench_scale", "cmd_scale"))
     bc = bsub.add_parser("can", help="CAN bridge: frames per second and added latency vs python-can alone")
     bc.add_argument("--json", action="store_true")

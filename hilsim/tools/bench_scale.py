@@ -41,6 +41,7 @@ from pathlib import Path
 from tempfile import TemporaryDirectory
 from typing import Any
 
+from hilsim.core.scenario import load_scenario
 from hilsim.tools import progress
 from hilsim.tools.bench import _scenario, cpu_s
 
@@ -118,10 +119,11 @@ def _subscribe_main(endpoint: str, key: str, n: int) -> int:
 
 
 def run_one(robots: int, subscribers: int, sim_seconds: float, tmp: Path, compose: bool,
-            arrays: bool | None = None, batch: int | None = None) -> dict[str, Any]:
+            arrays: bool | None = None, batch: int | None = None, lag: int | None = None) -> dict[str, Any]:
     """One lockstep run of ``robots`` arms with ``subscribers`` extra subscribers: its figures.
     ``arrays``: ``fleet.arrays`` (robots as arrays, hilsim.core.fleet); ``batch``: ``logger.batch``
-    (the recorder takes batches, hilsim.core.batch); None: as the scenario says."""
+    (the recorder takes batches, hilsim.core.batch); ``lag``: ``clock.controller_lag``; None: as the
+    scenario (``config/arm.yaml``) says."""
     from hilsim.core import transport
     from hilsim.core.keys import Keys
     from hilsim.run.launcher import Launcher
@@ -131,6 +133,8 @@ def run_one(robots: int, subscribers: int, sim_seconds: float, tmp: Path, compos
         more["fleet.arrays"] = arrays
     if batch is not None:
         more["logger.batch"] = batch
+    # the arm as shipped (its controller_lag), unless asked: bench loop's _scenario pins lag 0
+    more["clock.controller_lag"] = lag if lag is not None else load_scenario("arm").clock.controller_lag
     if compose:
         more["compose"] = [["physics", "sensors", "controller"]]
     sc = _scenario(sim_seconds, **more)
@@ -170,6 +174,7 @@ def run_one(robots: int, subscribers: int, sim_seconds: float, tmp: Path, compos
         "subscribers": subscribers,
         "arrays": sc.fleet.arrays,
         "batch": sc.logger.batch,
+        "controller_lag": sc.clock.controller_lag,
         "rtf": float(ph["real_time_factor"]),
         "step_p50_us": float(ph.get("step_p50_us", "nan")),
         "step_p99_us": float(ph.get("step_p99_us", "nan")),
@@ -219,7 +224,9 @@ def cmd_scale(args: argparse.Namespace) -> int:
     pipeline = "composed" if args.compose else "distributed"
     say = progress(args.json)
 
-    say(f"hilsim bench scale: arms holding position, lockstep 1 kHz, {sim:g} s sim per run, robots {robots}, "
+    lag = args.lag if args.lag is not None else load_scenario("arm").clock.controller_lag
+    say(f"hilsim bench scale: arms holding position, lockstep 1 kHz (controller_lag {lag}), {sim:g} s sim per run, "
+        f"robots {robots}, "
         f"extra subscribers {subs}, {pipeline} ({os.cpu_count()} CPUs)")
     # --arrays both: every configuration with fleet.arrays off and on, interleaved, reported side by side
     modes: list[bool | None] = {"scenario": [None], "off": [False], "on": [True], "both": [False, True]}[args.arrays]
@@ -235,7 +242,7 @@ def cmd_scale(args: argparse.Namespace) -> int:
                         arr = "" if a is None else f", arrays {'on' if a else 'off'}"
                         say(f"  {n} robot{'s' if n > 1 else ''}, {s} extra subscriber{'s' if s != 1 else ''}"
                             f"{arr}{rnd} …")
-                        r = run_one(n, s, sim, Path(d) / f"{k}-{a}", args.compose, a, args.batch)
+                        r = run_one(n, s, sim, Path(d) / f"{k}-{a}", args.compose, a, args.batch, args.lag)
                         if (n, s, a) not in best or r["rtf"] > best[n, s, a]["rtf"]:
                             best[n, s, a] = r
                         say(f"    {r['rtf']:.3f}x real time, step p50 {r['step_p50_us']:.0f} µs, p99 "
