@@ -586,7 +586,7 @@ class FleetControllerService(Service):
         for k, m in enumerate(self.members):
             with m.lock:
                 # lever 1: a robot's own joint_commands are built only for a subscriber of them
-                m.emit(stamp, effort[k * n:(k + 1) * n] if m.cmd_pub.wanted() else None)
+                m.emit(stamp, effort[k * n:(k + 1) * n] if m.cmd_pub.wanted(covered=True) else None)
 
     def health_values(self) -> dict[str, Any]:
         return {"robots": self.n_robots, "arrays": "yes"}

@@ -399,7 +399,7 @@ class PhysicsService(Service):
             elif r.contact_pairs is None:
                 r.contact_pairs = frozenset()
                 r.pub_contacts.put(w.contacts())
-            if not self.arrays or r.pub_js.wanted():  # arrays: the fleet sample below carries it anyway
+            if not self.arrays or r.pub_js.wanted(covered=True):  # arrays: the fleet sample carries it anyway
                 r.pub_js.put(w.joint_states())
             else:
                 r.pub_js.skip()

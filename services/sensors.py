@@ -266,17 +266,23 @@ class FleetSensorService(Service):
         for k, (e, pub, m) in enumerate(zip(self.encoders, self.pubs, self.members, strict=True)):
             e.published += 1
             m.sim_ns = max(m.sim_ns, stamp)
-            if not pub.wanted():  # lever 1: a robot's own key costs nothing while nobody reads it
-                pub.skip()
-                continue
+            # lever 1: a robot's own keys cost nothing while nobody reads them (the fleet sample has
+            # the same values, and the recorder takes those)
+            want = pub.wanted(covered=True)
+            throttle = m._throttle if tick else None
+            want_tick = throttle is not None and throttle.wanted(covered=True)
             js = msgs.JointState(header=msgs.header(stamp, msg.header.frame_id), name=self.robot_joints[k],
-                                 position=pos[k].tolist(), velocity=vel[k].tolist(), effort=effort[k * n:(k + 1) * n])
-            pub.put(js)
-            if tick and m._throttle is not None:
-                if m._throttle.wanted():
-                    m._throttle.put(js)
+                                 position=pos[k].tolist(), velocity=vel[k].tolist(),
+                                 effort=effort[k * n:(k + 1) * n]) if want or want_tick else None
+            if js is not None and want:
+                pub.put(js)
+            else:
+                pub.skip()
+            if throttle is not None:
+                if js is not None and want_tick:
+                    throttle.put(js)
                 else:
-                    m._throttle.skip()
+                    throttle.skip()
 
     def health_values(self) -> dict[str, Any]:
         return {"robots": self.n_robots, "arrays": "yes"}

@@ -17,6 +17,7 @@ from util import REPO, finish, up
 from hilsim.core import msgs, transport
 from hilsim.core.config import PidGains
 from hilsim.core.keys import Keys
+from hilsim.core.recording import contents
 from hilsim.sim import control
 
 ROBOTS = ["arm0", "arm1", "arm2"]
@@ -151,15 +152,19 @@ def test_arrays_give_the_per_robot_paths_truth_bit_for_bit_distributed_and_compo
     _same(on, _run(tmp_path, "on-composed", *lag_set, "--set", "fleet.arrays=true", *compose))
 
 
-def test_arrays_move_every_arm_to_its_target_and_keep_the_per_robot_keys(tmp_path: Path) -> None:
+@pytest.mark.parametrize("batch", [0, 256])
+def test_arrays_move_every_arm_to_its_target_and_keep_the_per_robot_keys(tmp_path: Path, batch: int) -> None:
     """Three arms as real processes, fleet.arrays on, each with a target of its own: judged by the physics
     truth; a plain subscriber that turns up mid-run on arm2's joint_states gets its samples (lever 1 turns
-    the robot's own key on for it); the recorder has every robot's keys and the fleet's."""
+    the robot's own key on for it); the recorder has every robot's keys and the fleet's, every sample
+    published (and, with ``logger.batch``, taken from the services' batches: every robot's key is still
+    built for it)."""
     scen = tmp_path / "three-arms.yaml"
     scen.write_text(
         f"extends: [{REPO / 'config' / 'arm.yaml'}]\n"
         "robots: 3\n"
         "fleet: {arrays: true}\n"
+        f"logger: {{batch: {batch}}}\n"
         "planner: {planning_time: 0.3}\n"
         f"task: {{targets: [{LEFT}]}}\n"
         f"robot_overrides: {{arm1: {{task.targets: [{OVER}]}}}}\n")
@@ -199,11 +204,33 @@ def test_arrays_move_every_arm_to_its_target_and_keep_the_per_robot_keys(tmp_pat
     # the late subscriber: arm2's encoders at 1 kHz from when it joined to the end, in order
     assert len(late) > 500 and late == sorted(late) and late[0] >= 0.3e9, (len(late), late[:3])
     counts = json.loads((tmp_path / "run" / "record_summary.json").read_text())
-    for r in ROBOTS:
-        for topic in ("truth/joint_states", "joint_states", "joint_commands", "controller/reference"):
-            assert counts.get(Keys("hilsim", r).topic(topic), {}).get("recorded", 0) > 1000, (r, topic)
+    fleet = Keys("hilsim", "arm")
+    steps = counts[fleet.fleet("joint_states")]["recorded"]
     for topic in ("truth/joint_states", "joint_states", "joint_commands"):
-        assert counts.get(Keys("hilsim", "arm").fleet(topic), {}).get("recorded", 0) > 1000, topic
+        assert counts.get(fleet.fleet(topic), {}).get("recorded", 0) == steps > 1000, topic
+    for key, c in counts.items():
+        assert c["received"] == c["recorded"] == c["bagged"] and c["lost"] == 0, (key, c)
+    # the planners' ticks: every 10th step's fleet sample
+    assert counts[fleet.fleet("joint_states_throttle")]["recorded"] == (steps - 1) // 10 + 1
+    for r in ROBOTS:
+        k = Keys("hilsim", r)
+        recorded = {t: counts.get(k.topic(t), {}).get("recorded", 0)
+                    for t in ("truth/joint_states", "joint_states", "joint_commands", "controller/reference")}
+        assert recorded["controller/reference"] == steps, (r, recorded)  # in no fleet sample: always its own
+        if not batch:  # the recorder subscribes every key: the robot's own are built and put for it
+            assert all(n == steps for n in recorded.values()), (r, recorded)
+        else:  # batches: the fleet samples carry these values; a robot's own keys are built only for a
+            # subscriber: its truth for this test's judge, arm2's joint_states from when the late one joined
+            assert recorded["truth/joint_states"] == steps and recorded["joint_commands"] == 0, (r, recorded)
+            if r == "arm2":
+                assert 500 < recorded["joint_states"] < steps, recorded
+            else:
+                assert recorded["joint_states"] == 0, (r, recorded)
+    # either way every robot's joints are in the recording, robot by robot, every step
+    rows = contents(tmp_path / "run" / "recording.rrd").rows
+    for r in ROBOTS:
+        for source, q in (("truth", "position"), ("measured", "position"), ("command", "effort")):
+            assert rows.get(f"/robots/{r}/joints/joint_3/{q}/{source}") == steps, (r, source)
 
 
 def test_each_robots_controller_run_alone_keeps_the_per_robot_path(tmp_path: Path) -> None:

@@ -147,11 +147,13 @@ class Publisher:
             b.flush()
         svc.counts_out[self.key] += 1
 
-    def wanted(self) -> bool:
+    def wanted(self, *, covered: bool = False) -> bool:
         """Whether a sample put now would reach anyone (a matching subscriber outside, or, composed, one
         in the process, or the recorder's batch): a caller may then skip even building the message
-        (:meth:`skip`)."""
-        if self._batch is not None:  # the recorder takes every sample in its batch
+        (:meth:`skip`). ``covered``: the same values go out in a fleet sample too (robots as arrays),
+        which the recorder records robot by robot (hilsim.record.rows), so its batch does not want
+        this one."""
+        if self._batch is not None and not covered:  # the recorder takes every sample in its batch
             return True
         if self._local is None:
             return self.matching

@@ -79,6 +79,7 @@ class FastRows(RowsBase):
     _layouts: dict[str, _Layout | None]
     _fast_rows: list[tuple[tuple[str, ...], np.ndarray, np.ndarray]]
     rejections: list[tuple[str, msgs.BadMessage]]
+    _fleet_covered: set[str]
     _last_model_ns: int | None
     _model_rows: dict[str, tuple[list[int], list[float]]]
 
@@ -87,6 +88,8 @@ class FastRows(RowsBase):
         """Rows of a payload on a key whose layout is known (:meth:`learn`), without decoding it
         into a message: True if taken (its rows buffered, or its validation left to
         :meth:`drain`), False if it must go the ordinary way (decode, validate, :meth:`message`)."""
+        if self._fleet_covered and self.covered(key):  # type: ignore[attr-defined]
+            return True  # a fleet robot's own joint key: its rows come from the fleet sample
         lay = self._layouts.get(key, False)
         if lay is False:
             return False

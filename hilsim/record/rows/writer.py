@@ -49,6 +49,15 @@ class RowWriter(FastRows, JointRows, ImuRows, MobileRows, StatusRows, TaskRows, 
         # one row of values per message here, split into entities at flush time.
         self._vectors: dict[tuple[str, ...], tuple[list[int], list[list[float]]]] = {}
         self._entity_cache: dict[tuple[Any, ...], tuple[str, ...]] = {}
+        # robots as arrays (hilsim.core.fleet): the joint topics a fleet sample (/<robot>/fleet/<topic>)
+        # has carried; the fleet robots' rows of those topics come from it, not from their own keys
+        # (the same values; with logger.batch nobody builds the robots' own keys, composed or not)
+        self._fleet_covered: set[str] = set()
+        self._fleet_groups: dict[tuple[str, ...], list[tuple[str, slice, tuple[str, ...]]]] = {}
+        self._covered_keys: dict[str, bool] = {}
+        # a fleet robot's own joint rows written before its topic was covered: (root, source) -> stamp,
+        # so the fleet sample of that step does not write them again
+        self._robot_rows: dict[tuple[str, str], int] = {}
         self._texts: dict[str, tuple[list[int], list[str], list[str]]] = {}
         self._model_rows: dict[str, tuple[list[int], list[float]]] = {}
         self._last_model_ns: int | None = None
@@ -73,6 +82,48 @@ class RowWriter(FastRows, JointRows, ImuRows, MobileRows, StatusRows, TaskRows, 
         self.rejections: list[tuple[str, msgs.BadMessage]] = []
 
     # ------------------------------------------------------------------ messages -> rows
+    def covered(self, key: str) -> bool:
+        """Whether a fleet robot's own joint key gets its rows from the fleet sample (:meth:`message`)."""
+        got = self._covered_keys.get(key)
+        if got is None:
+            parts = topic_parts(key)
+            got = len(parts) > 2 and parts[1] != self.robot and "/".join(parts[2:]) in self._fleet_covered
+            self._covered_keys[key] = got
+        return got
+
+    def _fleet_joint_state(self, source: str, topic: str, msg: msgs.JointState) -> None:
+        """A fleet sample's rows, robot by robot, as each robot's own key would give them (joints
+        ``<robot>/<joint>``, each robot's joints together)."""
+        if topic not in self._fleet_covered:
+            self._fleet_covered.add(topic)
+            self._covered_keys.clear()  # decided again with this topic covered
+        names = tuple(msg.name)
+        groups = self._fleet_groups.get(names)
+        if groups is None:
+            groups = []
+            start = 0
+            for i in range(1, len(names) + 1):
+                robot = names[start].split("/", 1)[0]
+                if i == len(names) or names[i].split("/", 1)[0] != robot:
+                    root = "" if robot == self.robot else f"robots/{part(robot)}/"
+                    groups.append((root, slice(start, i), tuple(n.split("/", 1)[-1] for n in names[start:i])))
+                    start = i
+            self._fleet_groups[names] = groups
+        t = msgs.ns_of(msg.header.stamp)
+        for quantity in ("position", "velocity", "effort"):
+            values = getattr(msg, quantity)
+            if not values:
+                continue
+            for root, sl, joints in groups:
+                if self._robot_rows.get((root, source)) == t:
+                    continue  # this step's rows came with the robot's own key, before the fleet's
+                ck = (root, source, quantity, joints)
+                entities = self._entity_cache.get(ck)
+                if entities is None:
+                    entities = tuple(f"{root}joints/{part(n)}/{quantity}/{source}" for n in joints)
+                    self._entity_cache[ck] = entities
+                self._vector(entities, t, values[sl])
+
     def message(self, key: str, msg: Any) -> None:
         """Rows of one decoded message on ``key`` (``/clock`` or ``/<robot>/<topic>``, :func:`topic_parts`)."""
         parts = topic_parts(key)
@@ -89,6 +140,13 @@ class RowWriter(FastRows, JointRows, ImuRows, MobileRows, StatusRows, TaskRows, 
             return
         robot, topic = parts[1], "/".join(parts[2:])
         root = "" if robot == self.robot else f"robots/{part(robot)}/"
+        if topic.startswith("fleet/") and topic[6:] in JOINT_SOURCES and isinstance(msg, msgs.JointState):
+            self._fleet_joint_state(JOINT_SOURCES[topic[6:]], topic[6:], msg)
+            return
+        if root and topic in self._fleet_covered:
+            return  # a fleet robot's joints: rows from its fleet sample (the same values)
+        if root and topic in JOINT_SOURCES and isinstance(msg, msgs.JointState):
+            self._robot_rows[root, JOINT_SOURCES[topic]] = msgs.ns_of(msg.header.stamp)
         if topic in JOINT_SOURCES:
             self._joint_state(root, JOINT_SOURCES[topic], msg, model=(topic == "truth/joint_states" and not root))
         elif topic in IMU_SOURCES:
