@@ -14,7 +14,10 @@ Entity layout (entities of robots other than the scenario's go under ``robots/<r
                                                 measured (``joint_states``), command
                                                 (``joint_commands``), reference
                                                 (``controller/reference``), planned
-                                                (``joint_trajectory`` points at their sim time)
+                                                (``joint_trajectory`` points at their sim time);
+                                                a fleet sample (``fleet/<topic>``, joints
+                                                ``<robot>/<joint>``) robot by robot, under each
+                                                robot's root, and then not that robot's own key
 ``imu/<truth|measured>/<field>/<axis>``         Scalars; field = orientation, angular_velocity,
                                                 linear_acceleration
 ``clock``                                       Scalars: sim time [s]
