@@ -405,7 +405,7 @@ class PlannerService(Service):
             return
         t = msgs.ns_of(js.header.stamp)
         self._monitor(t)
-        if (t // self.sc.dt_ns) % self.sc.planner_decimation == 0:
+        if self.sc.planner_tick(t):
             self.on_tick(t)
 
     def _monitor(self, now: int) -> None:

@@ -126,7 +126,7 @@ class SensorService(Service):
         sensors = self._by_truth.get(topic, [])
         ack = topic == ACK_TRUTH and self.lockstep
         merge = bool(self._external)
-        throttle, dt_ns, dec = self._throttle, self.sc.dt_ns, self.sc.planner_decimation
+        throttle, tick = self._throttle, self.sc.planner_tick
 
         def handle(msg: Any, key: str) -> None:
             stamp = msgs.ns_of(msg.header.stamp)
@@ -139,7 +139,7 @@ class SensorService(Service):
                     if merge and s.output_topic == "joint_states":
                         self._merge_external(out)
                     pub.put(out)
-                    if throttle is not None and s.output_topic == "joint_states" and (stamp // dt_ns) % dec == 0:
+                    if throttle is not None and s.output_topic == "joint_states" and tick(stamp):
                         throttle.put(out)
             if ack:
                 self.ack(stamp)
@@ -256,7 +256,7 @@ class FleetSensorService(Service):
         out = msgs.JointState(header=header, name=self.names, position=pos.ravel().tolist(),
                               velocity=vel.ravel().tolist(), effort=effort)
         self.pub.put(out)
-        tick = self.throttle is not None and (stamp // self.sc.dt_ns) % self.sc.planner_decimation == 0
+        tick = self.throttle is not None and self.sc.planner_tick(stamp)
         if tick:
             self.throttle.put(out)  # type: ignore[union-attr]
         n = pos.shape[1]

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_scale import LEFT, OVER, _truth_of
+from test_scale import LEFT, OVER, _close_truth, _truth_of
 from util import REPO, finish, up
 
 from hilsim.core import msgs, transport
@@ -117,9 +117,7 @@ def _run(tmp: Path, name: str, *extra: str, robots: list[str] = ROBOTS,
     finally:
         joined.set()
         joiner.join()
-        for s in subs:
-            s.undeclare()
-        ses.close()
+        _close_truth(ses, subs)
         router.close()
     assert "result: STOPPED (duration)" in out, out
     assert len(fleet) >= 490 if fleet_commands else not fleet, (name, len(fleet))
@@ -189,9 +187,7 @@ def test_arrays_move_every_arm_to_its_target_and_keep_the_per_robot_keys(tmp_pat
     finally:
         stop.set()
         joiner.join()
-        for s in subs:
-            s.undeclare()
-        ses.close()
+        _close_truth(ses, subs)
         router.close()
     assert "result: OK" in out, out
     final = {}
@@ -264,9 +260,7 @@ def test_each_robots_controller_run_alone_keeps_the_per_robot_path(tmp_path: Pat
                 p.wait(20)
             except subprocess.TimeoutExpired:
                 p.kill()
-        for s in subs:
-            s.undeclare()
-        ses.close()
+        _close_truth(ses, subs)
         router.close()
     assert "result: STOPPED (duration)" in out, out
     assert not fleet, len(fleet)  # no fleet command: each controller's own carried the steps
@@ -306,9 +300,7 @@ def test_a_fleet_process_killed_mid_run_is_restarted_and_every_arm_arrives(tmp_p
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
             p.wait()
-        for s in subs:
-            s.undeclare()
-        ses.close()
+        _close_truth(ses, subs)
         router.close()
     assert p.returncode == 0 and "result: OK" in text, text
     for name in ("controller", "sensors"):

@@ -72,6 +72,13 @@ def _truth_of(ep: str, robots: list[str]) -> tuple[zenoh.Session, list[zenoh.Sub
     return ses, subs, got
 
 
+def _close_truth(ses: zenoh.Session, subs: list[zenoh.Subscriber]) -> None:
+    """Undeclare the observer's subscriptions (:func:`_truth_of`, and any added later) and close it."""
+    for s in subs:
+        s.undeclare()
+    ses.close()
+
+
 def test_two_arms_reach_their_own_targets_in_the_truth_and_do_not_interfere(tmp_path: Path) -> None:
     """Two arms as real processes in lockstep, each with a target of its own: judged by the
     physics truth under each robot's namespace; the recorder has both namespaces."""
@@ -88,9 +95,7 @@ def test_two_arms_reach_their_own_targets_in_the_truth_and_do_not_interfere(tmp_
     try:
         out = finish(up(str(scen), "--router", ep, "--out", str(tmp_path / "run")), 240)
     finally:
-        for s in subs:
-            s.undeclare()
-        ses.close()
+        _close_truth(ses, subs)
         router.close()
     assert "result: OK" in out, out
     assert "sensors@* (pid" in out and "controller@* (pid" in out, out  # one process per kind
@@ -198,9 +203,7 @@ def test_eight_arms_run_bit_identical_distributed_and_composed(tmp_path: Path) -
                             "--duration", "0.5", "--seed", "7", "--no-logger", "--out", str(tmp_path / f"run{i}"),
                             *extra), 240)
         finally:
-            for s in subs:
-                s.undeclare()
-            ses.close()
+            _close_truth(ses, subs)
             router.close()
         assert "result: STOPPED (duration)" in out, out
         runs.append({r: {t: q for t, _, q in truth[r]} for r in robots})

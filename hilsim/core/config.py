@@ -474,6 +474,11 @@ class Scenario(_Model):
         """Physics steps per planner decision (the planner acknowledges only those steps)."""
         return round(1.0 / (self.planner.rate_hz * self.clock.dt))
 
+    def planner_tick(self, t_ns: int) -> bool:
+        """Whether the step at sim time ``t_ns`` is one the planner decides on (and the sensors'
+        ``joint_states_throttle`` carries)."""
+        return (t_ns // self.dt_ns) % self.planner_decimation == 0
+
     @property
     def dt_ns(self) -> int:
         return round(self.clock.dt * 1e9)
