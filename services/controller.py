@@ -16,6 +16,11 @@ Writes:
   With ``fleet.arrays`` (robots > 1, :class:`FleetControllerService`) the fleet driver hands the
   controller its measurement and runs its PID; both messages are then built only while subscribed.
 Serves:
+  ``controller/has_trajectory`` (builtin_interfaces/Time, a trajectory's start stamp → GoalResponse):
+  answered once this controller holds the ``joint_trajectory`` of that stamp (accepted, or not with
+  the reason it was rejected), or after ``HANDOFF_TIMEOUT`` s of waiting for it (not accepted). In
+  lockstep the planner acknowledges its tick only then: Zenoh orders nothing between keys, so without
+  it a trajectory taken late (a loaded machine) would act steps later than in another run of the seed;
   ``controller/set_parameters`` (SetParameters ``<joint>.<kp|ki|kd|i_limit|output_limit|feedforward>``
   → SetParametersResult): all-or-nothing, effective at the next control step; the gains in
   force are in its health (``gains:<joint>`` = ``kp=… ki=… kd=… i_limit=… …``).
@@ -43,6 +48,9 @@ after its end; an empty trajectory means hold the current measured position.
 
 from __future__ import annotations
 
+import threading
+import time
+from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any
 
@@ -58,6 +66,8 @@ from hilsim.services.ros2_action import ActionServer, goal_text
 from hilsim.sim import control
 
 FOLLOW_JOINT_TRAJECTORY = "control_msgs/action/FollowJointTrajectory"
+HANDOFF_TIMEOUT = 10.0  # [s of wall time] a has_trajectory query waits this long for its trajectory
+HANDOFF_KEPT = 64  # the start stamps of the last trajectories taken, each with why it was rejected (or None)
 
 
 class Params(BaseModel):
@@ -143,6 +153,9 @@ class ControllerService(Service):
         self.traj: control.TrajectorySampler | None = None  # being followed
         self.next_traj: control.TrajectorySampler | None = None  # accepted, starts later
         self._pending: tuple[msgs.JointTrajectory, str] | None = None  # arrived before any measurement
+        # the trajectories taken (start stamp -> why rejected, or None), for has_trajectory's waiters
+        self._taken: OrderedDict[int, str | None] = OrderedDict()
+        self._took = threading.Condition(self.lock)
         self.pos = np.zeros(self.n)
         self.vel = np.zeros(self.n)
         self.ref_pos = np.zeros(self.n)
@@ -184,6 +197,8 @@ class ControllerService(Service):
             self.on_set_parameters,
             reject=lambda reason: msgs.SetParametersResult(successful=False, reason=reason),
         )
+        self.queryable(self.keys.topic("controller/has_trajectory"), msgs.Time, self.on_has_trajectory,
+                       reject=lambda reason: msgs.GoalResponse(accepted=False, reason=reason))
         if self.params.action_ns.strip("/"):
             self.fjt = ActionServer(self, self.params.action_ns, FOLLOW_JOINT_TRAJECTORY,
                                     self.on_fjt_goal, self.on_fjt_cancel)
@@ -299,9 +314,27 @@ class ControllerService(Service):
     # ------------------------------------------------------------------ trajectories
     def on_trajectory(self, msg: msgs.JointTrajectory, key: str) -> None:
         if self.hold is None:
-            self._pending = (msg, key)  # the setpoint to start from is not known yet
-            return
-        self._accept(msg, key)
+            self._pending = (msg, key)  # the setpoint to start from is not known yet: taken before any step
+            why = None
+        else:
+            why = self._accept(msg, key)
+        self._taken[msgs.ns_of(msg.header.stamp)] = why
+        while len(self._taken) > HANDOFF_KEPT:
+            self._taken.popitem(last=False)
+        self._took.notify_all()
+
+    def on_has_trajectory(self, start: msgs.Time) -> msgs.GoalResponse:
+        """``controller/has_trajectory`` (see the module docstring); runs under self.lock, which the wait
+        gives up, so the trajectory's own subscriber thread can take it meanwhile."""
+        ns = msgs.ns_of(start)
+        end = time.monotonic() + HANDOFF_TIMEOUT
+        while ns not in self._taken and not self.stop_event.is_set() and (left := end - time.monotonic()) > 0:
+            self._took.wait(min(left, 0.2))
+        if ns not in self._taken:
+            return msgs.GoalResponse(accepted=False, reason=f"no joint_trajectory starting at {ns * 1e-9:.3f} s "
+                                     f"reached the controller within {HANDOFF_TIMEOUT:g} s")
+        why = self._taken[ns]
+        return msgs.GoalResponse(accepted=why is None, reason=why or "")
 
     def _accept(self, msg: msgs.JointTrajectory, key: str) -> str | None:
         """Follow ``msg`` from its start; None, or why it cannot be followed (a rejected payload of ``key``)."""

@@ -18,7 +18,9 @@ Writes:
 - ``planner/path`` (the geometric path, for the logger), ``planner/feedback`` (state ``planning`` /
   ``executing`` / ``settling``, progress, 10 Hz sim), ``planner/result`` (MoveResult);
 - ``task/result`` (MoveResult ``task``): the outcome of the scenario task;
-- ``sync/planner`` (lockstep acknowledgement) through the base class.
+- ``sync/planner`` (lockstep acknowledgement) through the base class: a tick that sent a trajectory
+  is acknowledged only once the controller answered ``controller/has_trajectory`` for it (the
+  controller's docstring says why; no wait when no controller serves that query).
 
 Serves ``planner/goal`` (MoveGoal → GoalResponse, accepted or rejected with the reason) and
 ``planner/cancel`` (CancelRequest → GoalResponse). A new goal preempts the active one.
@@ -73,6 +75,7 @@ from hilsim.services.ros2_action import ActionServer, goal_text
 from hilsim.sim.tasks import TaskGoal, TaskRunner, is_reserved
 
 START_DELAY_NS = 20_000_000  # trajectory starts 20 ms (sim) after the tick it was planned on
+HANDOFF_QUERY_TIMEOUT = 15.0  # [s] longer than the controller's own wait (controller.HANDOFF_TIMEOUT)
 FEEDBACK_PERIOD_NS = 100_000_000  # 10 Hz sim
 MOVE_ACTION = "move"  # /<robot>/move
 MOVE_ACTION_TYPE = "hilsim_msgs/action/Move"
@@ -149,6 +152,8 @@ class PlannerService(Service):
         self.plans = 0
         self.goals_rejected = 0
         self.last_planning_time = 0.0
+        self.handovers = 0  # trajectories the controller confirmed it holds (lockstep)
+        self.handover_wait_max = 0.0  # [s of wall time] the longest wait for that
         self._jobs: queue.Queue[tuple[Goal, int, np.ndarray] | None] = queue.Queue()
         self._planning = False  # a job is queued or being planned
         self._deferred: deque[tuple[int, np.ndarray]] = deque()  # lockstep ticks that came meanwhile
@@ -197,6 +202,8 @@ class PlannerService(Service):
             "plans": self.plans,
             "goals_rejected": self.goals_rejected,
             "last_planning_time_s": round(self.last_planning_time, 4),
+            "handovers": self.handovers,
+            "handover_wait_max_s": round(self.handover_wait_max, 4),
         }
 
     # ------------------------------------------------------------------ goal validation
@@ -474,14 +481,17 @@ class PlannerService(Service):
             if job is None:
                 return
             goal, t, q = job
+            sent: int | None = None
             try:
-                self._plan(goal, t, q)
+                sent = self._plan(goal, t, q)
             except Exception as e:  # a planner bug must fail the goal, not the service
                 with self.lock:
                     self.fault(f"planning {goal.goal_id} failed: {type(e).__name__}: {e}", exc=e)
                     if goal.state == "planning":
                         self._finish(goal, False, msgs.PLANNING_FAILED, f"{type(e).__name__}: {e}")
             finally:
+                if sent is not None and self.lockstep:
+                    self._handed_over(goal, sent)
                 with self.lock:
                     if self.lockstep:
                         self.ack(t)
@@ -490,7 +500,33 @@ class PlannerService(Service):
                     while self._deferred and not self._planning:
                         self._decide(*self._deferred.popleft())
 
-    def _plan(self, goal: Goal, t: int, q: np.ndarray) -> None:
+    def _handed_over(self, goal: Goal, start_ns: int) -> None:
+        """Lockstep: wait until the controller holds the trajectory starting at ``start_ns`` (its
+        ``controller/has_trajectory``), so the tick is acknowledged only then. Zenoh keeps no order
+        between keys: a trajectory the controller took after the joint states of its start step would
+        act later than in another run of the seed. No answer (no controller yet, or a control law
+        without the query): nothing to wait for."""
+        if not self._controller_seen:
+            return
+        session = getattr(self.session, "session", self.session)  # composed: the process's Zenoh session
+        if not hasattr(session, "get"):
+            return  # an in-process bus (benchmarks): delivery is in publication order
+        w0 = time.perf_counter()
+        key, ask = self.keys.topic("controller/has_trajectory"), msgs.encode(msgs.stamp(start_ns))
+        for reply in session.get(key, payload=ask, timeout=HANDOFF_QUERY_TIMEOUT):
+            try:
+                got = (msgs.decode(msgs.GoalResponse, reply.ok.payload.to_bytes()) if reply.ok is not None
+                       else msgs.GoalResponse(reason=reply.err.payload.to_string()))
+            except msgs.BadMessage as e:
+                got = msgs.GoalResponse(reason=f"bad answer: {e}")
+            with self.lock:
+                self.handovers += 1
+                self.handover_wait_max = max(self.handover_wait_max, time.perf_counter() - w0)
+                if not got.accepted:
+                    self.warn(f"{goal.goal_id}: the controller did not take the trajectory: {got.reason}")
+
+    def _plan(self, goal: Goal, t: int, q: np.ndarray) -> int | None:
+        """Plan ``goal`` from ``q`` at tick ``t``; the start stamp of the trajectory sent, if one was."""
         start = np.clip(q, self.arm.lower, self.arm.upper)
         measured = start
         with self.lock:
@@ -566,6 +602,7 @@ class PlannerService(Service):
                 "%s: %s planned %d waypoints in %.3f s (%d iterations), trajectory %.2f s",
                 goal.goal_id, goal.planner, len(out.path), wall, out.iterations, traj.duration,
             )
+        return start_ns
 
 
 

@@ -27,13 +27,15 @@ REPO = Path(__file__).resolve().parent.parent
 HILSIM = [sys.executable, "-m", "hilsim.cli"]
 
 
-def hilsim_up(*args: str, cwd: Path | None = None) -> subprocess.Popen[str]:
+def hilsim_up(*args: str, cwd: Path | None = None, env: dict[str, str] | None = None) -> subprocess.Popen[str]:
+    """``hilsim up ARGS`` as a user runs it; ``env``: variables added to this process's environment."""
     return subprocess.Popen(
         [*HILSIM, "up", *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
         text=True,
         cwd=cwd or REPO,
+        env={**os.environ, **env} if env else None,
         start_new_session=True,
     )
 

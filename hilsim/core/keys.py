@@ -83,6 +83,8 @@ SERVICES: dict[str, tuple[type, type]] = {
     "navigator/goal": (msgs.MoveGoal, msgs.GoalResponse),
     "navigator/cancel": (msgs.CancelRequest, msgs.GoalResponse),
     "controller/set_parameters": (msgs.SetParameters, msgs.SetParametersResult),
+    # lockstep: the planner asks whether the controller holds the trajectory that starts at a stamp
+    "controller/has_trajectory": (msgs.Time, msgs.GoalResponse),
 }
 
 
