@@ -18,7 +18,7 @@ Writes:
 Serves:
   ``controller/has_trajectory`` (builtin_interfaces/Time, a trajectory's start stamp → GoalResponse):
   answered once this controller holds the ``joint_trajectory`` of that stamp (accepted, or not with
-  the reason it was rejected), or after ``HANDOFF_TIMEOUT`` s of waiting for it (not accepted). In
+  the reason it was rejected), or after a third of ``clock.ack_timeout`` without it (not accepted). In
   lockstep the planner acknowledges its tick only then: Zenoh orders nothing between keys, so without
   it a trajectory taken late (a loaded machine) would act steps later than in another run of the seed;
   ``controller/set_parameters`` (SetParameters ``<joint>.<kp|ki|kd|i_limit|output_limit|feedforward>``
@@ -66,7 +66,6 @@ from hilsim.services.ros2_action import ActionServer, goal_text
 from hilsim.sim import control
 
 FOLLOW_JOINT_TRAJECTORY = "control_msgs/action/FollowJointTrajectory"
-HANDOFF_TIMEOUT = 10.0  # [s of wall time] a has_trajectory query waits this long for its trajectory
 HANDOFF_KEPT = 64  # the start stamps of the last trajectories taken, each with why it was rejected (or None)
 
 
@@ -283,7 +282,7 @@ class ControllerService(Service):
         """Publish the step's joint_commands (efforts ``u``; None: the fleet driver sent them in its fleet
         command and nobody subscribes this robot's) and controller/reference (built only if subscribed)."""
         self.steps += 1
-        ref_wanted = self.ref_pub.wanted()
+        ref_wanted = self.ref_pub.wanted(covered=self.fleet_driven)  # robots as arrays: in the fleet's too
         if u is None and not ref_wanted:  # the fleet's usual step: nothing of this robot's is read
             self.cmd_pub.skip()
             self.ref_pub.skip()
@@ -327,12 +326,14 @@ class ControllerService(Service):
         """``controller/has_trajectory`` (see the module docstring); runs under self.lock, which the wait
         gives up, so the trajectory's own subscriber thread can take it meanwhile."""
         ns = msgs.ns_of(start)
-        end = time.monotonic() + HANDOFF_TIMEOUT
+        # well within physics' patience, so a trajectory lost on the way is a warning, not a stalled run
+        wait = self.sc.clock.ack_timeout / 3
+        end = time.monotonic() + wait
         while ns not in self._taken and not self.stop_event.is_set() and (left := end - time.monotonic()) > 0:
             self._took.wait(min(left, 0.2))
         if ns not in self._taken:
             return msgs.GoalResponse(accepted=False, reason=f"no joint_trajectory starting at {ns * 1e-9:.3f} s "
-                                     f"reached the controller within {HANDOFF_TIMEOUT:g} s")
+                                     f"reached the controller within {wait:g} s")
         why = self._taken[ns]
         return msgs.GoalResponse(accepted=why is None, reason=why or "")
 
@@ -519,7 +520,9 @@ class FleetControllerService(Service):
 
     Reads ``<prefix>/<robot>/fleet/joint_states`` (every robot's encoders, joints ``arm<k>/<joint>``).
     Writes ``<prefix>/<robot>/fleet/joint_commands`` (every robot's command, same layout and stamp: what
-    physics applies and, in lockstep, the acknowledgement of the step for every robot) and, from the
+    physics applies and, in lockstep, the acknowledgement of the step for every robot),
+    ``<prefix>/<robot>/fleet/controller/reference`` (every robot's reference position and velocity, same
+    layout; built only while subscribed: the recorder records it robot by robot) and, from the
     same values, each robot's ``joint_commands`` and ``controller/reference`` through that robot's own
     publishers whenever anyone subscribes them. Each robot's reference, action goal and live gains
     stay with its :class:`ControllerService` (:meth:`ControllerService.prepare`); the PID law is
@@ -550,6 +553,7 @@ class FleetControllerService(Service):
 
     def setup(self) -> None:
         self.cmd_pub = self.publisher(self.keys.fleet("joint_commands"))
+        self.ref_pub = self.publisher(self.keys.fleet("controller/reference"))
         self.subscribe(self.keys.fleet("joint_states"), msgs.JointState, self.on_joint_states)
 
     def ack_publisher(self) -> Publisher | None:
@@ -615,6 +619,11 @@ class FleetControllerService(Service):
         else:
             cmd = msgs.JointState(header=header, name=self.names, effort=effort)
         self.cmd_pub.put(cmd)  # physics' step (and, in lockstep, every robot's acknowledgement)
+        if self.ref_pub.wanted():  # every robot's reference in one sample: the recorder's, robot by robot
+            self.ref_pub.put(msgs.JointState(header=header, name=self.names, position=ref_pos.ravel().tolist(),
+                                             velocity=ref_vel.ravel().tolist()))
+        else:
+            self.ref_pub.skip()
         n = self.n
         for k, m in enumerate(self.members):
             with m.lock:

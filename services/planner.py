@@ -75,7 +75,6 @@ from hilsim.services.ros2_action import ActionServer, goal_text
 from hilsim.sim.tasks import TaskGoal, TaskRunner, is_reserved
 
 START_DELAY_NS = 20_000_000  # trajectory starts 20 ms (sim) after the tick it was planned on
-HANDOFF_QUERY_TIMEOUT = 15.0  # [s] longer than the controller's own wait (controller.HANDOFF_TIMEOUT)
 FEEDBACK_PERIOD_NS = 100_000_000  # 10 Hz sim
 MOVE_ACTION = "move"  # /<robot>/move
 MOVE_ACTION_TYPE = "hilsim_msgs/action/Move"
@@ -505,7 +504,7 @@ class PlannerService(Service):
         ``controller/has_trajectory``), so the tick is acknowledged only then. Zenoh keeps no order
         between keys: a trajectory the controller took after the joint states of its start step would
         act later than in another run of the seed. No answer (no controller yet, or a control law
-        without the query): nothing to wait for."""
+        without the query): nothing to wait for; no answer in time: a warning, and the tick is acknowledged."""
         if not self._controller_seen:
             return
         session = getattr(self.session, "session", self.session)  # composed: the process's Zenoh session
@@ -513,17 +512,20 @@ class PlannerService(Service):
             return  # an in-process bus (benchmarks): delivery is in publication order
         w0 = time.perf_counter()
         key, ask = self.keys.topic("controller/has_trajectory"), msgs.encode(msgs.stamp(start_ns))
-        for reply in session.get(key, payload=ask, timeout=HANDOFF_QUERY_TIMEOUT):
+        # Half of physics' patience (the controller's own wait is a third): a controller that stopped
+        # answering (SIGSTOP, hung) is then named silent by physics, not this planner waiting for it
+        for reply in session.get(key, payload=ask, timeout=self.sc.clock.ack_timeout / 2):
             try:
                 got = (msgs.decode(msgs.GoalResponse, reply.ok.payload.to_bytes()) if reply.ok is not None
                        else msgs.GoalResponse(reason=reply.err.payload.to_string()))
             except msgs.BadMessage as e:
                 got = msgs.GoalResponse(reason=f"bad answer: {e}")
             with self.lock:
-                self.handovers += 1
                 self.handover_wait_max = max(self.handover_wait_max, time.perf_counter() - w0)
-                if not got.accepted:
-                    self.warn(f"{goal.goal_id}: the controller did not take the trajectory: {got.reason}")
+                if got.accepted:
+                    self.handovers += 1
+                else:  # a timeout or a rejection: this run may not repeat bit for bit
+                    self.warn(f"{goal.goal_id}: the controller did not confirm the trajectory: {got.reason}")
 
     def _plan(self, goal: Goal, t: int, q: np.ndarray) -> int | None:
         """Plan ``goal`` from ``q`` at tick ``t``; the start stamp of the trajectory sent, if one was."""

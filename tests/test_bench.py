@@ -68,6 +68,9 @@ def test_bench_loop_measures_every_figure_it_prints(tmp_path: Path) -> None:
     for k in ("distributed_batch", "distributed_lag1_batch"):
         assert set(res[f"{k}_cpu_us_per_step"]) == set(dist), res
     assert {"physics+sensors+controller", "planner", "logger"} <= set(comp), comp
-    assert all(v > 1.0 for n, v in {**dist, **comp}.items() if n != "router+launcher"), (dist, comp)
+    # CPU time comes in clock ticks (10 ms): the planner, which takes only its 100 Hz ticks (~20 µs a
+    # step), may show 0 or 1 tick over these 300 steps; every other service costs several
+    assert all(v > 1.0 for n, v in {**dist, **comp}.items() if n not in ("router+launcher", "planner")), (dist, comp)
+    assert dist["planner"] >= 0.0 and comp["planner"] >= 0.0, (dist, comp)
     assert res["distributed_cpu_floor_us"] == sum(dist.values()) / res["cores"]
     assert res["composed_cores_at_10x"] == sum(comp.values()) * 10_000 / 1e6

@@ -48,6 +48,9 @@ class Rig:
         self.pub_traj = transport.publisher(session, self.keys.topic("joint_trajectory"))
         self._decl += [self.pub_js, self.pub_traj]
         assert wait_until(lambda: self.pub_js.matching_status.matching and self.pub_traj.matching_status.matching)
+        # and the service's publishers know of this rig's subscribers: a key nobody subscribes to is not
+        # put, so a first step before that news arrived (a loaded machine) would get no answer
+        assert wait_until(lambda: svc.cmd_pub.matching and svc.ref_pub.matching)
 
     def _cb(self, into: list[Any], cls: type) -> Callable[[Any], None]:
         def cb(sample: Any) -> None:

@@ -28,7 +28,8 @@ encoders or PID as numpy arrays and trades one sample per step with physics:
 ``/<robot>/fleet/truth/joint_states`` (physics → sensors), ``/<robot>/fleet/joint_states`` (sensors →
 controller) and ``/<robot>/fleet/joint_commands`` (controller → physics; in lockstep the controller
 driver's acknowledgement of every robot at once), their joints named ``arm<k>/<joint>``, robot by
-robot. The per-robot services of the process stay (health, liveliness, trajectories, actions,
+robot; ``/<robot>/fleet/controller/reference`` (every robot's reference, for the recorder) only while
+subscribed. The per-robot services of the process stay (health, liveliness, trajectories, actions,
 parameters, the IMU) but leave the per-step joint path to the driver, which still publishes every
 robot's ``joint_states``, ``joint_commands`` and ``controller/reference`` from the same values
 whenever someone subscribes them (the recorder, a ROS 2 node). The planners of ``planner@*`` take

@@ -63,6 +63,7 @@ TOPICS: dict[str, type] = {
     "fleet/joint_states": msgs.JointState,
     "fleet/joint_states_throttle": msgs.JointState,
     "fleet/joint_commands": msgs.JointState,
+    "fleet/controller/reference": msgs.JointState,
 }
 # Keys whose last segment is a service name.
 PER_SERVICE_TOPICS: dict[str, type] = {

@@ -280,6 +280,7 @@ class Service:
         self.state = "starting"
         self.counts_in: Counter[str] = Counter()
         self.counts_out: Counter[str] = Counter()
+        self.counts_replied: Counter[str] = Counter()  # answers to queries: not samples, never recorded
         self.rejected: Counter[str] = Counter()
         self.stale: Counter[str] = Counter()  # realtime: samples dropped as older than clock.max_age
         self.counts_put: Counter[str] = Counter()  # batching: samples also put on their own key, per key
@@ -484,7 +485,7 @@ class Service:
                 with self.lock:
                     rep = handler(req)
                 query.reply(k, msgs.encode(rep))
-                self.counts_out[k] += 1
+                self.counts_replied[k] += 1
             except Exception as e:
                 self.fault(f"error answering {k}: {type(e).__name__}: {e}", exc=e)
                 query.reply_err(f"{type(e).__name__}: {e}")
@@ -531,7 +532,7 @@ class Service:
                     att = wire.reply_attachment(request_att, time.time_ns())
                     kw = {} if att is None else {"attachment": att}
                     query.reply(key, msgs.encode(rep), **kw)
-                    self.counts_out[key] += 1
+                    self.counts_replied[key] += 1
                 except zenoh.ZError as e:  # the client or the session went away meanwhile
                     self.log.debug("reply on %s not sent: %s", key, e)
                 finally:
@@ -627,6 +628,7 @@ class Service:
         values.update({f"seq_gaps:{k}": v for k, v in self.seq_gaps.items()})
         # per key, how many samples this service has sent: what a recorder can be checked against
         values.update({f"published:{k}": v for k, v in self.counts_out.items()})
+        values.update({f"replied:{k}": v for k, v in self.counts_replied.items()})
         if self.batcher is not None:  # batching: of those, how many also went out on the key itself
             values["batches"] = self.batcher.batches
             values["batched"] = self.batcher.samples
