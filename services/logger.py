@@ -51,7 +51,11 @@ its key for the recorder: they append it to their batch, put on their batch key 
 ``logger.batch_max_age_ms`` old and at their stop. The recorder subscribes to the batch keys, and per
 key only to writers whose publisher token is not a batching node's (ROS 2 nodes, tools, bridges) or
 that are transient-local (a late-joiner subscription, for a recorder restarted mid-run; batching
-services put their latched samples in the batch as well). Each sample unpacked from a batch goes through
+services put their latched samples in the batch as well). Without batches the recorder also takes a
+late-joiner subscription for each transient-local writer beside ``**``: a latched sample
+(``/tf_static``, ``robot_description``) is put once, often before ``**`` reached its publisher, and
+the publisher's cache then gives it; such keys are taken once per writer and sequence number too.
+Each sample unpacked from a batch goes through
 :meth:`_take` like one received on its key; since one can come both ways (a key written by a batching
 service and another writer, or a batching token seen after the node's publisher tokens), samples are
 taken once per (key, writer gid, sequence number) (:meth:`_sequence_once`; ``duplicates``). A frame
@@ -173,7 +177,7 @@ class LoggerService(Service):
         self._last_arrival = 0.0  # time.monotonic() of the latest sample
         # logger.batch: the services send batches; keys are subscribed one by one for the other writers
         self.batching = scenario.logger.batch > 0
-        self.duplicates: Counter[str] = Counter()  # batching: samples that came both ways, taken once
+        self.duplicates: Counter[str] = Counter()  # samples that came both ways (batching, latched), taken once
         self._holes: dict[tuple[str, bytes], list[list[int]]] = {}  # batching: (key, gid) -> [lo, hi, pre]
         self._route_lock = threading.Lock()
         self._batching_nodes: set[tuple[str, str]] = set()  # (zid, node id) of the batching services
@@ -183,6 +187,9 @@ class LoggerService(Service):
         self._record_exprs = [zenoh.KeyExpr(self.keys.scoped(e)) for e in scenario.logger.record]
         self._malformed_warned = False
         self._routes_closed = False
+        # keys with a late-joiner subscription beside `**` (latched writers, without batches): their
+        # samples can come both ways and are taken once, as batches are
+        self._twice: set[str] = set()
 
     # ------------------------------------------------------------------ setup
     def _choose_run_dir(self) -> Path:
@@ -246,6 +253,11 @@ class LoggerService(Service):
             self._declared.extend(subs)
         if self.batching:
             self._take_batches()
+        else:
+            # A transient-local sample (/tf_static, robot_description) is put once, often before `**`
+            # reaches its publisher: a late-joiner subscription per latched writer asks its cache
+            self._declared.append(self.session.liveliness().declare_subscriber(
+                self.keys.all_writers, self._on_writer_token, history=True))
         limit = f"queue limit {self.queue_limit}" if self.queue_limit else "unbounded queue"
         self.log.info(
             "recording %s to %s (clock %s, %s)",
@@ -355,14 +367,21 @@ class LoggerService(Service):
         if sample.kind != zenoh.SampleKind.PUT or not self._records_key(key):
             return  # a writer gone: its key's subscription stays (its last samples may be in flight)
         latched = tok.qos is not None and tok.qos.durability == wire.Durability.TRANSIENT_LOCAL
+        if not self.batching and not latched:
+            return  # `**` takes it
         node = (tok.zid, tok.node_id)
-        if getattr(self.session, "local_subscriber", None) is not None and tok.zid == self._zid:
-            return  # composed: this process's own services, taken as message objects
+        if getattr(self.session, "local_subscriber", None) is not None and tok.zid == self._zid and not latched:
+            # composed: this process's own services, taken as message objects; but a latched sample is
+            # Zenoh's (an advanced publisher, put in setup, maybe before this recorder existed): its cache
+            return
         with self._route_lock:
             if self._routes_closed or (node in self._batching_nodes and not latched):
                 return
             self._plain.setdefault(key, {})[tok.gid] = node
             if key not in self._key_subs:
+                if not self.batching:
+                    with self.lock:
+                        self._twice.add(key)
                 self._key_subs[key] = [self._subscribe_key(key, latched)]
 
     def _subscribe_key(self, key: str, latched: bool) -> Any:
@@ -408,10 +427,11 @@ class LoggerService(Service):
         with self.lock:
             prov = self.provenance
             if att is not None and (k not in prov.restricted or att.gid in prov.writers.get(k, ())):
-                if not self.batching:
+                if not self.batching and k not in self._twice:
                     self._sequence(k, att)
                 elif not self._sequence_once(k, att):
-                    self.duplicates[k] += 1  # it came both in a batch and on its key: taken once
+                    # it came both ways (in a batch, or from a latched writer's cache, and on its key): once
+                    self.duplicates[k] += 1
                     return
             elif k in prov.restricted:
                 # recorded like everything received, but a stranger's gaps are no loss of ours
@@ -452,13 +472,13 @@ class LoggerService(Service):
         if seq > last:
             if seq > last + 1:
                 self.gaps[key] += seq - last - 1
-                holes = self._holes[w]
+                holes = self._holes.setdefault(w, [])
                 holes.append([last + 1, seq - 1, 0])
                 if len(holes) > MAX_HOLES:  # a long lossy realtime run: the oldest stay lost for good
                     del holes[0]
             self._last_seq[w] = seq
             return True
-        holes = self._holes[w]
+        holes = self._holes.setdefault(w, [])  # a key taken by _sequence before it could come twice
         for i, (lo, hi, pre) in enumerate(holes):
             if lo <= seq <= hi:  # fills a hole: one less lost (or published before the first)
                 holes[i:i + 1] = [h for h in ([lo, seq - 1, pre], [seq + 1, hi, pre]) if h[0] <= h[1]]
@@ -680,7 +700,7 @@ class LoggerService(Service):
                 "dropped": dropped[k],
                 "before_first": before[k],
                 "unannounced": unannounced[k],
-                **({"duplicates": duplicates[k]} if self.batching else {}),
+                **({"duplicates": duplicates[k]} if self.batching or duplicates[k] else {}),
             }
             for k in keys
         }

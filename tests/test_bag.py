@@ -565,6 +565,12 @@ def test_an_arm_run_bag_reads_back_and_matches_the_rrd(arm_run: tuple[Path, str]
             "diagnostic_msgs/msg/DiagnosticArray", "trajectory_msgs/msg/JointTrajectory",
             "hilsim_msgs/action/Move_Feedback", "hilsim_msgs/msg/Contacts"} <= set(_types(run))
     assert counts["/clock"] == rrd["/clock"] == 1001
+    # the latched topics a ROS 2 user's rviz needs from the bag: each put once at the start, often before
+    # the recorder's `**` reached its publisher (the recorder's late-joiner subscription asks the cache)
+    assert counts["/tf_static"] == counts["/arm/robot_description"] == 1, counts
+    summary = json.loads((run / "record_summary.json").read_text())
+    for k in (KEYS.tf_static, KEYS.topic("robot_description")):
+        assert summary[k]["received"] == summary[k]["recorded"] == summary[k]["bagged"] == 1, (k, summary[k])
     assert counts["/arm/joint_states"] == rrd["/joints/joint_1/position/measured"]
     assert counts["/arm/truth/joint_states"] == rrd["/joints/joint_1/position/truth"]
     assert counts["/arm/joint_commands"] == rrd["/joints/joint_1/effort/command"]

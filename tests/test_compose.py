@@ -114,7 +114,8 @@ def test_a_composed_recorder_records_every_sample_as_it_was_published(tmp_path: 
     """The recorder composed with physics, sensors and controller (``--compose
     physics,sensors,controller,logger``): lockstep, every sample of the process's own services
     (which never cross Zenoh now) and of the planner outside is recorded, and the truth in the
-    file is the truth physics published, value for value (seen over Zenoh by this test)."""
+    file is the truth physics published, value for value (seen over Zenoh by this test); the
+    latched /tf_static and robot_description once each."""
     import datetime
     import json
 
@@ -142,6 +143,10 @@ def test_a_composed_recorder_records_every_sample_as_it_was_published(tmp_path: 
     for key in (k.clock, k.truth("joint_states"), k.topic("joint_states"), k.topic("joint_commands"), k.truth("imu")):
         assert summary[key]["received"] == summary[key]["recorded"] == steps, (key, summary[key])
     assert summary[k.sync("planner")]["recorded"] > 100, summary  # from the process outside
+    # the process's own latched samples (put once in physics' setup, maybe before the recorder was there)
+    for key in (k.tf_static, k.topic("robot_description")):
+        got = summary.get(key, {"received": 0, "recorded": 0})
+        assert got["received"] == got["recorded"] == 1, (key, got)
     assert all(v["received"] == v["recorded"] and v["lost"] == 0 for v in summary.values()), summary
     recorded: dict[int, float] = {}
     for chunk in RrdReader(run / "recording.rrd").stream().to_chunks():
