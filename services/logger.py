@@ -434,6 +434,11 @@ class LoggerService(Service):
                     self.duplicates[k] += 1
                     return
             elif k in prov.restricted:
+                # Batching: a writer whose token is not known yet (a race at its start) can send a sample
+                # both ways too; taken once all the same, its gaps not counted (not announced yet)
+                if att is not None and self.batching and not self._sequence_once(k, att, counted=False):
+                    self.duplicates[k] += 1
+                    return
                 # recorded like everything received, but a stranger's gaps are no loss of ours
                 self.unannounced[k] += 1
             if self._closed or (self.queue_limit is not None and len(self._queue) >= self.queue_limit):
@@ -457,23 +462,26 @@ class LoggerService(Service):
             # expected): it fills a gap counted before
             self.gaps[key] -= 1
 
-    def _sequence_once(self, key: str, att: transport.Attachment) -> bool:
+    def _sequence_once(self, key: str, att: transport.Attachment, *, counted: bool = True) -> bool:
         """As :meth:`_sequence`, for samples that may come twice (in a batch and on their key, in any
         order): False for one already taken. Kept per writer: the newest sequence number and the
-        holes below it, as [lo, hi, pre] (pre: before the first sample taken, not a loss)."""
+        holes below it, as [lo, hi, pre] (pre 1: before the first sample taken, not a loss; 2: while
+        the writer was not announced, ``counted`` False: neither)."""
         w = (key, att.gid)
         seq = att.seq
         last = self._last_seq.get(w)
         if last is None:
-            self.before_first[key] += max(seq - 1, 0)
+            if counted:
+                self.before_first[key] += max(seq - 1, 0)
             self._last_seq[w] = seq
-            self._holes[w] = [[1, seq - 1, 1]] if seq > 1 else []
+            self._holes[w] = [[1, seq - 1, 1 if counted else 2]] if seq > 1 else []
             return True
         if seq > last:
             if seq > last + 1:
-                self.gaps[key] += seq - last - 1
+                if counted:
+                    self.gaps[key] += seq - last - 1
                 holes = self._holes.setdefault(w, [])
-                holes.append([last + 1, seq - 1, 0])
+                holes.append([last + 1, seq - 1, 0 if counted else 2])
                 if len(holes) > MAX_HOLES:  # a long lossy realtime run: the oldest stay lost for good
                     del holes[0]
             self._last_seq[w] = seq
@@ -482,9 +490,9 @@ class LoggerService(Service):
         for i, (lo, hi, pre) in enumerate(holes):
             if lo <= seq <= hi:  # fills a hole: one less lost (or published before the first)
                 holes[i:i + 1] = [h for h in ([lo, seq - 1, pre], [seq + 1, hi, pre]) if h[0] <= h[1]]
-                if pre:
+                if pre == 1:
                     self.before_first[key] -= 1
-                else:
+                elif pre == 0:
                     self.gaps[key] -= 1
                 return True
         return False

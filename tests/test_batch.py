@@ -125,6 +125,35 @@ def test_a_sample_that_comes_twice_is_taken_once(scenario: Any, tmp_path: Path) 
     assert svc.gaps[key] == 0 and svc.before_first[key] == 0
     assert svc._sequence_once(key, Attachment(3, 0, GID_B))  # another writer counts on its own
     assert svc.before_first[key] == 2
+    # a writer whose token comes after its first samples (unannounced then): taken once all the same,
+    # and what it missed before it was announced is neither a loss nor "before the first"
+    tf = Keys().tf
+    assert [svc._sequence_once(tf, Attachment(s, 0, GID_A), counted=False) for s in (3, 6)] == [True, True]
+    assert svc.before_first[tf] == svc.gaps[tf] == 0
+    assert take_on(svc, tf, 1, 2, 3, 4, 5, 6, 7) == [True, True, False, True, True, False, True]
+    assert svc.before_first[tf] == svc.gaps[tf] == 0
+    assert take_on(svc, tf, 9) == [True] and svc.gaps[tf] == 1  # announced now: a gap is a loss
+
+
+def test_a_batched_sample_from_a_writer_announced_late_is_recorded_once(scenario: Any, tmp_path: Path) -> None:
+    """The race behind a flaky count: a key with one announced writer (a ROS 2 node) gets a batching
+    service's samples on the key before that service's token is known, and again in its batch after."""
+    from hilsim.services.logger import LoggerService
+
+    svc = LoggerService(scenario("arm", {"logger.run_dir": str(tmp_path / "run"), "logger.batch": 8}))
+    tf = Keys().tf
+    svc.provenance.writers[tf] = {GID_B}  # the node's writer, announced
+    svc.provenance.restricted.add(tf)
+    svc._take(tf, Attachment(1, 0, GID_A), b"x")  # physics' first, on the key: not announced yet
+    svc.provenance.writers[tf].add(GID_A)  # its token arrives
+    for seq in (1, 2):  # and its batch
+        svc._take(tf, Attachment(seq, 0, GID_A), b"x")
+    assert (svc.counts_in[tf], svc.duplicates[tf], svc.unannounced[tf]) == (2, 1, 1)
+    assert svc.gaps[tf] == svc.before_first[tf] == 0
+
+
+def take_on(svc: Any, key: str, *seqs: int) -> list[bool]:
+    return [svc._sequence_once(key, Attachment(s, 0, GID_A)) for s in seqs]
 
 
 def test_batches_are_recorded_within_logger_record(scenario: Any, tmp_path: Path) -> None:
