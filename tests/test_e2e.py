@@ -110,13 +110,29 @@ def test_arm_scenario_end_to_end(tmp_path: Path) -> None:
     assert any("base_link" in e for e in paths), "no robot model entities"
 
 
-def _capture(endpoint: str, key: str, sink: list[bytes]) -> tuple[zenoh.Session, zenoh.Subscriber]:
-    ses = transport.open_session(transport.ZenohConfig(connect=[endpoint]))
-    return ses, ses.declare_subscriber(key, lambda s: sink.append(s.payload.to_bytes()))
-
-
 def _capture_on(ses: zenoh.Session, key: str, sink: list[bytes]) -> zenoh.Subscriber:
     return ses.declare_subscriber(key, lambda s: sink.append(s.payload.to_bytes()))
+
+
+def up_captured(out: Path, keys: dict[str, str], *args: str,
+                env: dict[str, str] | None = None) -> tuple[int, str, dict[str, list[bytes]]]:
+    """``hilsim up ARGS --router R --out OUT`` with a router of its own, every sample of each of ``keys``
+    (name -> key) captured by this test: exit code, output, samples per name."""
+    ep = f"tcp/127.0.0.1:{transport.free_port()}"
+    router = transport.open_router(ep)
+    got: dict[str, list[bytes]] = {name: [] for name in keys}
+    ses = transport.open_session(transport.ZenohConfig(connect=[ep]))
+    subs = [_capture_on(ses, key, got[name]) for name, key in keys.items()]
+    try:
+        p = hilsim_up(*args, "--router", ep, "--out", str(out), env=env)
+        stdout, _ = p.communicate(timeout=240)
+        time.sleep(0.3)  # the last samples in flight
+    finally:
+        for s in subs:
+            s.undeclare()
+        ses.close()
+        router.close()
+    return p.returncode, stdout, got
 
 
 @pytest.mark.parametrize("lag", [0, 1])
@@ -129,27 +145,14 @@ def test_lockstep_runs_are_bit_identical(tmp_path: Path, lag: int) -> None:
     streams: list[list[bytes]] = []
     keys = Keys()
     for i, extra in enumerate([[], ["--compose", "physics,sensors,controller"]]):
-        ep = f"tcp/127.0.0.1:{transport.free_port()}"
-        router = transport.open_router(ep)
-        got: list[bytes] = []
-        truth: list[bytes] = []
-        cmds: list[bytes] = []
-        ses, sub = _capture(ep, keys.topic("joint_states"), got)
-        subs = [sub, _capture_on(ses, keys.topic("truth/joint_states"), truth),
-                _capture_on(ses, keys.topic("joint_commands"), cmds)]
-        try:
-            p = hilsim_up("arm", "--router", ep, "--duration", "6", "--seed", "7", "--no-logger",
-                          "--set", f"clock.controller_lag={lag}", "--out", str(tmp_path / f"run{i}"), *extra)
-            stdout, _ = p.communicate(timeout=240)
-            assert p.returncode == 3 and "result: STOPPED (duration)" in stdout, stdout  # --duration cut the task
-            assert ("physics+sensors+controller (pid" in stdout) == bool(extra), stdout
-            assert "task-1: reached" in stdout, stdout  # so the run includes a re-plan mid-stream
-            time.sleep(0.3)
-        finally:
-            for s in subs:
-                s.undeclare()
-            ses.close()
-            router.close()
+        rc, stdout, cap = up_captured(
+            tmp_path / f"run{i}", {"js": keys.topic("joint_states"), "truth": keys.topic("truth/joint_states"),
+                                   "cmds": keys.topic("joint_commands")},
+            "arm", "--duration", "6", "--seed", "7", "--no-logger", "--set", f"clock.controller_lag={lag}", *extra)
+        assert rc == 3 and "result: STOPPED (duration)" in stdout, stdout  # --duration cut the task
+        assert ("physics+sensors+controller (pid" in stdout) == bool(extra), stdout
+        assert "task-1: reached" in stdout, stdout  # so the run includes a re-plan mid-stream
+        got, truth, cmds = cap["js"], cap["truth"], cap["cmds"]
         streams.append(got)
         applied = {msgs.ns_of(m.header.stamp): list(m.effort) for m in (msgs.decode(msgs.JointState, b) for b in truth)}
         sent = {msgs.ns_of(m.header.stamp): list(m.effort) for m in (msgs.decode(msgs.JointState, b) for b in cmds)}

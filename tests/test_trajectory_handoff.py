@@ -17,14 +17,13 @@ from __future__ import annotations
 
 import os
 import textwrap
-import time
 from pathlib import Path
 
 import pytest
 
-from hilsim.core import msgs, transport
+from hilsim.core import msgs
 from hilsim.core.keys import Keys
-from tests.test_e2e import _capture, _capture_on, hilsim_up
+from tests.test_e2e import up_captured
 
 pytestmark = pytest.mark.e2e
 
@@ -63,26 +62,13 @@ def test_a_trajectory_that_reaches_the_controller_late_changes_nothing(tmp_path:
     plugin = _plugin(tmp_path / "plugin")
     truths: list[dict[int, bytes]] = []
     for i, law in enumerate(["joint_trajectory", "slow"]):
-        ep = f"tcp/127.0.0.1:{transport.free_port()}"
-        router = transport.open_router(ep)
-        truth: list[bytes] = []
-        trajs: list[bytes] = []
-        health: list[bytes] = []
-        ses, sub = _capture(ep, keys.topic("truth/joint_states"), truth)
-        subs = [sub, _capture_on(ses, keys.topic("joint_trajectory"), trajs),
-                _capture_on(ses, keys.health("planner"), health)]
         env = {"PYTHONPATH": os.pathsep.join([str(plugin), os.environ.get("PYTHONPATH", "")])}
-        try:
-            p = hilsim_up("arm", "--router", ep, "--duration", "1.2", "--seed", "7", "--no-logger",
-                          "--set", f"controller.type={law}", "--out", str(tmp_path / f"run{i}"), env=env)
-            stdout, _ = p.communicate(timeout=240)
-            assert p.returncode == 3 and "result: STOPPED (duration)" in stdout, stdout
-            time.sleep(0.3)
-        finally:
-            for s in subs:
-                s.undeclare()
-            ses.close()
-            router.close()
+        rc, stdout, cap = up_captured(
+            tmp_path / f"run{i}", {"truth": keys.topic("truth/joint_states"), "trajs": keys.topic("joint_trajectory"),
+                                   "health": keys.health("planner")},
+            "arm", "--duration", "1.2", "--seed", "7", "--no-logger", "--set", f"controller.type={law}", env=env)
+        assert rc == 3 and "result: STOPPED (duration)" in stdout, stdout
+        truth, trajs, health = cap["truth"], cap["trajs"], cap["health"]
         assert len(trajs) == 1, stdout  # task-1's trajectory, which starts within the run
         start = msgs.ns_of(msgs.decode(msgs.JointTrajectory, trajs[0]).header.stamp)
         assert start < 200_000_000, start
