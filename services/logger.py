@@ -386,8 +386,8 @@ class LoggerService(Service):
 
     def _subscribe_key(self, key: str, latched: bool) -> Any:
         assert self.session is not None
-        real = self.session if isinstance(self.session, zenoh.Session) else getattr(self.session, "session", None)
-        if latched and isinstance(real, zenoh.Session):
+        real = self.zenoh_session
+        if latched and real is not None:
             # transient-local, as rmw_zenoh subscribes: the publisher's cache gives what it sent before
             return zenoh_ext.declare_advanced_subscriber(
                 real, key, self._on_sample, history=zenoh_ext.HistoryConfig(detect_late_publishers=True))

@@ -507,8 +507,8 @@ class PlannerService(Service):
         without the query): nothing to wait for; no answer in time: a warning, and the tick is acknowledged."""
         if not self._controller_seen:
             return
-        session = getattr(self.session, "session", self.session)  # composed: the process's Zenoh session
-        if not hasattr(session, "get"):
+        session = self.zenoh_session
+        if session is None:
             return  # an in-process bus (benchmarks): delivery is in publication order
         w0 = time.perf_counter()
         key, ask = self.keys.topic("controller/has_trajectory"), msgs.encode(msgs.stamp(start_ns))

@@ -361,8 +361,12 @@ class Service:
             return False
         if getattr(session, "recorder_inside", False):
             return False
-        real = session if isinstance(session, zenoh.Session) else getattr(session, "session", None)
-        return isinstance(real, zenoh.Session)
+        return transport.zenoh_session(session) is not None
+
+    @property
+    def zenoh_session(self) -> zenoh.Session | None:
+        """The process's Zenoh session, also when composed; None on an in-process bus."""
+        return transport.zenoh_session(self.session)
 
     # ------------------------------------------------------------------ declarations
     def publisher(self, key: str, *, latched: bool = False) -> Publisher:

@@ -324,12 +324,19 @@ def publisher(session: zenoh.Session, key: str, *, drop_when_congested: bool = F
     return session.declare_publisher(key, congestion_control=cc, reliability=zenoh.Reliability.RELIABLE, express=False)
 
 
+def zenoh_session(session: Any) -> zenoh.Session | None:
+    """The Zenoh session behind ``session``: itself, the one a composed process's session wraps
+    (hilsim.run.compose), or None on an in-process bus (tests, benchmarks)."""
+    real = session if isinstance(session, zenoh.Session) else getattr(session, "session", None)
+    return real if isinstance(real, zenoh.Session) else None
+
+
 def latched_publisher(session: Any, key: str) -> Any:
     """A transient-local publisher, as rmw_zenoh makes one: a Zenoh advanced publisher keeping its last
     sample for subscribers that come later (``/robot_description``, ``/tf_static``). On an in-process
     bus (tests, benchmarks) an ordinary publisher."""
-    real = session if isinstance(session, zenoh.Session) else getattr(session, "session", None)
-    if not isinstance(real, zenoh.Session):
+    real = zenoh_session(session)
+    if real is None:
         return publisher(session, key)
     return zenoh_ext.declare_advanced_publisher(real, key, cache=zenoh_ext.CacheConfig(max_samples=1),
                                                 publisher_detection=True)
