@@ -37,6 +37,7 @@ from hilsim.core.msgs.sensor import Imu, JointState
 HEADER_LE = b"\x00\x01\x00\x00"
 _U32 = struct.Struct("<I")
 _TIME = struct.Struct("<iI")
+_HDR = struct.Struct("<iII")  # a Header's stamp and its frame id's length
 _D4 = struct.Struct("<4d")
 _D3 = struct.Struct("<3d")
 _D9 = struct.Struct("<9d")
@@ -45,6 +46,26 @@ _D7 = struct.Struct("<7d")
 # Odometry after its strings: pose (position, orientation, 36 covariances), twist (linear,
 # angular, 36 covariances): 85 doubles in a row, every one 8-aligned
 _D85 = struct.Struct("<85d")
+# Imu after its header: orientation, its covariance, angular velocity, its covariance, linear
+# acceleration, its covariance: 37 doubles in a row, every one 8-aligned; one Struct per padding before
+_IMU = [struct.Struct(f"<{p}x37d") for p in range(8)]
+_D37 = struct.Struct("<37d")
+
+
+def _tail(offset: int, counts: tuple[int, ...]) -> struct.Struct:
+    """The layout of sequences of doubles with these ``counts``, starting ``offset`` bytes (mod 8) after
+    the encapsulation header: each a u32 count (4-aligned) and its doubles (8-aligned), padding included,
+    so a JointState's three arrays are packed and unpacked in one call."""
+    fmt, o = "<", offset
+    for n in counts:
+        p = -o % 4
+        fmt += f"{p}xI"
+        o += p + 4
+        if n:
+            p = -o % 8
+            fmt += f"{p}x{n}d"
+            o += p + 8 * n
+    return struct.Struct(fmt)
 
 
 # ---------------------------------------------------------------- writing
@@ -67,8 +88,11 @@ def _w_str(buf: bytearray, s: str) -> None:
 
 
 def _w_header(buf: bytearray, h: Any) -> None:
-    buf += _TIME.pack(h.stamp.sec, h.stamp.nanosec)
-    _w_str(buf, h.frame_id)
+    # the header opens its message or follows a count or doubles (4-aligned): stamp and length in one
+    b = h.frame_id.encode()
+    buf += _HDR.pack(h.stamp.sec, h.stamp.nanosec, len(b) + 1)
+    buf += b
+    buf += b"\0"
 
 
 def _w_dseq(buf: bytearray, xs: Any) -> None:
@@ -154,14 +178,33 @@ def build() -> tuple[dict[type, Callable[[Any], bytes]], dict[type, Callable[[by
         return Clock(clock=Time(sec=sec, nanosec=ns)), r.pos
 
     def header(r: _Reader) -> Any:
-        sec, ns = r.time()
-        return Header(stamp=Time(sec=sec, nanosec=ns), frame_id=r.string())
+        # stamp and the frame id's length in one unpack (a header starts 4-aligned)
+        data, at = r.data, r.pos
+        sec, ns, n = _HDR.unpack_from(data, at)
+        end = at + 12 + n
+        if n < 1 or end > len(data) or data[end - 1] != 0:
+            raise ValueError(f"bad string of length {n} at byte {at + 12}")
+        r.pos = end
+        return Header(stamp=Time(sec=sec, nanosec=ns), frame_id=data[at + 12:end - 1].decode())
 
     # A robot's joint names are the same in every JointState: their encoded block is kept per
     # (names, alignment) and copied in, and a decoder that meets one of the last blocks it decoded
     # reuses their names (one bytes comparison instead of a u32 and a string per joint).
     name_blocks: dict[tuple[tuple[str, ...], int], bytes] = {}
     seen_names: list[tuple[int, bytes, tuple[str, ...]]] = []  # (alignment, block, names), newest first
+
+    # Its arrays' layout is the same from message to message too (the counts, and where they start
+    # modulo 8): one Struct per layout packs or unpacks all three at once (pre-built, bounded).
+    tails: dict[tuple[int, int, int, int], struct.Struct] = {}
+
+    def tail(off: int, a: int, b: int, c: int) -> struct.Struct:
+        key = (off, a, b, c)
+        t = tails.get(key)
+        if t is None:
+            t = _tail(off, (a, b, c))
+            if len(tails) < 256:
+                tails[key] = t
+        return t
 
     def enc_joint_state(msg: Any) -> bytes:
         buf = bytearray(HEADER_LE)
@@ -177,10 +220,13 @@ def build() -> tuple[dict[type, Callable[[Any], bytes]], dict[type, Callable[[by
                 name_blocks[key] = bytes(buf[start:])
         else:
             buf += block
-        _w_dseq(buf, msg.position)
-        _w_dseq(buf, msg.velocity)
-        _w_dseq(buf, msg.effort)
+        pos, vel, eff = msg.position, msg.velocity, msg.effort
+        buf += tail((len(buf) - 4) % 8, len(pos), len(vel), len(eff)).pack(
+            len(pos), *pos, len(vel), *vel, len(eff), *eff)
         return bytes(buf)
+
+    # the last layout met at each (offset, first count): tried first, its counts checked after
+    seen_tails: dict[tuple[int, int], tuple[struct.Struct, int, int]] = {}
 
     def dec_joint_state(data: bytes) -> tuple[Any, int]:
         r = _Reader(data)
@@ -196,40 +242,48 @@ def build() -> tuple[dict[type, Callable[[Any], bytes]], dict[type, Callable[[by
             name = r.strseq()
             seen_names.insert(0, (align, data[start:r.pos], tuple(name)))
             del seen_names[4:]
-        msg = JointState(header=h, name=name, position=r.dseq(), velocity=r.dseq(), effort=r.dseq())
-        return msg, r.pos
+        off = (r.pos - 4) % 8
+        first = r.pos + (-(r.pos - 4) % 4)
+        n = _U32.unpack_from(data, first)[0] if first + 4 <= len(data) else -1
+        known = seen_tails.get((off, n))
+        if known is not None:
+            t, b, c = known
+            if t.size <= len(data) - r.pos:
+                v = t.unpack_from(data, r.pos)
+                if v[n + 1] == b and v[n + b + 2] == c:  # the layout it claims: one call for all three
+                    msg = JointState(header=h, name=name, position=list(v[1:n + 1]),
+                                     velocity=list(v[n + 2:n + b + 2]), effort=list(v[n + b + 3:]))
+                    return msg, r.pos + t.size
+        position, velocity, effort = r.dseq(), r.dseq(), r.dseq()
+        if len(seen_tails) < 256:
+            seen_tails[(off, len(position))] = (tail(off, len(position), len(velocity), len(effort)),
+                                                len(velocity), len(effort))
+        return JointState(header=h, name=name, position=position, velocity=velocity, effort=effort), r.pos
 
     def enc_imu(msg: Any) -> bytes:
         buf = bytearray(HEADER_LE)
         _w_header(buf, msg.header)
-        o = msg.orientation
-        _w_darr(buf, (o.x, o.y, o.z, o.w), _D4)
-        _w_darr(buf, msg.orientation_covariance, _D9)
-        for v, cov in ((msg.angular_velocity, msg.angular_velocity_covariance),
-                       (msg.linear_acceleration, msg.linear_acceleration_covariance)):
-            _w_darr(buf, (v.x, v.y, v.z), _D3)
-            _w_darr(buf, cov, _D9)
+        o, av, la = msg.orientation, msg.angular_velocity, msg.linear_acceleration
+        buf += _IMU[-(len(buf) - 4) % 8].pack(o.x, o.y, o.z, o.w, *msg.orientation_covariance,
+                                              av.x, av.y, av.z, *msg.angular_velocity_covariance,
+                                              la.x, la.y, la.z, *msg.linear_acceleration_covariance)
         return bytes(buf)
 
     def dec_imu(data: bytes) -> tuple[Any, int]:
         r = _Reader(data)
         h = header(r)
-        q = r.darr(_D4)
-        oc = list(r.darr(_D9))
-        av = r.darr(_D3)
-        avc = list(r.darr(_D9))
-        la = r.darr(_D3)
-        lac = list(r.darr(_D9))
+        r.align(8)
+        v = _D37.unpack_from(data, r.pos)
         msg = Imu(
             header=h,
-            orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]),
-            orientation_covariance=oc,
-            angular_velocity=Vector3(x=av[0], y=av[1], z=av[2]),
-            angular_velocity_covariance=avc,
-            linear_acceleration=Vector3(x=la[0], y=la[1], z=la[2]),
-            linear_acceleration_covariance=lac,
+            orientation=Quaternion(x=v[0], y=v[1], z=v[2], w=v[3]),
+            orientation_covariance=list(v[4:13]),
+            angular_velocity=Vector3(x=v[13], y=v[14], z=v[15]),
+            angular_velocity_covariance=list(v[16:25]),
+            linear_acceleration=Vector3(x=v[25], y=v[26], z=v[27]),
+            linear_acceleration_covariance=list(v[28:37]),
         )
-        return msg, r.pos
+        return msg, r.pos + _D37.size
 
     def enc_odometry(msg: Any) -> bytes:
         buf = bytearray(HEADER_LE)
