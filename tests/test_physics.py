@@ -6,6 +6,7 @@ import threading
 import time
 from typing import Any
 
+import numpy as np
 import zenoh
 
 from hilsim.core import msgs, transport
@@ -21,6 +22,24 @@ def test_world_holds_still_with_gravity_compensation(scenario: Any) -> None:
     assert abs(w.positions()).max() < 1e-9
     assert w.joint_names == [f"joint_{i}" for i in range(1, 7)]
     assert list(w.effort_limit) == [12, 15, 12, 5, 4, 3]
+
+
+def test_motor_inputs_are_clipped_and_never_push_past_the_velocity_limit(scenario: Any) -> None:
+    """apply_commands (the lean path of an all-effort arm) gives what the limits say, joint by joint:
+    effort clipped to the actuator's range; no torque that pushes a joint faster past its velocity
+    limit (2 rad/s from the URDF), while a torque that brakes it is kept."""
+    w = World(scenario("arm"))
+    lim, vlim = w.effort_limit.tolist(), w.velocity_limit.tolist()
+    assert vlim == [2.0] * 6
+    w.data.qvel[w.dof_adr] = [0.5, 2.5, -2.5, 2.5, -0.5, 0.0]
+    w.command_array(np.array([100.0, 1.0, -1.0, -1.0, -100.0, 2.0]))
+    w.apply_commands()
+    assert w.data.ctrl[:6].tolist() == [lim[0], 0.0, 0.0, -1.0, -lim[4], 2.0]
+    # and the same as the general path (any joint not a simulated effort joint) computes
+    w._all_effort = False
+    w.data.ctrl[:] = 0.0
+    w.apply_commands()
+    assert w.data.ctrl[:6].tolist() == [lim[0], 0.0, 0.0, -1.0, -lim[4], 2.0]
 
 
 def test_lockstep_waits_for_every_participant(scenario: Any, session: zenoh.Session, run_service: Any) -> None:

@@ -148,22 +148,28 @@ class Encoder(Sensor):
     p: EncoderParams
 
     @staticmethod
-    def _quantise(x: np.ndarray, q: float) -> np.ndarray:
-        return np.round(x / q) * q if q > 0.0 else x
+    def _quantise(x: list[float], noise: np.ndarray | None, q: float) -> list[float]:
+        """``x`` plus ``noise``, rounded to a multiple of ``q`` (0: not rounded). np.rint is what np.round
+        does at 0 decimals (half to even), without its Python wrapper: this runs every step."""
+        if noise is None and q <= 0.0:
+            return list(x)
+        a = np.asarray(x, float)
+        if noise is not None:
+            a = a + noise
+        if q > 0.0:
+            a = np.rint(a / q) * q
+        return a.tolist()
 
     def measure(self, truth: msgs.JointState, stamp_ns: int) -> msgs.JointState:
         p = self.p
-        pos = np.asarray(truth.position, float)
-        vel = np.asarray(truth.velocity, float)
-        if p.noise_std > 0.0:
-            pos = pos + self.rng.normal(0.0, p.noise_std, pos.shape)
-        if p.velocity_noise_std > 0.0 and vel.size:
-            vel = vel + self.rng.normal(0.0, p.velocity_noise_std, vel.shape)
+        pos, vel = truth.position, truth.velocity
+        n_pos = self.rng.normal(0.0, p.noise_std, len(pos)) if p.noise_std > 0.0 else None
+        n_vel = self.rng.normal(0.0, p.velocity_noise_std, len(vel)) if p.velocity_noise_std > 0.0 and vel else None
         return msgs.JointState(
             header=msgs.header(stamp_ns, truth.header.frame_id),
             name=list(truth.name),
-            position=self._quantise(pos, p.resolution).tolist(),
-            velocity=self._quantise(vel, p.velocity_resolution).tolist(),
+            position=self._quantise(pos, n_pos, p.resolution),
+            velocity=self._quantise(vel, n_vel, p.velocity_resolution),
             effort=list(truth.effort),
         )
 
