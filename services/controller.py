@@ -266,7 +266,7 @@ class ControllerService(Service):
         if self.fjt_goal is not None:
             self._follow_goal(stamp)
         err = self.ref_pos - self.pos
-        self.tracking_error = float(np.max(np.abs(err)))
+        self.tracking_error = float(np.abs(err).max())  # the method: np.max's Python wrapper costs more
         if self.traj is not None or self.next_traj is not None:
             self.max_tracking_error = max(self.max_tracking_error, self.tracking_error)
 
