@@ -137,6 +137,33 @@ def test_hermite_hits_points_and_velocities() -> None:
     assert not s.done(11 * S) and s.done(12 * S)
 
 
+def test_hermite_is_the_textbook_formula_bit_for_bit() -> None:
+    """sample() works joint by joint on floats (it runs every control step): its values are the
+    cubic Hermite basis evaluated on whole arrays, bit for bit, at knots, between them and past the
+    ends, so a run is the same whichever way the arithmetic is written."""
+    rng = np.random.default_rng(4)
+    t = np.cumsum(rng.uniform(0.01, 0.2, 30))
+    tr = traj(JOINTS, *(point(rng.uniform(-1, 1, 3).tolist(), float(x),
+                              rng.uniform(-1, 1, 3).tolist() if k % 3 else None) for k, x in enumerate(t)))
+    s = control.TrajectorySampler(tr, JOINTS, S, np.zeros(3))
+    times = [S + round(x * 1e9) for x in t] + [int(v) for v in rng.integers(0, 8 * S, 3000)]
+    for now in times:
+        x = (now - s.start_ns) * 1e-9
+        p, v = s.sample(now)
+        if x < s.t[0] or x >= s.t[-1]:
+            assert not v.any()
+            continue
+        i = int(np.searchsorted(s.t, x, side="right")) - 1
+        h = s.t[i + 1] - s.t[i]
+        u = (x - s.t[i]) / h
+        u2, u3 = u * u, u * u * u
+        p0, p1, v0, v1 = s.pos[i], s.pos[i + 1], s.vel[i], s.vel[i + 1]
+        want_p = (2 * u3 - 3 * u2 + 1) * p0 + (u3 - 2 * u2 + u) * h * v0 + (-2 * u3 + 3 * u2) * p1 + (u3 - u2) * h * v1
+        want_v = (((6 * u2 - 6 * u) * p0 + (-6 * u2 + 6 * u) * p1) / h
+                  + (3 * u2 - 4 * u + 1) * v0 + (3 * u2 - 2 * u) * v1)
+        assert p.tobytes() == want_p.tobytes() and v.tobytes() == want_v.tobytes(), now
+
+
 def test_hold_first_point_before_start_and_last_after_end() -> None:
     tr = traj(JOINTS, point([0.1, 0.2, 0.3], 0), point([1, 1, 1], 0.5))
     s = control.TrajectorySampler(tr, JOINTS, 2 * S, np.zeros(3))
