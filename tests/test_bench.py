@@ -60,7 +60,7 @@ def test_bench_loop_measures_every_figure_it_prints(tmp_path: Path) -> None:
     res = json.loads(r.stdout)
     for k in ("bare", "in_process", "distributed", "distributed_lag1", "composed", "composed_lag1",
               "composed_recorder", "distributed_batch", "distributed_lag1_batch", "composed_batch",
-              "composed_recorder_batch", "up_arm", "up_arm_batch"):
+              "composed_recorder_batch", "distributed_lag1_routed", "up_arm", "up_arm_batch"):
         assert math.isfinite(res[f"{k}_rtf"]) and res[f"{k}_rtf"] > 0.01, (k, res)
     assert res["ring_round_us"] > 5.0
     for k in ("up_arm", "up_arm_batch"):  # the README's run, planning included: every target reached
@@ -68,8 +68,11 @@ def test_bench_loop_measures_every_figure_it_prints(tmp_path: Path) -> None:
         assert u["rtf"] == res[f"{k}_rtf"] and u["targets"] == 3 and u["reached"] == 3 and u["task_success"], res
     dist, comp = res["distributed_cpu_us_per_step"], res["composed_cpu_us_per_step"]
     assert {"physics", "sensors", "controller", "planner", "logger"} <= set(dist), dist
-    for k in ("distributed_batch", "distributed_lag1_batch"):
+    for k in ("distributed_batch", "distributed_lag1_batch", "distributed_lag1_routed"):
         assert set(res[f"{k}_cpu_us_per_step"]) == set(dist), res
+    # through the run's own router every sample passes this process: it costs CPU, where the plain
+    # router of the other rows, whose clients are peers, costs next to none
+    assert res["distributed_lag1_routed_cpu_us_per_step"]["router+launcher"] > 5.0, res
     assert {"physics+sensors+controller", "planner", "logger"} <= set(comp), comp
     # CPU time comes in clock ticks (10 ms): the planner, which takes only its 100 Hz ticks (~20 µs a
     # step), may show 0 or 1 tick over these 300 steps; every other service costs several

@@ -22,9 +22,14 @@ from "ready" to the end of the run), divided by the machine's cores: on a small 
 distributed pipeline is CPU-bound, and no step can take less wall time than that. Likewise the
 composed run's CPU per step, as the cores it would need at 10x real time.
 
-``up_arm``, ``up_arm_batch``: the README's run, ``hilsim up arm`` as shipped (its three targets
-planned and driven, recording), without and with batches: the real-time factor of the whole run,
-planning included, and the targets reached.
+``distributed_lag1_routed``: ``distributed_lag1`` as ``hilsim up`` runs it. The rows above use a plain
+router, so the services are peers and also reach each other directly. Here the run has its own
+router with a user and password, every service is a client of it, and every sample passes through
+it. Its CPU per step includes the router's (this process).
+
+``up_arm``, ``up_arm_batch``: the README's run, ``hilsim up arm`` as shipped (its own router, its
+three targets planned and driven, recording), without and with batches: the real-time factor of
+the whole run, planning included, and the targets reached.
 
 Then ``realtime``: the same pipeline with ``--clock realtime`` for ``--realtime-seconds``;
 physics reports its tick jitter (p50, p99) and the share of missed deadlines.
@@ -116,14 +121,18 @@ def cpu_s(pid: int) -> float:
 
 
 def _launch(sc: Scenario, run_dir: Path, cpu: dict[str, float] | None = None,
-            outcome: list[Any] | None = None) -> dict[str, str]:
+            outcome: list[Any] | None = None, run_router: bool = False) -> dict[str, str]:
     """Run ``sc`` with ``hilsim up``'s launcher; physics' health at the end. ``cpu``, if given, is
     filled with the CPU seconds each process spent from "ready" to the end of the run (the
     router and launcher: this process). ``outcome``, if given: the run ends with its task (the
-    launcher's outcome is appended to it), not at a duration."""
+    launcher's outcome is appended to it), not at a duration.
+
+    The router: a plain one, whose clients are then peers that also reach each other directly
+    (every earlier sitting's figures); ``run_router``: the run's own, with its user and password,
+    as ``hilsim up`` opens it, every service a client of it, so every sample passes through it."""
     from hilsim.run.launcher import Launcher, open_default_router
 
-    ep, router = open_default_router()
+    ep, router = (None, None) if run_router else open_default_router()
     la = Launcher(sc, run_dir, router=ep, quiet=True)
     try:
         la.start()
@@ -137,7 +146,8 @@ def _launch(sc: Scenario, run_dir: Path, cpu: dict[str, float] | None = None,
             cpu.update({n: cpu_s(p) - c0[n] for n, p in pids.items()})
     finally:
         la.stop()
-        router.close()
+        if router is not None:
+            router.close()
     if la.outcome.died:
         raise RuntimeError(f"service died during the benchmark: {la.outcome.died}; see {run_dir}")
     if outcome is not None:
@@ -156,7 +166,7 @@ def bench_up_arm(tmp: Path, batch: int = 0) -> dict[str, float]:
     as the planner's results say, against the task's."""
     sc = load_scenario("arm", {"logger.batch": batch})
     got: list[Any] = []
-    h = _launch(sc, tmp / f"up-arm-batch{batch}", outcome=got)
+    h = _launch(sc, tmp / f"up-arm-batch{batch}", outcome=got, run_router=True)
     o = got[0]
     reached = sum(1 for r in o.results if r.success and r.goal_id.startswith("task-"))  # as the summary counts
     return {"rtf": float(h["real_time_factor"]), "reached": float(reached), "targets": float(len(sc.task.targets)),
@@ -182,11 +192,14 @@ def bench_composed(sim_seconds: float, tmp: Path, with_recorder: bool = False,
     return float(h["real_time_factor"])
 
 
-def bench_pipelined(sim_seconds: float, tmp: Path, cpu: dict[str, float] | None = None, batch: int = 0) -> float:
+def bench_pipelined(sim_seconds: float, tmp: Path, cpu: dict[str, float] | None = None, batch: int = 0,
+                    run_router: bool = False) -> float:
     """``hilsim up arm`` with ``clock.controller_lag: 1``: physics steps on while sensors and
-    controller work on the step before (the pipelined lockstep, docs/keys.md); ``batch``: ``logger.batch``."""
+    controller work on the step before (the pipelined lockstep, docs/keys.md); ``batch``: ``logger.batch``;
+    ``run_router``: through the run's own router, as ``hilsim up`` runs it (see :func:`_launch`)."""
     h = _launch(_scenario(sim_seconds, **{"clock.controller_lag": 1, "logger.batch": batch}),
-                tmp / ("distributed-lag1" + (f"-batch{batch}" if batch else "")), cpu)
+                tmp / ("distributed-lag1" + (f"-batch{batch}" if batch else "") + ("-routed" if run_router else "")),
+                cpu, run_router=run_router)
     return float(h["real_time_factor"])
 
 
@@ -286,6 +299,12 @@ def cmd_loop(args: argparse.Namespace) -> int:
         say(f"    composed {res['composed_batch_rtf']:.2f}x real time")
         res["composed_recorder_batch_rtf"] = bench_composed(sim, Path(d), with_recorder=True, batch=BATCH)
         say(f"    composed with the recorder {res['composed_recorder_batch_rtf']:.2f}x real time")
+        say("  distributed, pipelined, through the run's own router (as hilsim up runs it: every sample "
+            "via the router) …")
+        cpu = {}
+        res["distributed_lag1_routed_rtf"] = bench_pipelined(sim, Path(d), cpu, run_router=True)
+        res["distributed_lag1_routed_cpu_us_per_step"] = {n: 1e6 * s / steps for n, s in cpu.items()}
+        say(f"    {res['distributed_lag1_routed_rtf']:.2f}x real time")
         say("  the README's run: hilsim up arm as shipped (planning included), and with batches …")
         for k, b in (("up_arm", 0), ("up_arm_batch", BATCH)):
             r = bench_up_arm(Path(d), batch=b)
@@ -316,7 +335,7 @@ def cmd_loop(args: argparse.Namespace) -> int:
     print("|---|---|---|---|")
     for k in ("bare", "in_process", "distributed", "distributed_lag1", "composed", "composed_lag1",
               "composed_recorder", "distributed_batch", "distributed_lag1_batch", "composed_batch",
-              "composed_recorder_batch", "up_arm", "up_arm_batch"):
+              "composed_recorder_batch", "distributed_lag1_routed", "up_arm", "up_arm_batch"):
         v = res[f"{k}_rtf"]
         print(f"| {k} | {v:.2f}x | {v / res['in_process_rtf']:.3f} | {v / res['bare_rtf']:.3f} |")
     fl = res["ring_round_us"] + step_us["in_process"]
@@ -326,7 +345,7 @@ def cmd_loop(args: argparse.Namespace) -> int:
     dist, comp = res["distributed_cpu_us_per_step"], res["composed_cpu_us_per_step"]
     print(f"distributed CPU per step, all processes: {sum(dist.values()):.0f} µs = "
           f"{res['distributed_cpu_floor_us']:.0f} µs of wall time on {cores} cores at the least ({_each(dist)})")
-    for k in ("distributed_lag1", "distributed_batch", "distributed_lag1_batch"):
+    for k in ("distributed_lag1", "distributed_batch", "distributed_lag1_batch", "distributed_lag1_routed"):
         each = res[f"{k}_cpu_us_per_step"]
         print(f"{k} CPU per step, all processes: {sum(each.values()):.0f} µs ({_each(each)})")
     print(f"composed CPU per step, all processes: {sum(comp.values()):.0f} µs: at 10x real time that is "
