@@ -709,12 +709,14 @@ def test_play_publishes_like_a_ros2_node_with_its_own_clock(arm_run: tuple[Path,
             (token,) = [t for t in tokens if f"/MP/%/%/hilsim_play/{topic}/" in t]
             assert wire.entity_gid(token) == gid
         assert any("/NN/%/%/hilsim_play" in t for t in tokens), tokens  # the node itself
-        # --loop: again from the start, sequence numbers going on, until interrupted
+        # --loop: again from the start, sequence numbers going on, until interrupted. Started with SIGINT
+        # ignored, as a script's background job is: Ctrl-C (SIGINT) still ends it
         with lock:
             seen["js"].clear()
-        lp = subprocess.Popen([sys.executable, "-m", "hilsim.cli", "play", str(run), "--rate", "0", "--loop",
-                               "--keys", "/arm/joint_states", "--connect", ep], stderr=subprocess.PIPE, text=True,
-                              cwd=REPO)
+        argv = [sys.executable, "-m", "hilsim.cli", "play", str(run), "--rate", "0", "--loop", "--keys",
+                "/arm/joint_states", "--connect", ep]
+        ignoring = f"import os, signal; signal.signal(signal.SIGINT, signal.SIG_IGN); os.execv({argv[0]!r}, {argv!r})"
+        lp = subprocess.Popen([sys.executable, "-c", ignoring], stderr=subprocess.PIPE, text=True, cwd=REPO)
         end = time.monotonic() + 30
         while len(seen["js"]) < 2500 and time.monotonic() < end:
             time.sleep(0.05)
@@ -724,6 +726,7 @@ def test_play_publishes_like_a_ros2_node_with_its_own_clock(arm_run: tuple[Path,
         with lock:
             seqs = [a.seq for _, a in seen["js"] if a is not None]
         assert len(seqs) >= 2500 and seqs[:2500] == list(range(1, 2501)) and "(loop 2)" in err
+        assert "(stopped by SIGINT)" in err, err
     finally:
         for x in subs:
             x.undeclare()

@@ -32,7 +32,9 @@ from __future__ import annotations
 
 import argparse
 import fnmatch
+import signal
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -178,7 +180,7 @@ class Progress:
 def play(session: zenoh.Session, items: list[Item], *, domain: int, rate: float = 1.0, loop: bool = False,
          clock: bool = False, delay: float = 0.5, quiet: bool = False, stop: Any = None) -> dict[str, Any]:
     """Publish ``items`` (see :func:`schedule`); returns what was played. ``stop``: an Event that
-    ends the play early (tests)."""
+    ends the play early (Ctrl-C, SIGTERM: :func:`cmd_play`; tests)."""
     player = Player(session, domain)
     clock_key = Keys(domain=domain).clock if clock else ""
     keys = sorted({it.key for it in items})
@@ -203,7 +205,10 @@ def play(session: zenoh.Session, items: list[Item], *, domain: int, rate: float 
                 if rate > 0:
                     wait = t_start + (it.sim_ns - span[0]) / 1e9 / rate - time.monotonic()
                     if wait > 0.0005:
-                        time.sleep(wait)
+                        if stop is not None:
+                            stop.wait(wait)  # a stop ends the wait too
+                        else:
+                            time.sleep(wait)
                 if clock and it.sim_ns > last_clock:
                     player.put(clock_key, msgs.encode(msgs.Clock(clock=msgs.stamp(it.sim_ns))))
                     last_clock = it.sim_ns
@@ -248,12 +253,26 @@ def cmd_play(args: argparse.Namespace) -> int:
     pace = "as fast as possible" if args.rate == 0 else f"at {args.rate:g}x"
     print(f"hilsim play: {len(items)} messages on {len({i.key for i in items})} keys, {pace}"
           + (", publishing /clock" if args.clock else ""), file=sys.stderr)
+    # Ctrl-C or SIGTERM ends the play between two messages: taken by a watcher thread, not as a
+    # KeyboardInterrupt, which a put blocked by a slow subscriber would hold back (seen: a --loop
+    # play that went on for 20 s after Ctrl-C), and which a script's background job never gets
+    from hilsim.core.service import watch_signals
+
+    signals: list[int] = []
+    stop = threading.Event()
+
+    def on_signal(signum: int) -> None:
+        signals.append(signum)
+        stop.set()
+
+    restore = watch_signals(on_signal, (signal.SIGINT, signal.SIGTERM))
     try:
-        res = play(session, items, domain=domain, rate=args.rate, loop=args.loop, clock=args.clock, delay=args.delay)
-    except KeyboardInterrupt:
-        return 130
+        res = play(session, items, domain=domain, rate=args.rate, loop=args.loop, clock=args.clock, delay=args.delay,
+                   stop=stop)
     finally:
         session.close()
+        restore()
     print(f"hilsim play: played {res['messages']} messages on {res['keys']} keys, {res['sim_s']:.3f} s of sim time "
-          f"in {res['wall_s']:.3f} s", file=sys.stderr)
-    return 0
+          f"in {res['wall_s']:.3f} s" + (f" (stopped by {signal.Signals(signals[0]).name})" if signals else ""),
+          file=sys.stderr)
+    return 128 + signals[0] if signals else 0
