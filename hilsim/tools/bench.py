@@ -120,12 +120,11 @@ def cpu_s(pid: int) -> float:
         return 0.0
 
 
-def _launch(sc: Scenario, run_dir: Path, cpu: dict[str, float] | None = None,
-            outcome: list[Any] | None = None, run_router: bool = False) -> dict[str, str]:
-    """Run ``sc`` with ``hilsim up``'s launcher; physics' health at the end. ``cpu``, if given, is
-    filled with the CPU seconds each process spent from "ready" to the end of the run (the
-    router and launcher: this process). ``outcome``, if given: the run ends with its task (the
-    launcher's outcome is appended to it), not at a duration.
+def _run(sc: Scenario, run_dir: Path, cpu: dict[str, float] | None = None, *, task: bool = False,
+         run_router: bool = False) -> Any:
+    """Run ``sc`` with ``hilsim up``'s launcher; its outcome (hilsim.run.follow.Outcome). ``cpu``, if
+    given, is filled with the CPU seconds each process spent from "ready" to the end of the run (the
+    router and launcher: this process). ``task``: the run ends with its task, not at a duration.
 
     The router: a plain one, whose clients are then peers that also reach each other directly
     (every earlier sitting's figures); ``run_router``: the run's own, with its user and password,
@@ -150,13 +149,17 @@ def _launch(sc: Scenario, run_dir: Path, cpu: dict[str, float] | None = None,
             router.close()
     if la.outcome.died:
         raise RuntimeError(f"service died during the benchmark: {la.outcome.died}; see {run_dir}")
-    if outcome is not None:
-        if la.outcome.task is None:
-            raise RuntimeError(f"the run's task did not end; see {run_dir}")
-        outcome.append(la.outcome)
-    elif not la.outcome.physics_done:
+    if task and la.outcome.task is None:
+        raise RuntimeError(f"the run's task did not end; see {run_dir}")
+    if not task and not la.outcome.physics_done:
         raise RuntimeError(f"the run did not reach its duration; see {run_dir}")
-    return la.outcome.health.get("physics", {})
+    return la.outcome
+
+
+def _launch(sc: Scenario, run_dir: Path, cpu: dict[str, float] | None = None,
+            run_router: bool = False) -> dict[str, str]:
+    """:func:`_run` to the scenario's duration; physics' health at the end."""
+    return dict(_run(sc, run_dir, cpu, run_router=run_router).health.get("physics", {}))
 
 
 def bench_up_arm(tmp: Path, batch: int = 0) -> dict[str, float]:
@@ -165,12 +168,10 @@ def bench_up_arm(tmp: Path, batch: int = 0) -> dict[str, float]:
     run (planning included: in lockstep a plan takes wall time, no sim time), and the targets reached
     as the planner's results say, against the task's."""
     sc = load_scenario("arm", {"logger.batch": batch})
-    got: list[Any] = []
-    h = _launch(sc, tmp / f"up-arm-batch{batch}", outcome=got, run_router=True)
-    o = got[0]
+    o = _run(sc, tmp / f"up-arm-batch{batch}", task=True, run_router=True)
     reached = sum(1 for r in o.results if r.success and r.goal_id.startswith("task-"))  # as the summary counts
-    return {"rtf": float(h["real_time_factor"]), "reached": float(reached), "targets": float(len(sc.task.targets)),
-            "task_success": float(bool(o.task.success))}
+    return {"rtf": float(o.health.get("physics", {})["real_time_factor"]), "reached": float(reached),
+            "targets": float(len(sc.task.targets)), "task_success": float(bool(o.task.success))}
 
 
 def bench_distributed(sim_seconds: float, tmp: Path, cpu: dict[str, float] | None = None, bag: bool = True,

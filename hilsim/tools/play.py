@@ -178,9 +178,11 @@ class Progress:
 
 
 def play(session: zenoh.Session, items: list[Item], *, domain: int, rate: float = 1.0, loop: bool = False,
-         clock: bool = False, delay: float = 0.5, quiet: bool = False, stop: Any = None) -> dict[str, Any]:
+         clock: bool = False, delay: float = 0.5, quiet: bool = False,
+         stop: threading.Event | None = None) -> dict[str, Any]:
     """Publish ``items`` (see :func:`schedule`); returns what was played. ``stop``: an Event that
     ends the play early (Ctrl-C, SIGTERM: :func:`cmd_play`; tests)."""
+    stop = stop if stop is not None else threading.Event()  # never set: played to the end
     player = Player(session, domain)
     clock_key = Keys(domain=domain).clock if clock else ""
     keys = sorted({it.key for it in items})
@@ -189,7 +191,7 @@ def play(session: zenoh.Session, items: list[Item], *, domain: int, rate: float 
     if clock:
         player.publisher(clock_key)
     if delay > 0:
-        time.sleep(delay)
+        stop.wait(delay)
     span = (items[0].sim_ns, items[-1].sim_ns) if items else (0, 0)
     prog = Progress(len(items), span, quiet)
     played = 0
@@ -200,15 +202,12 @@ def play(session: zenoh.Session, items: list[Item], *, domain: int, rate: float 
             t_start = time.monotonic()
             last_clock = -1
             for n, it in enumerate(items):
-                if stop is not None and stop.is_set():
+                if stop.is_set():
                     break
                 if rate > 0:
                     wait = t_start + (it.sim_ns - span[0]) / 1e9 / rate - time.monotonic()
                     if wait > 0.0005:
-                        if stop is not None:
-                            stop.wait(wait)  # a stop ends the wait too
-                        else:
-                            time.sleep(wait)
+                        stop.wait(wait)  # a stop ends the wait too
                 if clock and it.sim_ns > last_clock:
                     player.put(clock_key, msgs.encode(msgs.Clock(clock=msgs.stamp(it.sim_ns))))
                     last_clock = it.sim_ns
@@ -218,7 +217,7 @@ def play(session: zenoh.Session, items: list[Item], *, domain: int, rate: float 
             else:
                 prog.show(len(items), span[1], loops, force=True)
                 loops += 1
-                if loop and items and not (stop is not None and stop.is_set()):
+                if loop and items and not stop.is_set():
                     continue
             break
     finally:

@@ -38,9 +38,6 @@ HEADER_LE = b"\x00\x01\x00\x00"
 _U32 = struct.Struct("<I")
 _TIME = struct.Struct("<iI")
 _HDR = struct.Struct("<iII")  # a Header's stamp and its frame id's length
-_D4 = struct.Struct("<4d")
-_D3 = struct.Struct("<3d")
-_D9 = struct.Struct("<9d")
 _D6 = struct.Struct("<6d")
 _D7 = struct.Struct("<7d")
 # Odometry after its strings: pose (position, orientation, 36 covariances), twist (linear,
@@ -49,7 +46,7 @@ _D85 = struct.Struct("<85d")
 # Imu after its header: orientation, its covariance, angular velocity, its covariance, linear
 # acceleration, its covariance: 37 doubles in a row, every one 8-aligned; one Struct per padding before
 _IMU = [struct.Struct(f"<{p}x37d") for p in range(8)]
-_D37 = struct.Struct("<37d")
+_D37 = _IMU[0]
 
 
 def _tail(offset: int, counts: tuple[int, ...]) -> struct.Struct:
@@ -93,14 +90,6 @@ def _w_header(buf: bytearray, h: Any) -> None:
     buf += _HDR.pack(h.stamp.sec, h.stamp.nanosec, len(b) + 1)
     buf += b
     buf += b"\0"
-
-
-def _w_dseq(buf: bytearray, xs: Any) -> None:
-    n = len(xs)
-    _w_u32(buf, n)
-    if n:
-        _pad(buf, 8)
-        buf += struct.pack(f"<{n}d", *xs)
 
 
 def _w_darr(buf: bytearray, xs: Any, s: struct.Struct) -> None:
