@@ -33,11 +33,14 @@ Reads:
   ``<prefix>/<robot>/joint_commands`` (sensor_msgs/JointState; the entries of its joints only)
 Writes:
   ``<prefix>/<robot>/hw/bridge-can/joint_states`` (sensor_msgs/JointState: position, velocity of
-  the joints whose encoder estimates just arrived), stamped with the sim time of the latest
-  command. One message per batch of frames the bus reader drained together (``batch_window``):
-  on a quiet bus that is one per estimate; when estimates arrive faster than they can be
-  published one by one, each joint's newest estimate of the batch is published and the older
-  ones are counted as coalesced (health ``estimates``, ``estimates_coalesced``, ``state_samples``);
+  the joints whose encoder estimates just arrived), stamped with the sim time at which the newest of
+  them came off the bus (the frame's receive time, taken by the kernel where the interface gives it,
+  on the simulation's clock as the commands' stamps show it: :class:`hilsim.core.simclock.SimClock`;
+  before any command, 0), so a recording tells when the drive reported what. One message per
+  batch of frames the bus reader drained together (``batch_window``): on a quiet bus that is one
+  per estimate; when estimates arrive faster than they can be published one by one, each joint's
+  newest estimate of the batch is published and the older ones are counted as coalesced (health
+  ``estimates``, ``estimates_coalesced``, ``state_samples``);
   ``<prefix>/<robot>/health/bridge-can`` (per joint: status, fault, node, axis state and error,
   heartbeat age; frame counters) and ``<prefix>/<robot>/log/bridge-can``.
 """
@@ -56,6 +59,7 @@ from hilsim.bridges.can_profiles import DriveCommand, Estimate, FrameError, Hear
 from hilsim.core import msgs
 from hilsim.core.config import ConfigError, Scenario
 from hilsim.core.service import Service
+from hilsim.core.simclock import SimClock, wall_of
 
 WAITING, STARTING, OK, FAULT = "waiting", "starting", "ok", "fault"
 
@@ -102,6 +106,7 @@ class BridgedJoint:
         self.since = time.monotonic()  # of the present status
         self.setup_t = -1e9
         self.pos = self.vel = 0.0
+        self.est_ns = 0  # sim time the newest estimate came off the bus
         self.have_estimate = False
         self.dirty = False  # an estimate not published yet
         self.held = False
@@ -155,6 +160,7 @@ class CanBridgeService(Service):
         self.estimates = 0  # encoder estimates of our joints taken in
         self.state_samples = 0  # joint_states samples published
         self.coalesced = 0  # estimates a newer one of the same joint replaced before publication
+        self.clock = SimClock()  # sim time on this process's wall clock, from the commands' stamps
         self.link = CanLink(c.bus, self._on_frame, self._on_bus, reconnect_interval=c.reconnect_interval,
                             name=self.name, on_batch_end=self._publish_states, batch_window=c.batch_window,
                             rx_buffer=c.rx_buffer)
@@ -212,13 +218,14 @@ class CanBridgeService(Service):
             return
         with self.lock:
             if isinstance(ev, Estimate):
-                self._on_estimate(j, ev)
+                self._on_estimate(j, ev, wall_of(frame.timestamp))
             else:
                 self._on_heartbeat(j, ev)
 
-    def _on_estimate(self, j: BridgedJoint, ev: Estimate) -> None:
+    def _on_estimate(self, j: BridgedJoint, ev: Estimate, rx: float) -> None:
         m = j.map
         j.pos, j.vel = m.to_joint(ev.position), m.vel_to_joint(ev.velocity)
+        j.est_ns = self.clock.sim_ns(rx)
         j.have_estimate = True
         self.estimates += 1
         if j.dirty:
@@ -233,7 +240,7 @@ class CanBridgeService(Service):
                 return
             for j in fresh:
                 j.dirty = False
-            msg = msgs.JointState(header=msgs.header(self.sim_ns), name=[j.name for j in fresh],
+            msg = msgs.JointState(header=msgs.header(max(j.est_ns for j in fresh)), name=[j.name for j in fresh],
                                   position=[j.pos for j in fresh], velocity=[j.vel for j in fresh])
             if self.stop_event.is_set():
                 return
@@ -311,9 +318,10 @@ class CanBridgeService(Service):
 
     # ---------------------------------------------------------------- commands
     def _on_command(self, cmd: msgs.JointState, key: str) -> None:
-        self.sim_ns = max(self.sim_ns, msgs.ns_of(cmd.header.stamp))
-        n = len(cmd.name)
         now = time.monotonic()
+        self.sim_ns = max(self.sim_ns, msgs.ns_of(cmd.header.stamp))
+        self.clock.saw(msgs.ns_of(cmd.header.stamp), now)
+        n = len(cmd.name)
         min_dt = 1.0 / self.cfg.command_rate_hz if self.cfg.command_rate_hz else 0.0
         for k, name in enumerate(cmd.name):
             j = self.joints.get(name)

@@ -6,7 +6,10 @@ Two modes (``drive-emulator.mode``):
 - ``model`` (default): the project's stand-in drive, no simulation needed. Each drive is an
   internal second-order position loop (``natural_frequency``, ``damping_ratio``; velocity mode:
   a first-order velocity loop of bandwidth 2ζω_n; torque mode: a rotor of ``inertia`` and viscous
-  ``friction``). This is what the CAN bridge talks to in demos and tests.
+  ``friction``), which acts on a setpoint ``dead_time`` after its frame arrived, accelerates at
+  most ``max_acceleration`` and turns at most ``max_velocity``; its encoder estimates are rounded
+  to ``encoder_cpr`` counts per turn. This is what the CAN bridge talks to in demos and tests, and
+  what ``hilsim identify`` is tested on (parameters the fit does not know).
 - ``simulation`` (controller in the loop): the drives are simulated joints. The host's setpoints
   become those joints' commands in the simulation (the emulator publishes ``joint_commands`` for
   them, taking the controller's place), and the encoder estimates come from the simulated joint
@@ -39,6 +42,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from typing import Any, Literal
 
 import can
@@ -49,6 +53,7 @@ from hilsim.bridges.can_profiles import DriveCommand, DriveProfile, Estimate, Fr
 from hilsim.core import msgs
 from hilsim.core.config import SIM, ConfigError, Scenario
 from hilsim.core.service import Service
+from hilsim.core.simclock import wall_of
 
 # ODrive-like axis errors the emulator can report
 ERROR_INVALID_STATE = 0x1
@@ -73,22 +78,54 @@ class DriveEmulatorConfig(BaseModel):
     inertia: float = Field(0.01, gt=0, description="model: rotor + load at the motor [kg·m²]")
     friction: float = Field(0.01, ge=0, description="model: viscous friction at the motor [N·m·s/rad]")
     max_velocity: float = Field(math.inf, gt=0, description="model: [motor rad/s]")
+    max_acceleration: float = Field(math.inf, gt=0, description="model: [motor rad/s²] (position and velocity "
+                                    "modes: the current limit over the inertia)")
+    dead_time: float = Field(0.0, ge=0, le=1.0, description="model: [s] from a setpoint frame's arrival to the "
+                             "drive acting on it (the firmware's input filter, its control cycle)")
+    encoder_cpr: int = Field(0, ge=0, description="model: encoder counts per motor turn: estimates are rounded to "
+                             "them (0: exact)")
     initial_position: dict[str, float] = Field(default_factory=dict, description="model: joint rad")
     state_topic: Literal["truth/joint_states", "joint_states"] = "truth/joint_states"
 
 
 class DriveModel:
-    """Model mode: the motor behind one drive (motor shaft units)."""
+    """Model mode: the motor behind one drive (motor shaft units), on the wall clock."""
+
+    SUBSTEP = 0.0005  # [s] integrate at ≤ 0.5 ms
 
     def __init__(self, cfg: DriveEmulatorConfig, p0: float) -> None:
         self.cfg = cfg
         self.p, self.v, self.torque = p0, 0.0, 0.0
+        self.t = time.monotonic()
+        # setpoints that arrived and act after the dead time: (when [monotonic s], (p, v, torque))
+        self.pending: deque[tuple[float, tuple[float, float, float]]] = deque()
 
-    def step(self, dt: float, closed_loop: bool, mode: str, inp: tuple[float, float, float]) -> None:
+    def take(self, inp: tuple[float, float, float], now: float) -> None:
+        """A setpoint that arrived at ``now``: in force ``dead_time`` later."""
+        self.pending.append((now + self.cfg.dead_time, inp))
+
+    def advance(self, now: float, closed_loop: bool, mode: str, inp: tuple[float, float, float]) -> tuple[
+            float, float, float]:
+        """Move on to ``now`` from the last time, each pending setpoint taken exactly when it falls due;
+        returns the input in force at ``now``."""
+        if not closed_loop:
+            self.pending.clear()
+        while self.pending and self.pending[0][0] <= now:
+            due, new = self.pending.popleft()
+            self._integrate(max(0.0, due - self.t), closed_loop, mode, inp)
+            self.t = max(self.t, due)
+            inp = new
+        self._integrate(max(0.0, now - self.t), closed_loop, mode, inp)
+        self.t = now
+        return inp
+
+    def _integrate(self, dt: float, closed_loop: bool, mode: str, inp: tuple[float, float, float]) -> None:
+        if dt <= 0.0:
+            return
         c = self.cfg
         wn, z, j = c.natural_frequency, c.damping_ratio, c.inertia
         p_in, v_in, t_in = inp
-        n = max(1, math.ceil(dt / 0.0005))  # integrate at ≤ 0.5 ms
+        n = max(1, math.ceil(dt / self.SUBSTEP))
         h = dt / n
         for _ in range(n):
             if not closed_loop:
@@ -99,9 +136,19 @@ class DriveModel:
                 a = 2 * z * wn * (v_in - self.v) + t_in / j
             else:
                 a = (t_in - c.friction * self.v) / j
+            if closed_loop and mode != "effort":
+                a = max(-c.max_acceleration, min(c.max_acceleration, a))
             self.torque = j * a
             self.v = max(-c.max_velocity, min(c.max_velocity, self.v + a * h))
             self.p += self.v * h
+
+    def encoder(self) -> float:
+        """The position as the encoder counts it."""
+        cpr = self.cfg.encoder_cpr
+        if not cpr:
+            return self.p
+        q = 2 * math.pi / cpr
+        return round(self.p / q) * q
 
 
 class EmulatedDrive:
@@ -131,9 +178,10 @@ class EmulatedDrive:
         self.error, self.sticky_error = error, sticky
         self.state = self.profile.IDLE
 
-    def handle(self, cmd: DriveCommand) -> str | None:
-        """Apply a host command; returns what changed for the outside: ``state``, ``input``, ``mode``,
-        ``estimate`` (an estimate is asked for), or None. Raises ValueError for a refused command."""
+    def handle(self, cmd: DriveCommand, rx: float | None = None) -> str | None:
+        """Apply a host command that arrived at ``rx`` (``time.monotonic()``; default now); returns what
+        changed for the outside: ``state``, ``input``, ``mode``, ``estimate`` (an estimate is asked
+        for), or None. Raises ValueError for a refused command."""
         p = self.profile
         self.commands += 1
         if cmd.kind == "request_estimate":
@@ -166,19 +214,26 @@ class EmulatedDrive:
             raise ValueError(f"a {cmd.kind} setpoint in {self.mode} control mode")
         if not self.closed_loop:
             return None  # ignored, as by the real drive: it is idle
-        self.inputs = (cmd.a if kind == "position" else self.p, cmd.b, cmd.c)
+        inputs = (cmd.a if kind == "position" else self.p, cmd.b, cmd.c)
+        if self.model is not None and self.model.cfg.dead_time > 0.0:
+            # in force a dead time after it arrived (the kernel's receive time: a real drive's own clock is
+            # not late when this process is)
+            self.model.take(inputs, time.monotonic() if rx is None else rx)
+        else:
+            self.inputs = inputs
         return "input"
 
-    def step(self, dt: float) -> None:
+    def advance(self, now: float) -> None:
         if self.model is not None:
-            self.model.step(dt, self.closed_loop, self.mode, self.inputs)
+            self.inputs = self.model.advance(now, self.closed_loop, self.mode, self.inputs)
             self.p, self.v = self.model.p, self.model.v
 
     def heartbeat(self) -> can.Message:
         return self.profile.heartbeat_frame(Heartbeat(self.node, self.error, self.state, 0, True))
 
     def estimate(self) -> can.Message:
-        return self.profile.estimate_frame(Estimate(self.node, self.p, self.v))
+        p = self.model.encoder() if self.model is not None else self.p
+        return self.profile.estimate_frame(Estimate(self.node, p, self.v))
 
 
 class DriveEmulatorService(Service):
@@ -234,7 +289,6 @@ class DriveEmulatorService(Service):
         self._unused = UnusedFrames(("unknown_id", "bad_length", "malformed", "refused"), self.rejected, self.warn)
         self.bad = self._unused.counts
         self.other_frames = 0
-        self._last_step = time.monotonic()
         self.have_state = False
         self.link = CanLink(self.bus_cfg, self._on_frame, self._on_bus, reconnect_interval=c.reconnect_interval,
                             name=self.name)
@@ -293,7 +347,7 @@ class DriveEmulatorService(Service):
                         self.profile.interface_of(int(ev.a)) != self.interfaces[d.joint]:
                     raise ValueError(f"control mode {int(ev.a)} does not match the simulated joint's "
                                      f"{self.interfaces[d.joint]} interface")
-                what = d.handle(ev)
+                what = d.handle(ev, wall_of(frame.timestamp))
             except ValueError as e:
                 d.refused += 1
                 self._unused("refused", f"{d.joint} (node {d.node}): {e}")
@@ -320,9 +374,8 @@ class DriveEmulatorService(Service):
     # ---------------------------------------------------------------- cyclic frames
     def _advance(self) -> None:
         now = time.monotonic()
-        dt, self._last_step = now - self._last_step, now
         for d in self.drives.values():
-            d.step(min(dt, 0.1))
+            d.advance(now)
 
     def loop(self) -> None:
         c = self.cfg

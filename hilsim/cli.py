@@ -12,7 +12,8 @@
     hilsim plan evaluate --targets FILE [--criterion length|smoothness|weighted]
     hilsim bench loop|plan|can|mavlink|rover [--json]
     hilsim bench scale [--robots 1,2,4,8] [--subscribers 0,4] [--sim-seconds S] [--repeat K] [--compose] [--json]
-    hilsim report step ROBOT [--joints J,…] [--step RAD] [--speed RAD/S] [--json]
+    hilsim report step ROBOT [--joints J,…] [--step RAD] [--speed RAD/S] [--hil FILE] [--json]
+    hilsim identify SCENARIO|RUN_DIR --joints J[,…] [--write FILE] [--json]
     hilsim inertia FILE [--link NAME] [--urdf FILE] [--json]
     hilsim tune ROBOT JOINT|--all [--method ziegler-nichols|relay] [--write] [--json]
     hilsim router [--listen ENDPOINT] [--config FILE]
@@ -299,7 +300,27 @@ def build_parser() -> argparse.ArgumentParser:
     rs.add_argument("--settle", type=float, default=1.0, help="sim seconds back home between steps")
     rs.add_argument("--out", help="output directory (default runs/<timestamp>-step-report)")
     rs.add_argument("--json", action="store_true", help="print one JSON object")
+    rs.add_argument("--hil", action="append", default=[], metavar="FILE",
+                    help="merge a file over the scenario (e.g. config/hil/can-emulated.yaml): hardware in the loop, "
+                    "realtime, a drive's joint measured on its encoder")
+    rs.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="override any scenario field")
     rs.set_defaults(func=_lazy("hilsim.tools.step_report", "cmd_report_step"))
+
+    ident = sub.add_parser("identify", help="fit a real drive's response from a HIL run and write a twin that "
+                           "responds the same (docs/hil.md)")
+    ident.add_argument("scenario", help="a scenario with the joints served by hardware (e.g. "
+                       "config/hil/arm-can-emulated.yaml), or a past HIL run's directory (its bag is fitted)")
+    ident.add_argument("--joints", required=True, help="comma-separated joints to identify, e.g. joint_1")
+    ident.add_argument("--write", metavar="FILE", help="write the twin scenario here (default: <out>/twin.yaml; a run "
+                       "directory: only when given)")
+    ident.add_argument("--json", action="store_true", help="print one JSON object: the fits and the comparisons")
+    ident.add_argument("--hil", action="append", default=[], metavar="FILE", help="merge a file over the scenario")
+    ident.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="override any scenario field")
+    ident.add_argument("--scale", type=float, default=1.0, help="the excitation's size (1: steps up to 1.7 rad)")
+    ident.add_argument("--measure", type=float, default=1.0, help="sim seconds each validation step is measured "
+                       "(a slow drive needs more to settle)")
+    ident.add_argument("--out", help="output directory (default runs/<timestamp>-identify)")
+    ident.set_defaults(func=_lazy("hilsim.tools.identify", "cmd_identify"))
 
     comp = sub.add_parser("compose", help="write the docker compose file of a scenario and its HIL variants")
     comp.add_argument("scenario", help="scenario name in config/ (e.g. arm) or a YAML path")

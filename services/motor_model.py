@@ -11,8 +11,9 @@ Reads:
   ``<prefix>/<robot>/joint_commands`` (sensor_msgs/JointState; the entries of its joints only)
 Writes:
   ``<prefix>/<robot>/hw/motor-model/joint_states`` (sensor_msgs/JointState: position, velocity,
-  effort of its joints) at ``motor-model.rate_hz`` (wall clock), stamped with the sim time of
-  the latest command (sim time as the robot knows it).
+  effort of its joints) at ``motor-model.rate_hz`` (wall clock), stamped with the sim time at
+  which it was taken (the wall clock on the simulation's, as the commands' stamps show it:
+  :class:`hilsim.core.simclock.SimClock`; before any command, 0).
 
 Settings (scenario section ``motor-model:``): ``rate_hz``, ``order`` (1: position/velocity
 lag with ``time_constant``; 2: ``natural_frequency`` and ``damping_ratio``), ``delay`` [s],
@@ -32,6 +33,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from hilsim.core import msgs
 from hilsim.core.config import ConfigError, Scenario
 from hilsim.core.service import Service
+from hilsim.core.simclock import SimClock
 
 
 class MotorModelConfig(BaseModel):
@@ -109,6 +111,7 @@ class MotorModelService(Service):
         # commands in flight: (wall time due, stamp, {joint: (p, v, u)})
         self._inflight: collections.deque[tuple[float, int, dict[str, tuple[Any, Any, Any]]]] = collections.deque()
         self.stamp_ns = 0
+        self.clock = SimClock()  # sim time on the wall clock, from the commands' stamps
         self.commands = 0
         self.last_cmd_wall = 0.0
 
@@ -126,8 +129,10 @@ class MotorModelService(Service):
                     cmd.velocity[k] if len(cmd.velocity) == n else None,
                     cmd.effort[k] if len(cmd.effort) == n else None,
                 )
+        now = time.monotonic()
+        self.clock.saw(msgs.ns_of(cmd.header.stamp), now)
         if entry:
-            self._inflight.append((time.monotonic() + self.cfg.delay, msgs.ns_of(cmd.header.stamp), entry))
+            self._inflight.append((now + self.cfg.delay, msgs.ns_of(cmd.header.stamp), entry))
             self.commands += 1
             self.last_cmd_wall = time.monotonic()
 
@@ -150,7 +155,7 @@ class MotorModelService(Service):
                 self.sim_ns = self.stamp_ns
                 ms = list(self.motors.values())
                 self.pub.put(msgs.JointState(
-                    header=msgs.header(self.stamp_ns), name=self.names,
+                    header=msgs.header(self.clock.sim_ns(now)), name=self.names,
                     position=[m.p for m in ms], velocity=[m.v for m in ms], effort=[m.effort for m in ms],
                 ))
             delay = next_t - time.monotonic()

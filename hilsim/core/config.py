@@ -115,6 +115,21 @@ class WorldConfig(_Model):
 Interface = Literal["effort", "position", "velocity"]
 
 
+class DriveConfig(_Model):
+    """A servo drive simulated in lockstep (:mod:`hilsim.sim.drive`): its closed-loop response from
+    setpoint to encoder, as ``hilsim identify`` fits it from a real drive (docs/hil.md)."""
+
+    order: Literal[1, 2] = Field(2, description="1: position lag time_constant; 2: natural_frequency, damping_ratio")
+    dead_time: float = Field(0.0, ge=0, le=1.0, description="[s] from the setpoint's stamp to the drive acting on it")
+    natural_frequency: float = Field(40.0, gt=0, description="order 2: ω_n of the closed loop [rad/s]")
+    damping_ratio: float = Field(1.0, gt=0, description="order 2: ζ")
+    time_constant: float = Field(0.02, gt=0, description="order 1: τ [s]")
+    max_velocity: float = Field(math.inf, gt=0, description="[rad/s] (inf: none)")
+    max_acceleration: float = Field(math.inf, gt=0, description="[rad/s²] (inf: none)")
+    resolution: float = Field(0.0, ge=0, description="the encoder's quantum [rad] (0: exact)")
+    period: float = Field(0.0, ge=0, le=1.0, description="[s] between the encoder's reports (0: every physics step)")
+
+
 class JointConfig(_Model):
     """How one joint is commanded and who serves it (like a ros2_control hardware interface)."""
 
@@ -123,6 +138,9 @@ class JointConfig(_Model):
     servo_kp: float | None = Field(None, gt=0, description="simulated drive: position [N·m/rad] or velocity "
                                    "[N·m·s/rad] servo gain (default 100 / 10)")
     servo_kv: float | None = Field(None, ge=0, description="simulated position drive: damping [N·m·s/rad] (default 5)")
+    drive: DriveConfig | None = Field(None, description="a position or velocity joint simulated by physics as this "
+                                      "drive (hilsim.sim.drive: dead time, closed loop, limits, encoder) instead of "
+                                      "MuJoCo's servo; what hilsim identify writes for a twin")
 
 
 class PhysicsConfig(_Model):
@@ -361,6 +379,20 @@ class Scenario(_Model):
                     raise ValueError(f"robot_overrides.{robot}.{field}: a robot may change only fields under "
                                      f"{', '.join(fleet.OVERRIDABLE)} (the world and clock are shared)")
         # a bad value in an override is said by the loader (hilsim.core.scenario), which builds each robot's view
+        return self
+
+    @model_validator(mode="after")
+    def _drives(self) -> Scenario:
+        for name in self.joints:
+            j = self.joint(name)
+            if j.drive is None:
+                continue
+            if j.server != SIM:
+                raise ValueError(f"joints.{name}.drive: a simulated drive is physics' (server: sim), but the joint's "
+                                 f"server is {j.server!r}")
+            if j.interface == "effort":
+                raise ValueError(f"joints.{name}.drive: a simulated drive takes a position or velocity setpoint "
+                                 f"(interface: position or velocity), not effort")
         return self
 
     @model_validator(mode="after")

@@ -7,6 +7,12 @@ process (``server`` other than ``sim``) is not actuated: it *follows* the state 
 measured (:meth:`World.follow`), kinematically, so the links, contacts and the recording
 stay consistent with the real motor.
 
+A simulated joint with ``joints.<name>.drive`` is a servo drive simulated by physics in lockstep
+(:mod:`hilsim.sim.drive`: dead time, closed position or velocity loop, velocity and acceleration
+limits, the encoder's quantum and period), as ``hilsim identify`` fits it from a real drive: MuJoCo's
+motor applies nothing, and the joint follows the drive's reported state kinematically after each
+step, exactly as a joint served by that real drive follows its encoder.
+
 A model whose root body has a free joint (a mobile robot such as the rover) also gets a
 :class:`MobileBase`: its chassis pose and twist (``truth/odom``) and the transforms of the chassis
 and its sensor sites (``tf``). A fixed-base model (the arm) has none, and nothing about it changes.
@@ -26,6 +32,7 @@ import numpy as np
 
 from hilsim.core import msgs
 from hilsim.core.config import SIM, ConfigError, Scenario
+from hilsim.sim.drive import DriveModel
 
 SERVO_KP = {"position": 100.0, "velocity": 10.0}  # default drive gains [N·m/rad], [N·m·s/rad]
 SERVO_KV = 5.0  # default damping of the position servos [N·m·s/rad]
@@ -128,15 +135,19 @@ class World:
         self.ext_index = [i for i, e in enumerate(self.external) if e]
         self._servo_kp = np.zeros(nu)
         self._servo_kv = np.zeros(nu)
+        # simulated drives (joints.<name>.drive), by actuator index: stepped here, followed like a real drive
+        self._drive_at: dict[int, DriveModel] = {}
         for i, c in enumerate(cfg):
-            if c.server == SIM and c.interface != "effort":
+            if c.server == SIM and c.drive is not None:
+                p0 = float(self.data.qpos[self.qpos_adr[i]])
+                self._drive_at[i] = DriveModel(c.drive, p0, velocity_mode=c.interface == "velocity")
+            elif c.server == SIM and c.interface != "effort":
                 self._make_servo(i, c.interface, c.servo_kp or SERVO_KP[c.interface],
                                  SERVO_KV if c.servo_kv is None else c.servo_kv)
-        if self.ext_index:
-            # an external joint's motor is real: the simulated one applies nothing
-            for i in self.ext_index:
-                m.actuator_gainprm[acts[i], 0] = 0.0
-                m.actuator_biasprm[acts[i], :3] = 0.0
+        # an external joint's motor is real, a simulated drive's is its model: MuJoCo's applies nothing
+        for i in [*self.ext_index, *self._drive_at]:
+            m.actuator_gainprm[acts[i], 0] = 0.0
+            m.actuator_biasprm[acts[i], :3] = 0.0
         self._effort = np.array([c.interface == "effort" and c.server == SIM for c in cfg])
         self._all_effort = bool(self._effort.all())
         # the lean path of apply_commands: a handful of joints is cheaper as Python floats than as
@@ -210,6 +221,7 @@ class World:
         fields = {"effort": cmd.effort, "position": cmd.position, "velocity": cmd.velocity}
         ff = cmd.velocity if len(cmd.velocity) == n else None
         new: list[tuple[int, float]] = []
+        to_drives: list[tuple[DriveModel, float, float]] = []
         for k, jn in enumerate(cmd.name):
             how = self._how.get(jn)  # (actuator index, interface or None if external, feed-forward gain)
             if how is None:
@@ -220,6 +232,13 @@ class World:
             values = fields[iface]
             if len(values) != n:
                 raise msgs.BadMessage(f"joint command has no {iface} values for joint {jn!r} ({iface} interface)")
+            drive = self._drive_at.get(i) if self._drive_at else None
+            if drive is not None:  # a simulated drive: the setpoint with its velocity feed-forward, as a real one
+                if iface == "position":
+                    to_drives.append((drive, values[k], ff[k] if ff is not None else 0.0))
+                else:
+                    to_drives.append((drive, drive.p_in, values[k]))
+                continue
             # position joints: velocity feed-forward through the affine servo, kp·(p + kv/kp·v) − kp·q − kv·q̇
             new.append((i, values[k] + gain * ff[k] if gain and ff is not None else values[k]))
         c, lim = self._cmd, self.effort_limit
@@ -227,6 +246,10 @@ class World:
             c[i] = v
             if self._effort[i] and abs(v) > lim[i]:
                 self.clipped += 1  # applied at the limit (in step), and counted: never silently
+        if to_drives:
+            stamp = msgs.ns_of(cmd.header.stamp) * 1e-9  # the drive acts its dead time after the command's stamp
+            for drive, p_in, v_in in to_drives:
+                drive.command(stamp, p_in, v_in)
 
     def command_array(self, u: np.ndarray) -> None:
         self._cmd[:] = u
@@ -275,7 +298,18 @@ class World:
     def after_step(self) -> None:
         if self.ext_index:
             self._apply_follow()
+        if self._drive_at:
+            self._apply_drives()
         self.step_index += 1
+
+    def _apply_drives(self) -> None:
+        """Simulated drives: each moved on to the end of this step, its joint put where its encoder
+        reports it (as a joint served by a real drive is), after integrating."""
+        d, t = self.data, (self.step_index + 1) * self._dt_ns * 1e-9
+        for i, drive in self._drive_at.items():
+            drive.advance(t)
+            d.qpos[self.qpos_adr[i]] = drive.out_p
+            d.qvel[self.dof_adr[i]] = drive.out_v
 
     def _apply_follow(self) -> None:
         """Kinematic follow: overwrite the external joints' state with their server's latest

@@ -21,7 +21,20 @@ sim times, so an experiment is as reproducible as the run itself (same seed, sam
 - after the measurement window it puts the scenario's own gains back and commands the joint
   home, and lets it settle before the next experiment.
 
-The response measured is the joint's TRUE position, not the encoders'.
+The response measured is the joint's TRUE position, not the encoders'. An experiment may also
+command a trajectory (``Experiment.points``) instead of a step: what ``hilsim identify`` excites a
+drive with and proves its twin on.
+
+**Hardware in the loop** (a scenario with a joint served by an external server, e.g. a drive on
+the CAN bus): the run is realtime, as any run with hardware; the scenario's external servers and
+the services that stand in for hardware (the drive emulator) run too. The rig is then not waited
+for: it acts on the first control step at or after each of its steps (a trajectory still stamped
+ahead of its step, by ``REALTIME_LEAD``, so the step is exact in sim time), never drops a sample as stale, and a
+response with samples missing (at most ``REALTIME_LOSS`` of them) is interpolated onto the steps.
+A joint served by hardware is measured on its encoder: its server's reports
+(``hw/<server>/joint_states``, each stamped with the sim time it came from the drive), the latest
+report at each step. (Physics follows the same reports, once they have reached it: its truth of
+that joint is the encoder's too, later by the way from the server to physics.)
 
 **The rover** (``controller.type: four_wheel_steer``) has no per-joint reference input: its
 controller turns a body twist into each wheel's steering angle and traction speed (its
@@ -65,13 +78,17 @@ from typing import Any, ClassVar
 import numpy as np
 
 from hilsim.core import msgs, transport
-from hilsim.core.config import ConfigError, PidGains, Scenario
+from hilsim.core.config import SIM, ConfigError, PidGains, Scenario
 from hilsim.core.scenario import load_scenario
 from hilsim.core.service import Service
 from hilsim.sim import control
 
 RIG = "step-rig"
 LOOP_SERVICES = ["physics", "sensors", "controller"]
+# services standing in for hardware: a HIL loop keeps them (its external servers run anyway)
+HARDWARE_STAND_INS = ("drive-emulator", "gps-emulator", "motor-model")
+REALTIME_LOSS = 0.02  # realtime: the share of a window's truth samples that may be missing (interpolated)
+REALTIME_LEAD = 0.15  # [s] realtime: how far ahead of its stamp a trajectory is sent (lockstep: LEAD periods)
 LOOP_SENSORS = ("encoder", "imu")  # what the loops read (the rover's odometry waits for its imu)
 CONTROLLERS = ("joint_trajectory", "four_wheel_steer")
 CRAWL = 0.001  # [m/s] the rover's home: a crawl straight ahead holds every wheel's angle at 0
@@ -110,6 +127,8 @@ class Experiment:
     gains: dict[str, float] = field(default_factory=dict)  # e.g. {"kp": 50.0, "kd": 2.0}; {}: the scenario's
     measure: float = 1.5  # sim seconds recorded after the step
     settle: float = 1.0  # sim seconds back home (scenario gains) before the next experiment
+    # a trajectory instead of a step: (time_from_start [s], position [rad], velocity [rad/s]) of the joint
+    points: tuple[tuple[float, float, float], ...] = ()
 
 
 @dataclass
@@ -123,6 +142,7 @@ class Response:
     target: float  # the commanded value
     joint: str = ""  # the joint measured ("": the experiment's)
     quantity: str = "position"  # or "velocity" (a rover traction loop)
+    start: float = 0.0  # [s] sim time of the step (t = 0)
 
     @property
     def name(self) -> str:
@@ -134,7 +154,9 @@ class _Action:
     k: int  # rig step at which it is done (the step of the reference is LEAD periods later)
     gains: dict[str, float]  # live parameters "<joint>.<field>"
     joints: list[str]  # the joints it concerns
-    position: float | None  # the arm: the joint's new reference (a trajectory); None: the rover's script
+    # the arm: the joint's new reference, a trajectory of (time_from_start, position, velocity); None: the
+    # rover's script
+    points: tuple[tuple[float, float, float], ...] | None
     fresh: bool = False  # empty the joints' integrals before setting the gains (a trial's start)
 
 
@@ -164,7 +186,10 @@ class StepRig(Service):
                  progress: Callable[[int, int], None] | None = None) -> None:
         super().__init__(sc)
         self.period = self.PERIOD * sc.control_decimation
-        self.lead = self.LEAD * self.period
+        self.realtime = sc.clock.mode == "realtime"  # hardware in the loop: the rig is not waited for
+        # realtime: a trajectory needs only its way to the controller ahead of its stamp (REALTIME_LEAD)
+        lead = max(1, math.ceil(REALTIME_LEAD / (self.period * sc.clock.dt))) if self.realtime else self.LEAD
+        self.lead = lead * self.period
         self.dt_ns = round(sc.clock.dt * 1e9)
         self.experiments = list(experiments)
         self.progress = progress
@@ -212,8 +237,9 @@ class StepRig(Service):
                 self.actions[kb] = _Action(kb, restore, lp.joints, None)
                 self.script += [(s * self.dt_ns / 1e9, *lp.twist), (kb * self.dt_ns / 1e9, CRAWL, 0.0, 0.0)]
             else:
-                self.actions[k] = _Action(k, own, lp.joints, lp.targets[0], fresh=True)
-                self.actions[kb] = _Action(kb, restore, lp.joints, float(self.home[js[0]]))
+                pts = e.points or ((0.0, lp.targets[0], 0.0),)
+                self.actions[k] = _Action(k, own, lp.joints, pts, fresh=True)
+                self.actions[kb] = _Action(kb, restore, lp.joints, ((0.0, float(self.home[js[0]]), 0.0),))
             self.windows.append((s, s + n_meas))
             self._done_at[kb] = i + 1
             k = kb + self.lead + n_settle
@@ -224,9 +250,14 @@ class StepRig(Service):
         self.ref_t: list[int] = []
         self.ref_q: list[list[float]] = []
         self.ref_v: list[list[float]] = []
+        # realtime: joints served by hardware, measured on their server's reports: joint -> [(stamp, p, v)]
+        self.served = [n for n in self.names if sc.joint(n).server != SIM] if self.realtime else []
+        self.reports: dict[str, list[tuple[int, float, float]]] = {n: [] for n in self.served}
         self.queue: queue.Queue[int] = queue.Queue()
         self.done = threading.Event()
         self.error = ""
+        self._next_action = 0  # realtime: actions done so far, in order
+        self._reported: set[int] = set()  # realtime: the experiments whose progress was said
 
     def _loops(self, e: Experiment) -> _Loops:
         """The joints an experiment measures and their targets (one-line ConfigError for a bad one)."""
@@ -236,6 +267,12 @@ class StepRig(Service):
                                   f"(joints: {', '.join(self.names)})")
             j = self.names.index(e.joint)
             lo, hi = self.table.lower[j], self.table.upper[j]
+            if e.points:
+                bad = [p for _, p, _ in e.points if not lo <= p <= hi]
+                if bad:
+                    raise ConfigError(f"trajectory of {e.joint}: {bad[0]:.3f} is outside its limits "
+                                      f"[{lo:.3f}, {hi:.3f}]")
+                return _Loops([e.joint], "position", [float(e.points[-1][1])])
             target = self.home[j] + e.step
             if not lo <= target <= hi:
                 raise ConfigError(f"step of {e.step:+g} on {e.joint}: {target:.3f} is outside its limits "
@@ -272,10 +309,14 @@ class StepRig(Service):
     # ------------------------------------------------------------------ wiring
     def setup(self) -> None:
         self.traj_pub = None if self.rover else self.publisher(self.keys.topic("joint_trajectory"))
-        self.subscribe(self.keys.truth("joint_states"), msgs.JointState, self._on_truth)
+        # realtime: every sample is a measurement, none is dropped as stale (stream=False)
+        live = not self.realtime
+        self.subscribe(self.keys.truth("joint_states"), msgs.JointState, self._on_truth, stream=live)
         if not self.rover:  # the rover's references are in its joint_commands
-            self.subscribe(self.keys.topic("controller/reference"), msgs.JointState, self._on_reference)
-        self.subscribe(self.keys.topic("joint_commands"), msgs.JointState, self._on_command)
+            self.subscribe(self.keys.topic("controller/reference"), msgs.JointState, self._on_reference, stream=live)
+        self.subscribe(self.keys.topic("joint_commands"), msgs.JointState, self._on_command, stream=live)
+        if self.served:
+            self.subscribe(self.keys.all_server_states, msgs.JointState, self._on_report, stream=False)
 
     def _ordered(self, m: msgs.JointState, values: Sequence[float]) -> list[float]:
         if list(m.name) == self.names:
@@ -284,9 +325,18 @@ class StepRig(Service):
         return [v[n] for n in self.names]
 
     def _on_truth(self, m: msgs.JointState, key: str) -> None:
-        self.truth_t.append(msgs.ns_of(m.header.stamp))
+        ns = msgs.ns_of(m.header.stamp)
+        self.truth_t.append(ns)
         self.truth_q.append(self._ordered(m, m.position))
         self.truth_v.append(self._ordered(m, m.velocity) if m.velocity else [math.nan] * len(self.names))
+        if self.realtime and ns >= self.end * self.dt_ns:
+            self.queue.put(self.end)  # realtime: physics' last step ends the rig, whatever the controller answered
+
+    def _on_report(self, m: msgs.JointState, key: str) -> None:
+        ns = msgs.ns_of(m.header.stamp)
+        for k, n in enumerate(m.name):
+            if n in self.reports and ns > 0:
+                self.reports[n].append((ns, m.position[k], m.velocity[k] if m.velocity else math.nan))
 
     def _on_reference(self, m: msgs.JointState, key: str) -> None:
         self.ref_t.append(msgs.ns_of(m.header.stamp))
@@ -310,19 +360,36 @@ class StepRig(Service):
                 k = self.queue.get(timeout=0.1)
             except queue.Empty:
                 continue
-            a = self.actions.get(k)
-            if a is not None:
-                try:
+            try:
+                for a in self._due(k):
                     self._act(a)
-                except RigError as e:
-                    self.error = str(e)
-                    self.done.set()
-                    return
+            except RigError as e:
+                self.error = str(e)
+                self.done.set()
+                return
             self.ack(k * self.dt_ns)
-            if k in self._done_at and self.progress is not None:
+            if k in self._done_at and self.progress is not None and not self.realtime:
                 self.progress(self._done_at[k], len(self.experiments))
             if k >= self.end:
                 self.done.set()
+
+    def _due(self, k: int) -> list[_Action]:
+        """The actions of rig step ``k``; realtime: every action not done yet at or before ``k`` (the
+        controller may skip a step on a loaded machine; the trajectory's stamp keeps the step exact)."""
+        if not self.realtime:
+            a = self.actions.get(k)
+            return [] if a is None else [a]
+        keys = sorted(self.actions)
+        out = []
+        while self._next_action < len(keys) and keys[self._next_action] <= k:
+            out.append(self.actions[keys[self._next_action]])
+            self._next_action += 1
+        if self.progress is not None:
+            for kd, n in self._done_at.items():
+                if kd < k and kd not in self._reported:
+                    self._reported.add(kd)
+                    self.progress(n, len(self.experiments))
+        return out
 
     def _act(self, a: _Action) -> None:
         if a.gains:
@@ -330,14 +397,14 @@ class StepRig(Service):
                 # a trial starts like a fresh controller: ki = 0 empties the integral (hilsim.sim.control.Pid)
                 self._set_gains({f"{n}.ki": 0.0 for n in a.joints})
             self._set_gains(a.gains)
-        if a.position is None or self.traj_pub is None:
+        if a.points is None or self.traj_pub is None:
             return  # the rover: its script steps the twist at the stamp
         stamp = (a.k + self.lead) * self.dt_ns
         traj = msgs.JointTrajectory(
             header=msgs.header(stamp),
             joint_names=a.joints,
-            points=[msgs.JointTrajectoryPoint(positions=[a.position], velocities=[0.0],
-                                              time_from_start=msgs.duration(0))],
+            points=[msgs.JointTrajectoryPoint(positions=[p], velocities=[v], time_from_start=msgs.duration(t))
+                    for t, p, v in a.points],
         )
         self.traj_pub.put(traj)
 
@@ -367,32 +434,73 @@ class StepRig(Service):
         for e, lp, (s, end) in zip(self.experiments, self.loops, self.windows, strict=True):
             s_ns, end_ns = s * self.dt_ns, end * self.dt_ns
             sel = (tt >= s_ns) & (tt <= end_ns)
-            order = np.argsort(tt[sel])
-            t_ns = tt[sel][order]
+            t_ns, first = np.unique(tt[sel], return_index=True)
+            rows = np.nonzero(sel)[0][first]
             expected = (end - s) + 1
-            if t_ns.size != expected or t_ns[0] != s_ns:
+            grid = s_ns + np.arange(expected, dtype=np.int64) * self.dt_ns
+            lost = expected - t_ns.size
+            if lost and not (self.realtime and lost <= REALTIME_LOSS * expected and t_ns.size > 1):
                 raise RigError(f"{e.joint}: {t_ns.size} truth samples in the window of the step, expected "
                                f"{expected} (samples were lost)")
             velocity = lp.quantity == "velocity"
             refs = rv if velocity else rq
             # the controller's reference proves the step was taken at the stamped step, not later
-            before = np.nonzero(rt == s_ns - self.dt_ns * self.sc.control_decimation)[0]
-            at = np.nonzero(rt == s_ns)[0]
+            if self.realtime:  # the controller may have skipped a step: the nearest on either side
+                before, at = np.nonzero(rt < s_ns)[0], np.nonzero(rt >= s_ns)[0]
+                before = before[np.argmax(rt[before])] if before.size else None
+                at = at[np.argmin(rt[at])] if at.size else None
+            else:
+                b, a = np.nonzero(rt == s_ns - self.dt_ns * self.sc.control_decimation)[0], np.nonzero(rt == s_ns)[0]
+                before, at = (int(b[0]) if b.size else None), (int(a[0]) if a.size else None)
             for n, target in zip(lp.joints, lp.targets, strict=True):
                 j = self.names.index(n)
-                # the rover's speed reference is the twist's scaled by cos(steering error)
-                # (hilsim.sim.steering.traction_scale): a wheel's angle that has not quite come home (a few
-                # 0.01 rad) makes it a few 1e-4 smaller; a step is a step within 0.1 % of its size
-                tol = 1e-3 * abs(e.step) if self.rover else 1e-12
-                if not at.size or not before.size or abs(refs[at[0], j] - target) > tol \
-                        or abs(refs[before[0], j] - target) <= tol:
-                    raise LateStep(f"{n}: the step did not start at t={s_ns / 1e9:.3f} s in the controller "
-                                   f"(the reference reached it late)")
-                y = (tv if velocity else tq)[sel][order][:, j]
+                if e.points:
+                    self._check_trajectory(e, j, s_ns, end_ns, rt, rq)
+                else:
+                    # the rover's speed reference is the twist's scaled by cos(steering error)
+                    # (hilsim.sim.steering.traction_scale): a wheel's angle that has not quite come home (a few
+                    # 0.01 rad) makes it a few 1e-4 smaller; a step is a step within 0.1 % of its size
+                    tol = 1e-3 * abs(e.step) if self.rover else 1e-12
+                    if at is None or before is None or abs(refs[at, j] - target) > tol \
+                            or abs(refs[before, j] - target) <= tol:
+                        raise LateStep(f"{n}: the step did not start at t={s_ns / 1e9:.3f} s in the controller "
+                                       f"(the reference reached it late)")
+                if n in self.reports:  # served by hardware: its encoder's latest report at each step
+                    y = self._encoder(n, grid, velocity)
+                else:
+                    y = (tv if velocity else tq)[rows, j]
+                    if lost:  # realtime, a few samples missing: the response on every step, interpolated
+                        y = np.interp(grid, t_ns, y)
                 if not np.all(np.isfinite(y)):
                     raise RigError(f"{n}: truth/joint_states carries no {lp.quantity} to measure")
-                out.append(Response(e, (t_ns - s_ns) / 1e9, y, float(y[0]), float(target), n, lp.quantity))
+                out.append(Response(e, (grid - s_ns) / 1e9, y, float(y[0]), float(target), n, lp.quantity, s_ns / 1e9))
         return out
+
+    def _encoder(self, n: str, grid: np.ndarray, velocity: bool) -> np.ndarray:
+        """Joint ``n``'s server's latest report at each of ``grid`` [ns] (a sample and hold, as an encoder is read)."""
+        r = np.array(sorted(self.reports[n])) if self.reports[n] else np.zeros((0, 3))
+        if not r.size or r[0, 0] > grid[0]:
+            raise RigError(f"{n}: no report of its server before t={grid[0] / 1e9:.3f} s: nothing to measure")
+        gaps = np.diff(r[:, 0])
+        if r[-1, 0] < grid[-1] - 0.1e9 or (gaps.size and gaps.max() > 0.1e9):
+            raise RigError(f"{n}: its server's reports stop for more than 0.1 s in the window of the step")
+        i = np.searchsorted(r[:, 0], grid, side="right") - 1
+        return r[i, 2 if velocity else 1]
+
+    def _check_trajectory(self, e: Experiment, j: int, s_ns: int, end_ns: int, rt: np.ndarray,
+                          rq: np.ndarray) -> None:
+        """The controller's reference in the window is the experiment's trajectory started at ``s_ns``."""
+        traj = msgs.JointTrajectory(joint_names=[e.joint], points=[
+            msgs.JointTrajectoryPoint(positions=[p], velocities=[v], time_from_start=msgs.duration(t))
+            for t, p, v in e.points])
+        sampler = control.TrajectorySampler(traj, [e.joint], s_ns, np.zeros(1))
+        inside = np.nonzero((rt >= s_ns) & (rt <= end_ns))[0]
+        if not inside.size:
+            raise LateStep(f"{e.joint}: no reference in the window of the trajectory")
+        want = np.array([sampler.sample(int(t))[0][0] for t in rt[inside]])
+        if np.max(np.abs(rq[inside, j] - want)) > 1e-9:
+            raise LateStep(f"{e.joint}: the trajectory did not start at t={s_ns / 1e9:.3f} s in the controller "
+                           f"(the reference reached it late)")
 
 
 def _live(v: float) -> float:
@@ -408,20 +516,32 @@ def _home(sc: Scenario, names: list[str]) -> np.ndarray:
     return np.array([m.qpos0[m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n)]] for n in names])
 
 
-def loop_scenario(robot: str, overrides: dict[str, Any] | None = None) -> Scenario:
+def loop_scenario(robot: str, overrides: dict[str, Any] | None = None, overlays: Sequence[str | Path] = (),
+                  record: bool = False) -> Scenario:
     """The scenario's physics, sensors and controller in lockstep, nothing else (no planner or
-    navigator, no recorder, no task; no sensor the loops do not read, e.g. the rover's laser): the
-    loop whose step responses are measured."""
-    o: dict[str, Any] = {"task.targets": [], "clock.mode": "lockstep"}
+    navigator, no recorder unless ``record``, no task; no sensor the loops do not read, e.g. the
+    rover's laser): the loop whose step responses are measured. A scenario with hardware in the loop
+    (a joint served by an external server) stays realtime and keeps its servers and the services that
+    stand in for hardware (the drive emulator)."""
+    o: dict[str, Any] = {"task.targets": []}
     o.update(overrides or {})
-    sc = load_scenario(robot, o)
+    sc = load_scenario(robot, o, overlays)
+    hil = bool(sc.external_servers())
+    if not hil:
+        sc = load_scenario(robot, {"clock.mode": "lockstep", **o}, overlays)
+    elif sc.clock.mode != "realtime":
+        raise ConfigError(f"{sc.source}: clock.mode: joints served by {', '.join(sc.external_servers())} (hardware) "
+                          f"need clock.mode: realtime")
     if sc.controller.type not in CONTROLLERS:
         raise ConfigError(f"{sc.source}: controller.type {sc.controller.type!r}: step experiments need a "
                           f"controller with per-joint PIDs ({' or '.join(CONTROLLERS)})")
     for c in sc.sensors.values():
         c.enabled = c.enabled and c.type in LOOP_SENSORS
-    sc.services = [s for s in LOOP_SERVICES if s in sc.services]
+    keep = [*LOOP_SERVICES, *(HARDWARE_STAND_INS if hil else ()), *(("logger",) if record else ())]
     missing = [s for s in LOOP_SERVICES if s not in sc.services]
+    if record and "logger" not in sc.services:
+        sc.services = [*sc.services, "logger"]
+    sc.services = [s for s in sc.services if s in keep]
     if missing:
         raise ConfigError(f"{sc.source}: services: a step experiment needs {', '.join(missing)}")
     return sc

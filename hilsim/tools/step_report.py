@@ -13,6 +13,11 @@ through its controller's kinematic layer (:mod:`hilsim.tools.rig`), all four whe
 once; a traction loop's response is the wheel's TRUE speed. The thesis gives no figures for its
 loops (it only says they were tuned by Ziegler–Nichols), so there is nothing to print beside them.
 
+A scenario with hardware in the loop (``hilsim report step config/hil/arm-can-emulated.yaml``, or
+``--hil FILE``) is measured the same way in realtime, with its hardware: a joint served by a drive is
+measured on what the drive's encoder reported (physics follows it), so the same table compares a
+drive and its twin (``hilsim identify``, docs/hil.md).
+
 The paper does not say how large its steps were; the default is 0.2 rad on joints 1–5, the
 joints of its Table II (the drives stop accelerating at 2 rad/s, the URDF's velocity limit, so
 a 0.5 rad step needs about 0.25 s and could never match the paper's 0.18 s on joint_4).
@@ -121,9 +126,9 @@ def is_rover(sc: Scenario) -> bool:
     return sc.controller.type == "four_wheel_steer"
 
 
-def default_joints(robot: str, overrides: dict | None = None) -> list[str]:
+def default_joints(robot: str, overrides: dict | None = None, overlays: Sequence[str] = ()) -> list[str]:
     """The paper's Table II joints for the arm; every steering and traction loop for the rover."""
-    return list(ROVER_LOOPS if is_rover(loop_scenario(robot, overrides)) else DEFAULT_JOINTS)
+    return list(ROVER_LOOPS if is_rover(loop_scenario(robot, overrides, overlays)) else DEFAULT_JOINTS)
 
 
 def _traction(name: str) -> bool:
@@ -132,18 +137,25 @@ def _traction(name: str) -> bool:
 
 def measure(robot: str, joints: Sequence[str], step: float, *, speed: float = DEFAULT_SPEED,
             measure_s: float = 1.5, settle_s: float = 1.0, overrides: dict | None = None, progress: bool = False,
-            run_dir: Path | None = None) -> list[Row]:
-    """Step each joint (the rover: each kind of loop, or one loop) in turn, in one lockstep run, and
-    compute its figures; ``speed`` is the rover's traction step [rad/s]."""
-    sc = loop_scenario(robot, overrides)
+            run_dir: Path | None = None, overlays: Sequence[str] = (), steps: Sequence[float] = ()) -> list[Row]:
+    """Step each joint (the rover: each kind of loop, or one loop) in turn, in one run (lockstep; realtime
+    with hardware in the loop), and compute its figures; ``speed`` is the rover's traction step [rad/s];
+    ``steps``: several steps of each joint instead of ``step``, in turn."""
+    sc = loop_scenario(robot, overrides, overlays)
     rover = is_rover(sc)
-    exps = [Experiment(j, speed if rover and _traction(j) else step, measure=measure_s, settle=settle_s)
-            for j in joints]
+    sizes = list(steps) or [step]
+    exps = [Experiment(j, speed if rover and _traction(j) else s, measure=measure_s, settle=settle_s)
+            for j in joints for s in sizes]
 
     def say(done: int, total: int) -> None:
         print(f"  {exps[done - 1].joint}: measured ({done}/{total})", flush=True)
 
     rs = run_experiments(sc, exps, run_dir=run_dir, progress=say if progress else None)
+    return figures_of(rs, rover)
+
+
+def figures_of(rs: Sequence[Response], rover: bool = False) -> list[Row]:
+    """The Table II figures of measured responses."""
     rows = []
     for r in rs:
         if rover:
@@ -302,9 +314,12 @@ def log_rerun(path: Path, robot: str, rows: Sequence[Row]) -> None:
 
 @rig_command
 def cmd_report_step(args: argparse.Namespace) -> int:
+    from hilsim.core.scenario import parse_overrides
     from hilsim.run.runs import new_run_dir
 
-    joints = [j.strip() for j in args.joints.split(",") if j.strip()] if args.joints else default_joints(args.robot)
+    overrides = parse_overrides(args.set)
+    joints = [j.strip() for j in args.joints.split(",") if j.strip()] if args.joints else \
+        default_joints(args.robot, overrides, args.hil)
     if not joints:
         raise ConfigError("--joints: expected joint names, e.g. joint_1,joint_2 (the rover: steering,traction)")
     if not math.isfinite(args.step) or args.step == 0.0:
@@ -313,12 +328,15 @@ def cmd_report_step(args: argparse.Namespace) -> int:
         raise ConfigError(f"--speed {args.speed}: expected a non-zero wheel-speed step in rad/s")
     out = Path(args.out) if args.out else new_run_dir("runs", "step-report")
     out.mkdir(parents=True, exist_ok=True)
+    hil = loop_scenario(args.robot, overrides, args.hil).external_servers()
     if not args.json:
         speed = f", {args.speed:g} rad/s on traction loops" if any(_traction(j) for j in joints) else ""
+        how = (f"real services with {', '.join(hil)}, realtime, physics truth (a drive's joint: its encoder)" if hil
+               else "real services, lockstep, physics truth")
         print(f"hilsim report step {args.robot}: {args.step:g} rad steps{speed} on {', '.join(joints)} "
-              f"(real services, lockstep, physics truth)", flush=True)
+              f"({how})", flush=True)
     rows = measure(args.robot, joints, args.step, speed=args.speed, measure_s=args.measure, settle_s=args.settle,
-                   progress=not args.json, run_dir=out / "services")
+                   progress=not args.json, run_dir=out / "services", overrides=overrides, overlays=args.hil)
     write_csv(out / "step_report.csv", rows)
     write_png(out / "step_report.png", args.robot, rows)
     log_rerun(out / "step_report.rrd", args.robot, rows)
@@ -328,7 +346,7 @@ def cmd_report_step(args: argparse.Namespace) -> int:
     print(format_table(rows))
     if any(r.joint in PAPER_TABLE_II for r in rows):
         print(summary_line(rows))
-    elif is_rover(loop_scenario(args.robot)):
+    elif is_rover(loop_scenario(args.robot, overrides, args.hil)):
         print("the thesis gives no figures for its wheel loops (tuned by Ziegler–Nichols): nothing to compare")
     print(f"written: {out / 'step_report.csv'}, {out / 'step_report.png'}, {out / 'step_report.rrd'}")
     return 0

@@ -1,0 +1,201 @@
+"""``hilsim identify SCENARIO|RUN_DIR --joints J[,…] [--write FILE] [--json]``: a real drive's response,
+fitted from data, and a twin that responds the same (docs/hil.md).
+
+With a scenario whose joints are served by hardware (e.g. ``config/hil/arm-can-emulated.yaml``, or a real
+ODrive on ``can0``):
+
+1. **the drive** (:mod:`.plan`, :mod:`hilsim.tools.rig`): one realtime run of the scenario's physics,
+   sensors, controller and hardware, recorded like any run (``<out>/drive/``, its bag): each joint's
+   excitation (steps of several sizes and both signs, a chirp) through the normal command path, then
+   the motions the twin is proved on (steps of 0.2 and 1.0 rad, the joint's part of the task's targets);
+2. **the fit** (:mod:`.data`, :mod:`.fit`): from the bag, on the excitation only: dead time, closed-loop
+   order and dynamics, velocity and acceleration limits, the encoder's quantum and period, with the
+   residuals and each parameter's uncertainty;
+3. **the twin** (:mod:`.twin`): a scenario file (``--write FILE``, default ``<out>/twin.yaml``) that
+   extends the scenario, without hardware, each joint simulated in lockstep by physics as its drive;
+4. **the proof** (:mod:`.compare`): the same validation motions on the twin file, lockstep; the figures
+   of both, compared (exit status 1 when the twin does not match).
+
+With a run directory (``hilsim identify runs/<run> --joints joint_1``), a past HIL run's bag is fitted
+as it is (whatever motion it holds; a limit it never reached is said so), and ``--write`` writes the
+twin of that run's scenario.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+from hilsim.core.config import SIM, ConfigError, Scenario
+from hilsim.core.keys import Keys
+from hilsim.core.scenario import load_scenario, parse_overrides
+from hilsim.tools.identify.compare import StepComparison, TrackComparison, compare_steps, compare_tracks, table
+from hilsim.tools.identify.data import read_joints, run_scenario
+from hilsim.tools.identify.fit import LIMITS, Fit, FitError, fit_record
+from hilsim.tools.identify.plan import excitation, validation
+from hilsim.tools.identify.twin import twin_data, write_twin
+from hilsim.tools.rig import Response, RigError, loop_scenario, rig_command, run_experiments
+
+
+def _joints(text: str) -> list[str]:
+    joints = [j.strip() for j in text.split(",") if j.strip()]
+    if not joints:
+        raise ConfigError("--joints: expected joint names, e.g. joint_1")
+    return joints
+
+
+def _say(args: argparse.Namespace, text: str) -> None:
+    if not args.json:
+        print(text, flush=True)
+
+
+def fit_summary(f: Fit) -> str:
+    """One joint's fit in a few lines: the model, each parameter ± 1σ, the limits, the residual."""
+    d = f.drive
+    law = (f"order 2: natural frequency {d.natural_frequency:.4g} ± {f.sigma.get('natural_frequency', 0):.2g} rad/s, "
+           f"damping ratio {d.damping_ratio:.4g} ± {f.sigma.get('damping_ratio', 0):.2g}" if d.order == 2 else
+           f"order 1: time constant {d.time_constant * 1e3:.4g} ± {f.sigma.get('time_constant', 0) * 1e3:.2g} ms")
+    out = [f"{f.joint} ({f.interface}): dead time {d.dead_time * 1e3:.4g} ± {f.sigma['dead_time'] * 1e3:.2g} ms, {law}"]
+    unit = {"max_velocity": ("velocity", "rad/s"), "max_acceleration": ("acceleration", "rad/s²")}
+    lims = []
+    for k in LIMITS:
+        what, u = unit[k]
+        lims.append(f"{what} limit {getattr(d, k):.4g} ± {f.sigma[k]:.2g} {u}" if f.reached[k] else
+                    f"no {what} limit reached (largest seen {f.seen[what]:.3g} {u})")
+    out.append("  " + "; ".join(lims))
+    enc = f"quantum {d.resolution:.3g} rad" if d.resolution else "no quantum (exact to 1e-6 rad)"
+    out.append(f"  encoder: {enc}, a report every {d.period * 1e3:.3g} ms; residual RMS {f.rms:.3g} "
+               f"(max {f.residual_max:.3g}) over {f.n} reports, against a motion of RMS {f.motion_rms:.3g}")
+    return "\n".join(out)
+
+
+@rig_command
+def cmd_identify(args: argparse.Namespace) -> int:
+    joints = _joints(args.joints)
+    source = Path(args.scenario)
+    if source.is_dir():
+        return _from_run(args, source, joints)
+    return _from_scenario(args, joints)
+
+
+def _fit_all(args: argparse.Namespace, recs: dict[str, Any]) -> list[Fit]:
+    fits = []
+    for j, r in recs.items():
+        _say(args, f"fitting {j} ({r.out_t.size} steps, {r.cmd_t.size} setpoints):")
+        try:
+            fits.append(fit_record(r, progress=lambda s: _say(args, f"  {s}")))
+        except FitError as e:
+            raise RigError(str(e)) from None
+        _say(args, fit_summary(fits[-1]))
+    return fits
+
+
+def _from_run(args: argparse.Namespace, run_dir: Path, joints: list[str]) -> int:
+    """A past run's bag, fitted as it is; ``--write``: the twin of that run's scenario."""
+    sc = run_scenario(run_dir)
+    _say(args, f"hilsim identify {run_dir}: {', '.join(joints)} from the run's bag")
+    fits = _fit_all(args, read_joints(run_dir, joints))
+    written = None
+    if args.write:
+        written = Path(args.write)
+        write_twin(written, twin_data(sc, fits, [run_dir / "scenario.yaml"], written, from_run=True), fits,
+                   str(run_dir))
+        _say(args, f"written: {written}")
+    if args.json:
+        print(json.dumps({"run": str(run_dir), "fits": [f.as_json() for f in fits],
+                          "twin": str(written) if written else None}))
+    return 0
+
+
+def _from_scenario(args: argparse.Namespace, joints: list[str]) -> int:
+    from hilsim.run.runs import new_run_dir
+
+    overrides = parse_overrides(args.set)
+    full = load_scenario(args.scenario, overrides, args.hil)
+    for j in joints:
+        if full.joint(j).server == SIM:
+            raise ConfigError(f"{full.source}: joints.{j}.server: sim; hilsim identify needs the joint served by its "
+                              f"drive (a scenario with hardware in the loop, e.g. config/hil/arm-can-emulated.yaml)")
+    others = [n for n in full.joints if n != "default" and full.joint(n).server != SIM and n not in joints]
+    if others:
+        raise ConfigError(f"{full.source}: joints {', '.join(others)} are served by hardware too: identify them as "
+                          f"well (--joints {','.join([*joints, *others])}), so that the twin has no hardware")
+    sc = loop_scenario(args.scenario, overrides, args.hil, record=True)
+    sc.logger.record = record_keys(sc)
+    out = Path(args.out) if args.out else new_run_dir("runs", "identify")
+    for d in ("drive", "twin"):
+        if (out / d).exists():
+            raise ConfigError(f"--out {out}: {out / d} exists (a previous identify's run): give a new directory")
+    home = _homes(sc, joints)
+    exc = [excitation(sc, j, home[j], args.scale) for j in joints]
+    val = validation(full, joints, home, args.measure)
+    _say(args, f"hilsim identify {args.scenario}: {', '.join(joints)} on {', '.join(full.external_servers())}; "
+               f"the drive in {out / 'drive'} (realtime, recorded)")
+    drive = run_experiments(sc, [*exc, *val], run_dir=out / "drive", progress=_progress(args, len(exc) + len(val)))
+    recs = read_joints(out / "drive", joints)
+    windows = {r.name: (r.start, r.start + float(r.t[-1])) for r in drive[: len(exc)]}
+    fits = _fit_all(args, {j: recs[j].window(*windows[j]) for j in joints})
+    twin_path = Path(args.write) if args.write else out / "twin.yaml"
+    bases = [Path(full.source or args.scenario), *map(Path, args.hil)]
+    write_twin(twin_path, twin_data(full, fits, bases, twin_path, overrides), fits, str(args.scenario))
+    _say(args, f"written: {twin_path}; the twin measured in {out / 'twin'} (lockstep)")
+    tsc = loop_scenario(str(twin_path))
+    twin = run_experiments(tsc, val, run_dir=out / "twin", progress=_progress(args, len(val)))
+    steps, tracks = _compare(drive[len(exc):], twin)
+    ok = all(s.ok for s in steps) and all(t.ok for t in tracks)
+    if args.json:
+        print(json.dumps(_as_json(args, out, twin_path, fits, steps, tracks, ok)))
+    else:
+        print(table(steps, tracks))
+        print(f"the twin responds as the drive did: {'yes' if ok else 'no'}")
+    return 0 if ok else 1
+
+
+def record_keys(sc: Scenario) -> list[str]:
+    """What the drive's run records: what the fit and the proof read, and the services' health and logs
+    (the recorder's load kept small: on a busy machine it would delay the drive's reports)."""
+    k = Keys.of(sc)
+    names = ("joint_commands", "truth/joint_states", "controller/reference", "joint_trajectory", "hw", "health", "log")
+    return [f"{k.topic_name(n).strip('/')}/**" for n in names]
+
+
+def _homes(sc: Scenario, joints: list[str]) -> dict[str, float]:
+    from hilsim.sim import control
+    from hilsim.tools.rig import _home
+
+    names = list(control.joint_table(sc.world.model).names)
+    h = _home(sc, names)
+    return {j: float(h[names.index(j)]) for j in joints}
+
+
+def _compare(drive: list[Response], twin: list[Response]) -> tuple[list[StepComparison], list[TrackComparison]]:
+    """Each step size of each joint (its repetitions together), each trajectory, drive against twin."""
+    steps: dict[tuple[str, float], tuple[list[Response], list[Response]]] = {}
+    tracks = []
+    for d, t in zip(drive, twin, strict=True):
+        if d.experiment.points:
+            tracks.append(compare_tracks(d, t))
+        else:
+            pair = steps.setdefault((d.name, abs(d.experiment.step)), ([], []))
+            pair[0].append(d)
+            pair[1].append(t)
+    return [compare_steps(d, t) for d, t in steps.values()], tracks
+
+
+def _progress(args: argparse.Namespace, total: int) -> Any:
+    if args.json:
+        return None
+    return lambda done, _n: print(f"  experiment {done}/{total} done", flush=True)
+
+
+def _as_json(args: argparse.Namespace, out: Path, twin: Path, fits: list[Fit], steps: list[StepComparison],
+             tracks: list[TrackComparison], ok: bool) -> dict[str, Any]:
+    return {
+        "scenario": args.scenario, "out": str(out), "drive_run": str(out / "drive"), "twin": str(twin),
+        "fits": [f.as_json() for f in fits],
+        "steps": [{"joint": s.joint, "step_rad": s.step, "checks": s.checks(), "match": s.ok} for s in steps],
+        "trajectories": [{"joint": t.joint, "checks": t.checks(), "match": t.ok} for t in tracks],
+        "match": ok,
+    }

@@ -1,0 +1,132 @@
+"""The proof: the drive and its twin on motions the fit never saw, compared.
+
+- **Steps** (0.2 and 1.0 rad): ``hilsim report step``'s figures (:mod:`hilsim.tools.metrics`) of the
+  drive (measured on its encoder, realtime) and of the twin (lockstep), each step size taken three
+  times (+, −, +) and each figure the median of the three: a realtime run on a loaded machine delays
+  a report now and then by tens of ms, which one step alone would count as the drive's response.
+  The twin matches when its rise, peak and settling times are within 5 % of the drive's or 10 ms,
+  whichever is larger, and its overshoot within 1 percentage point.
+- **The task's trajectory** (the joint's part of the arm's three targets): the drive's and the twin's
+  motion, each against the reference it was given. The twin matches when the RMS of its tracking
+  error is within 10 % of the drive's, and the RMS of the difference between the two motions is at
+  most 10 % of the drive's tracking error's RMS (the twin lags, overshoots and catches up where the
+  drive does, not only as much).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from hilsim.tools.identify.plan import reference
+from hilsim.tools.metrics import Figures, step_figures
+from hilsim.tools.rig import Response
+
+TIME_REL, TIME_ABS = 0.05, 0.010  # a time figure: within 5 % or 10 ms, whichever is larger
+OVERSHOOT_PP = 1.0  # [percentage points]
+TRACKING_REL = 0.10  # the trajectory: within 10 % of the drive's tracking error (RMS)
+TIMES = ("rise_time_s", "peak_time_s", "settling_time_s")
+
+
+@dataclass
+class StepComparison:
+    """One step size of one joint: each of its repetitions (both signs) on the drive and on the twin;
+    a figure is the median of its repetitions (one late report of the drive does not make a step)."""
+
+    joint: str
+    step: float
+    drive: list[Figures]
+    twin: list[Figures]
+
+    def figure(self, which: str, k: str) -> float:
+        vals = [getattr(f, k) for f in (self.drive if which == "drive" else self.twin)]
+        return float(np.median(vals))
+
+    def checks(self) -> dict[str, dict[str, Any]]:
+        out = {}
+        for k in TIMES:
+            a, b = self.figure("drive", k), self.figure("twin", k)
+            tol = max(TIME_REL * abs(a), TIME_ABS) if math.isfinite(a) else math.inf
+            ok = (math.isfinite(a) and math.isfinite(b) and abs(b - a) <= tol) or (math.isinf(a) and math.isinf(b))
+            out[k] = {"drive": _num(a), "twin": _num(b), "tolerance": _num(tol), "ok": ok,
+                      "drive_each": [_num(getattr(f, k)) for f in self.drive]}
+        a, b = self.figure("drive", "overshoot_pct"), self.figure("twin", "overshoot_pct")
+        out["overshoot_pct"] = {"drive": a, "twin": b, "tolerance": OVERSHOOT_PP, "ok": abs(b - a) <= OVERSHOOT_PP,
+                                "drive_each": [f.overshoot_pct for f in self.drive]}
+        return out
+
+    @property
+    def ok(self) -> bool:
+        return all(c["ok"] for c in self.checks().values())
+
+
+@dataclass
+class TrackComparison:
+    joint: str
+    drive_rms: float  # [rad] RMS of the drive's tracking error
+    twin_rms: float
+    difference_rms: float  # [rad] RMS of twin − drive
+
+    def checks(self) -> dict[str, dict[str, Any]]:
+        tol = TRACKING_REL * self.drive_rms
+        return {
+            "tracking_error_rms_rad": {"drive": self.drive_rms, "twin": self.twin_rms, "tolerance": tol,
+                                       "ok": abs(self.twin_rms - self.drive_rms) <= tol},
+            "difference_rms_rad": {"drive": 0.0, "twin": self.difference_rms, "tolerance": tol,
+                                   "ok": self.difference_rms <= tol},
+        }
+
+    @property
+    def ok(self) -> bool:
+        return all(c["ok"] for c in self.checks().values())
+
+
+def _num(v: float) -> float | None:
+    return v if math.isfinite(v) else None
+
+
+def compare_steps(drive: list[Response], twin: list[Response]) -> StepComparison:
+    """The repetitions of one step size (any sign) of one joint, on the drive and on the twin."""
+    return StepComparison(drive[0].name, abs(drive[0].experiment.step), [_figures(r) for r in drive],
+                          [_figures(r) for r in twin])
+
+
+def _figures(r: Response) -> Figures:
+    return step_figures(r.t, r.y, r.y0, r.target)
+
+
+def compare_tracks(drive: Response, twin: Response) -> TrackComparison:
+    """The two motions on the twin's steps (the drive's interpolated onto them), against the reference."""
+    t = twin.t[twin.t <= min(drive.t[-1], twin.t[-1])]
+    yd = np.interp(t, drive.t, drive.y)
+    yt = twin.y[: t.size]
+    ref = reference(drive.experiment, t)
+    rms = lambda x: float(np.sqrt(np.mean(np.square(x))))  # noqa: E731
+    return TrackComparison(drive.name, rms(yd - ref), rms(yt - ref), rms(yt - yd))
+
+
+def table(steps: list[StepComparison], tracks: list[TrackComparison]) -> str:
+    """The comparisons as a markdown table: the drive's figure, the twin's, the tolerance, the verdict."""
+    lines = ["| joint | motion | figure | drive | twin | tolerance | match |", "|---|---|---|---|---|---|---|"]
+    for s in steps:
+        for k, c in s.checks().items():
+            unit = " pp" if k == "overshoot_pct" else " s"
+            what = k.removesuffix("_s").removesuffix("_pct")
+            lines.append(f"| {s.joint} | step {s.step:.2f} rad (median of {len(s.drive)}) | {what} | "
+                         f"{_fmt(c['drive'])} | {_fmt(c['twin'])} | ±{_fmt(c['tolerance'])}{unit} | "
+                         f"{'yes' if c['ok'] else 'NO'} |")
+    for tr in tracks:
+        for k, c in tr.checks().items():
+            what = "tracking error RMS" if k.startswith("tracking") else "RMS of twin − drive"
+            lines.append(f"| {tr.joint} | task trajectory | {what} [rad] | {_fmt(c['drive'])} | {_fmt(c['twin'])} | "
+                         f"±{_fmt(c['tolerance'])} | {'yes' if c['ok'] else 'NO'} |")
+    return "\n".join(lines)
+
+
+def _fmt(v: float | None) -> str:
+    if v is None:
+        return "never"
+    return f"{v:.4f}" if abs(v) >= 1e-3 or v == 0 else f"{v:.2e}"
