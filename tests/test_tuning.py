@@ -11,7 +11,8 @@ import pytest
 from hilsim.core.config import ConfigError
 from hilsim.core.scenario import load_scenario
 from hilsim.tools import tuning
-from hilsim.tools.rig import Experiment, Response, loop_scenario
+from hilsim.tools.rig import Experiment, Response
+from hilsim.tools.rig_run import loop_scenario
 from hilsim.tools.step_report import measure
 
 REPO = Path(__file__).resolve().parent.parent

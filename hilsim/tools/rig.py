@@ -17,7 +17,7 @@ sim times, so an experiment is as reproducible as the run itself (same seed, sam
   different links, with no order between them, so the stamp lies ``LEAD`` rig periods ahead;
 - it records the physics truth (``truth/joint_states``) and the controller's reference
   (``controller/reference``), which proves the step started at the stamped step (a step that
-  reached the controller late anyway makes :func:`run_experiments` run the batch once more);
+  reached the controller late anyway makes :func:`hilsim.tools.rig_run.run_experiments` run the batch once more);
 - after the measurement window it puts the scenario's own gains back and commands the joint
   home, and lets it settle before the next experiment.
 
@@ -62,24 +62,18 @@ from __future__ import annotations
 
 import argparse
 import functools
-import logging
 import math
 import queue
-import signal
 import sys
-import tempfile
 import threading
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, ClassVar
+from typing import ClassVar
 
 import numpy as np
 
-from hilsim.core import msgs, transport
+from hilsim.core import msgs
 from hilsim.core.config import SIM, ConfigError, PidGains, Scenario
-from hilsim.core.scenario import load_scenario
 from hilsim.core.service import Service
 from hilsim.sim import control
 
@@ -88,6 +82,7 @@ LOOP_SERVICES = ["physics", "sensors", "controller"]
 # services standing in for hardware: a HIL loop keeps them (its external servers run anyway)
 HARDWARE_STAND_INS = ("drive-emulator", "gps-emulator", "motor-model")
 REALTIME_LOSS = 0.02  # realtime: the share of a window's truth samples that may be missing (interpolated)
+REPORT_GAP = 0.5  # [s] realtime: a joint served by hardware whose reports stop this long in a window: no measurement
 REALTIME_LEAD = 0.15  # [s] realtime: how far ahead of its stamp a trajectory is sent (lockstep: LEAD periods)
 LOOP_SENSORS = ("encoder", "imu")  # what the loops read (the rover's odometry waits for its imu)
 CONTROLLERS = ("joint_trajectory", "four_wheel_steer")
@@ -482,8 +477,8 @@ class StepRig(Service):
         if not r.size or r[0, 0] > grid[0]:
             raise RigError(f"{n}: no report of its server before t={grid[0] / 1e9:.3f} s: nothing to measure")
         gaps = np.diff(r[:, 0])
-        if r[-1, 0] < grid[-1] - 0.1e9 or (gaps.size and gaps.max() > 0.1e9):
-            raise RigError(f"{n}: its server's reports stop for more than 0.1 s in the window of the step")
+        if r[-1, 0] < grid[-1] - REPORT_GAP * 1e9 or (gaps.size and gaps.max() > REPORT_GAP * 1e9):
+            raise RigError(f"{n}: its server's reports stop for more than {REPORT_GAP:g} s in the window of the step")
         i = np.searchsorted(r[:, 0], grid, side="right") - 1
         return r[i, 2 if velocity else 1]
 
@@ -514,117 +509,3 @@ def _home(sc: Scenario, names: list[str]) -> np.ndarray:
 
     m = mujoco.MjModel.from_xml_path(str(sc.world.model))
     return np.array([m.qpos0[m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n)]] for n in names])
-
-
-def loop_scenario(robot: str, overrides: dict[str, Any] | None = None, overlays: Sequence[str | Path] = (),
-                  record: bool = False) -> Scenario:
-    """The scenario's physics, sensors and controller in lockstep, nothing else (no planner or
-    navigator, no recorder unless ``record``, no task; no sensor the loops do not read, e.g. the
-    rover's laser): the loop whose step responses are measured. A scenario with hardware in the loop
-    (a joint served by an external server) stays realtime and keeps its servers and the services that
-    stand in for hardware (the drive emulator)."""
-    o: dict[str, Any] = {"task.targets": []}
-    o.update(overrides or {})
-    sc = load_scenario(robot, o, overlays)
-    hil = bool(sc.external_servers())
-    if not hil:
-        sc = load_scenario(robot, {"clock.mode": "lockstep", **o}, overlays)
-    elif sc.clock.mode != "realtime":
-        raise ConfigError(f"{sc.source}: clock.mode: joints served by {', '.join(sc.external_servers())} (hardware) "
-                          f"need clock.mode: realtime")
-    if sc.controller.type not in CONTROLLERS:
-        raise ConfigError(f"{sc.source}: controller.type {sc.controller.type!r}: step experiments need a "
-                          f"controller with per-joint PIDs ({' or '.join(CONTROLLERS)})")
-    for c in sc.sensors.values():
-        c.enabled = c.enabled and c.type in LOOP_SENSORS
-    keep = [*LOOP_SERVICES, *(HARDWARE_STAND_INS if hil else ()), *(("logger",) if record else ())]
-    missing = [s for s in LOOP_SERVICES if s not in sc.services]
-    if record and "logger" not in sc.services:
-        sc.services = [*sc.services, "logger"]
-    sc.services = [s for s in sc.services if s in keep]
-    if missing:
-        raise ConfigError(f"{sc.source}: services: a step experiment needs {', '.join(missing)}")
-    return sc
-
-
-def run_experiments(sc: Scenario, experiments: Sequence[Experiment], run_dir: Path | None = None,
-                    progress: Callable[[int, int], None] | None = None, wall_timeout: float = 900.0) -> list[Response]:
-    """Run the experiments in one lockstep run of the real services and return what they measured
-    (once more if a step reached the controller late: on a starved machine a link can lag)."""
-    try:
-        return _run_once(sc.model_copy(deep=True), experiments, run_dir, progress, wall_timeout)
-    except LateStep as e:
-        logging.getLogger("hilsim.step-rig").warning("%s; running the experiments again", e)
-        return _run_once(sc.model_copy(deep=True), experiments, run_dir, progress, wall_timeout)
-
-
-def _interrupt(signum: int, _frame: Any) -> None:
-    raise KeyboardInterrupt
-
-
-def _run_once(sc: Scenario, experiments: Sequence[Experiment], run_dir: Path | None,
-              progress: Callable[[int, int], None] | None, wall_timeout: float) -> list[Response]:
-    # Ctrl-C and SIGTERM stop the run (and its services) wherever it is; set explicitly, as hilsim up
-    # does, since a process started in the background inherits SIGINT ignored
-    old = {}
-    if threading.current_thread() is threading.main_thread():
-        old = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        return _run_services(sc, experiments, run_dir, progress, wall_timeout)
-    finally:
-        for sig, handler in old.items():
-            signal.signal(sig, handler)
-
-
-def _run_services(sc: Scenario, experiments: Sequence[Experiment], run_dir: Path | None,
-                  progress: Callable[[int, int], None] | None, wall_timeout: float) -> list[Response]:
-    from hilsim.run.launcher import Launcher
-
-    if not experiments:
-        return []
-    rig = StepRig(sc, experiments, progress)  # first: a bad experiment is a ConfigError before anything opens
-    sc.duration = rig.end * sc.clock.dt
-    if rig.rover:  # the rover's steps: its controller's own script (see the module)
-        sc.controller.params["script"] = [list(x) for x in rig.script]
-    tmp = None
-    if run_dir is None:
-        tmp = tempfile.TemporaryDirectory(prefix="hilsim-rig-")
-        run_dir = Path(tmp.name)
-    # a router of our own on a free port: never the default one another simulation may be using
-    ep = f"tcp/127.0.0.1:{transport.free_port()}"
-    router = transport.open_router(ep)
-    sc.zenoh.connect = [ep]
-    session = transport.open_session(sc.zenoh)
-    # the rig's lockstep token exists before any service starts, so physics counts it in at step 0
-    worker = threading.Thread(target=rig.serve, args=(session,), daemon=True, name="step-rig")
-    worker.start()
-    la = Launcher(sc, run_dir, router=ep, quiet=True)
-    try:
-        deadline = time.monotonic() + 10.0
-        while rig.state == "starting" and time.monotonic() < deadline:
-            time.sleep(0.01)
-        if rig.state != "running":
-            raise RigError(f"the step rig did not start: {rig.last_error or rig.state}")
-        la.start()
-        if not la.wait_ready():
-            raise RigError(f"the services did not start; see their logs in {run_dir}")
-        t0 = time.monotonic()
-        while not rig.done.wait(0.2):
-            if la.check_children():
-                raise RigError(f"a service died: {la.outcome.died}; see {run_dir}")
-            if la.outcome.stalled:
-                raise RigError(f"the run stalled: {la.outcome.stalled}; see {run_dir}")
-            if time.monotonic() - t0 > wall_timeout:
-                raise RigError(f"the experiments did not finish within {wall_timeout:.0f} s wall; see {run_dir}")
-        if rig.error:
-            raise RigError(rig.error)
-    finally:
-        la.stop()
-        rig.request_stop()
-        worker.join(timeout=10.0)
-        session.close()
-        router.close()
-        if tmp is not None:
-            tmp.cleanup()
-    with rig.lock:
-        return rig.responses()

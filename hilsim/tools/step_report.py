@@ -35,7 +35,8 @@ from pathlib import Path
 
 from hilsim.core.config import ConfigError, Scenario
 from hilsim.tools.metrics import ZERO_OVERSHOOT, ZERO_TOL, Figures, step_figures
-from hilsim.tools.rig import Experiment, Response, loop_scenario, rig_command, run_experiments
+from hilsim.tools.rig import Experiment, Response, rig_command
+from hilsim.tools.rig_run import loop_scenario, run_experiments
 
 DEFAULT_STEP = 0.2  # [rad] (see above: the drives stop at 2 rad/s)
 DEFAULT_JOINTS = ("joint_1", "joint_2", "joint_3", "joint_4", "joint_5")

@@ -73,7 +73,8 @@ from hilsim.core.scenario import load_scenario, scenario_path
 from hilsim.sim import control
 from hilsim.tools import progress
 from hilsim.tools.metrics import ZERO_OVERSHOOT_PCT, ZERO_TOL, Figures, step_figures
-from hilsim.tools.rig import Experiment, Response, loop_scenario, rig_command, run_experiments
+from hilsim.tools.rig import Experiment, Response, rig_command
+from hilsim.tools.rig_run import loop_scenario, run_experiments
 from hilsim.tools.step_report import DEFAULT_SPEED, ROVER_ZERO
 
 SUSTAINED = 0.95  # decay ratio per period counted as a sustained oscillation

@@ -31,12 +31,20 @@ from typing import Any
 from hilsim.core.config import SIM, ConfigError, Scenario
 from hilsim.core.keys import Keys
 from hilsim.core.scenario import load_scenario, parse_overrides
-from hilsim.tools.identify.compare import StepComparison, TrackComparison, compare_steps, compare_tracks, table
+from hilsim.tools.identify.compare import (
+    StepComparison,
+    TrackComparison,
+    compare_steps,
+    compare_tracks,
+    table,
+    write_responses,
+)
 from hilsim.tools.identify.data import read_joints, run_scenario
 from hilsim.tools.identify.fit import LIMITS, Fit, FitError, fit_record
 from hilsim.tools.identify.plan import excitation, validation
 from hilsim.tools.identify.twin import twin_data, write_twin
-from hilsim.tools.rig import Response, RigError, loop_scenario, rig_command, run_experiments
+from hilsim.tools.rig import Response, RigError, rig_command
+from hilsim.tools.rig_run import loop_scenario, run_experiments
 
 
 def _joints(text: str) -> list[str]:
@@ -129,13 +137,16 @@ def _from_scenario(args: argparse.Namespace, joints: list[str]) -> int:
         if (out / d).exists():
             raise ConfigError(f"--out {out}: {out / d} exists (a previous identify's run): give a new directory")
     home = _homes(sc, joints)
-    exc = [excitation(sc, j, home[j], args.scale) for j in joints]
+    exc = [e for j in joints for e in excitation(sc, j, home[j], args.scale)]
     val = validation(full, joints, home, args.measure)
     _say(args, f"hilsim identify {args.scenario}: {', '.join(joints)} on {', '.join(full.external_servers())}; "
                f"the drive in {out / 'drive'} (realtime, recorded)")
     drive = run_experiments(sc, [*exc, *val], run_dir=out / "drive", progress=_progress(args, len(exc) + len(val)))
     recs = read_joints(out / "drive", joints)
-    windows = {r.name: (r.start, r.start + float(r.t[-1])) for r in drive[: len(exc)]}
+    windows: dict[str, tuple[float, float]] = {}  # each joint's excitation: from its first start to its last end
+    for r in drive[: len(exc)]:
+        t0, t1 = windows.get(r.name, (r.start, r.start))
+        windows[r.name] = (min(t0, r.start), max(t1, r.start + float(r.t[-1])))
     fits = _fit_all(args, {j: recs[j].window(*windows[j]) for j in joints})
     twin_path = Path(args.write) if args.write else out / "twin.yaml"
     bases = [Path(full.source or args.scenario), *map(Path, args.hil)]
@@ -144,12 +155,14 @@ def _from_scenario(args: argparse.Namespace, joints: list[str]) -> int:
     tsc = loop_scenario(str(twin_path))
     twin = run_experiments(tsc, val, run_dir=out / "twin", progress=_progress(args, len(val)))
     steps, tracks = _compare(drive[len(exc):], twin)
+    write_responses(out, drive[len(exc):], twin)
     ok = all(s.ok for s in steps) and all(t.ok for t in tracks)
     if args.json:
         print(json.dumps(_as_json(args, out, twin_path, fits, steps, tracks, ok)))
     else:
         print(table(steps, tracks))
         print(f"the twin responds as the drive did: {'yes' if ok else 'no'}")
+        print(f"written: {out / 'comparison.csv'}, {out / 'comparison.png'}")
     return 0 if ok else 1
 
 
@@ -194,8 +207,11 @@ def _as_json(args: argparse.Namespace, out: Path, twin: Path, fits: list[Fit], s
              tracks: list[TrackComparison], ok: bool) -> dict[str, Any]:
     return {
         "scenario": args.scenario, "out": str(out), "drive_run": str(out / "drive"), "twin": str(twin),
+        "comparison": str(out / "comparison.csv"),
         "fits": [f.as_json() for f in fits],
         "steps": [{"joint": s.joint, "step_rad": s.step, "checks": s.checks(), "match": s.ok} for s in steps],
-        "trajectories": [{"joint": t.joint, "checks": t.checks(), "match": t.ok} for t in tracks],
+        "trajectories": [{"joint": t.joint, "checks": t.checks(), "match": t.ok,
+                          "tracking_error_rms_rad": {"drive": t.drive_error_rms, "twin": t.twin_error_rms}}
+                         for t in tracks],
         "match": ok,
     }

@@ -13,6 +13,13 @@ step, and the drive (or the twin's simulated drive) follows it.
   up: :data:`REPEATS`), and the joint's part of the arm's three targets (``task.targets``,
   :func:`targets_trajectory`), home → each target in turn → home, each leg a minimum-jerk motion at
   80 % of the joint's URDF velocity limit, held 0.5 s at each target: motions the fit never saw.
+
+**The rover** (``four_wheel_steer``) takes no trajectory per joint: its loops are stepped through its
+controller's kinematic layer, as ``hilsim report step rover`` steps them (:mod:`hilsim.tools.rig`). A
+steering loop's excitation is steps of the wheels' angle of 0.05, 0.3 and 0.8 rad, a traction loop's
+steps of their speed of 0.5, 2.5 and 5 rad/s, each both ways (:data:`ROVER_EXCITATION`); the proof is
+report step's own steps, 0.2 rad and 2 rad/s, three times each (the rover's targets are places, not
+joint positions: no trajectory).
 """
 
 from __future__ import annotations
@@ -32,6 +39,17 @@ REPEATS = (1.0, -1.0, 1.0)  # each validation step from home, in these direction
 LEVELS = ((0.05, 0.35), (-0.05, 0.35), (0.3, 0.5), (-0.3, 0.6), (1.4, 1.0), (0.0, 1.0))
 CHIRP = (0.05, 0.5, 4.0, 2.0)  # amplitude [× scale, rad], start and end frequency [Hz], duration [s]
 SAMPLE = 0.01  # [s] between the points of a smooth trajectory (cubic Hermite between: exact enough)
+# the rover's loops, by kind: (excitation steps, validation steps) [rad, or rad/s of wheel speed]
+ROVER_EXCITATION = {"steering": (0.05, -0.05, 0.3, -0.3, 0.8, -0.8), "traction": (0.5, -0.5, 2.5, -2.5, 5.0, -5.0)}
+ROVER_VALIDATION = {"steering": (0.2,), "traction": (2.0,)}
+
+
+def is_rover(sc: Scenario) -> bool:
+    return sc.controller.type == "four_wheel_steer"
+
+
+def _kind(joint: str) -> str:
+    return "traction" if joint.endswith("traction") else "steering"
 
 
 def _limits(sc: Scenario, joint: str) -> tuple[float, float]:
@@ -42,8 +60,12 @@ def _limits(sc: Scenario, joint: str) -> tuple[float, float]:
     return float(t.lower[j]), float(t.upper[j])
 
 
-def excitation(sc: Scenario, joint: str, home: float, scale: float = 1.0) -> Experiment:
-    """The excitation of ``joint`` from ``home`` as one trajectory experiment (steps, then the chirp)."""
+def excitation(sc: Scenario, joint: str, home: float, scale: float = 1.0) -> list[Experiment]:
+    """The excitation of ``joint`` from ``home``: one trajectory experiment (steps, then the chirp); the
+    rover: its loop's steps, one experiment each."""
+    if is_rover(sc):
+        _limits(sc, joint)
+        return [Experiment(joint, s * scale, measure=0.8, settle=0.4) for s in ROVER_EXCITATION[_kind(joint)]]
     lo, hi = _limits(sc, joint)
     reach = max(abs(x) for x, _ in LEVELS) * scale
     if hi - lo < 2 * reach:
@@ -69,7 +91,7 @@ def excitation(sc: Scenario, joint: str, home: float, scale: float = 1.0) -> Exp
         v = amp * scale * (dg * math.sin(phase) + g * w * math.cos(phase))
         pts.append((t + s, level + p, v))
     pts.append((t + dur + 0.3, level, 0.0))
-    return Experiment(joint, 0.0, measure=pts[-1][0] + 0.2, settle=0.3, points=tuple(pts))
+    return [Experiment(joint, 0.0, measure=pts[-1][0] + 0.2, settle=0.3, points=tuple(pts))]
 
 
 def _on_grid(t: float, dt: float) -> float:
@@ -88,8 +110,10 @@ def validation(sc: Scenario, joints: list[str], home: dict[str, float], measure:
     """Every joint's validation motions: its steps (each size :data:`REPEATS` times), then its task trajectory."""
     out = []
     for j in joints:
-        out += [Experiment(j, sign * s, measure=measure, settle=0.5) for s in VALIDATION_STEPS for sign in REPEATS]
-        out.append(targets_trajectory(sc, j, home[j]))
+        sizes = ROVER_VALIDATION[_kind(j)] if is_rover(sc) else VALIDATION_STEPS
+        out += [Experiment(j, sign * s, measure=measure, settle=0.3) for s in sizes for sign in REPEATS]
+        if not is_rover(sc):
+            out.append(targets_trajectory(sc, j, home[j]))
     return out
 
 
