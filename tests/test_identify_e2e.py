@@ -41,7 +41,9 @@ def test_identify_an_emulated_drive_and_its_twin_responds_as_it_did(tmp_path: Pa
     p = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=400)
     assert p.stdout.strip(), p.stderr
     rep = json.loads(p.stdout)
-    table = json.dumps({"steps": rep["steps"], "trajectories": rep["trajectories"]}, indent=1)
+    table = "\n".join(f"{s['joint']} {s['step_rad']} {k}: drive {c['drive']} {c.get('drive_each')} twin {c['twin']} "
+                      f"±{c['tolerance']} {c['ok']}" for s in rep["steps"] for k, c in s["checks"].items())
+    table += "\n" + json.dumps(rep["trajectories"]) + "\n" + json.dumps(rep["fits"][0]["parameters"])
     assert p.returncode == 0 and rep["match"], table + p.stderr[-3000:]
     # the fit found the drive: its loop and limits, its encoder; the dead time is the drive's own and the way
     # from the controller's step to the drive and back (a few ms more)

@@ -83,6 +83,7 @@ LOOP_SERVICES = ["physics", "sensors", "controller"]
 HARDWARE_STAND_INS = ("drive-emulator", "gps-emulator", "motor-model")
 REALTIME_LOSS = 0.02  # realtime: the share of a window's truth samples that may be missing (interpolated)
 REPORT_GAP = 0.5  # [s] realtime: a joint served by hardware whose reports stop this long in a window: no measurement
+REALTIME_START = 0.5  # [s] realtime: sim time before the first experiment (the services' first steps are slow)
 REALTIME_LEAD = 0.15  # [s] realtime: how far ahead of its stamp a trajectory is sent (lockstep: LEAD periods)
 LOOP_SENSORS = ("encoder", "imu")  # what the loops read (the rover's odometry waits for its imu)
 CONTROLLERS = ("joint_trajectory", "four_wheel_steer")
@@ -212,7 +213,9 @@ class StepRig(Service):
         self._done_at: dict[int, int] = {}  # rig step -> experiments finished by then
         # the rover's script: home from the start, each step at its stamp, home again after its window
         self.script: list[tuple[float, float, float, float]] = [(0.0, CRAWL, 0.0, 0.0)]
-        k = self.period
+        # the first step: the first rig step; realtime, once the services had REALTIME_START to get going
+        k = self.period * max(1, math.ceil(REALTIME_START / (self.period * sc.clock.dt))) if self.realtime \
+            else self.period
         for i, (e, lp) in enumerate(zip(self.experiments, self.loops, strict=True)):
             js = [self.names.index(n) for n in lp.joints]
             own = {f"{n}.{f}": float(v) for n in lp.joints for f, v in e.gains.items()}

@@ -111,7 +111,8 @@ def validation(sc: Scenario, joints: list[str], home: dict[str, float], measure:
     out = []
     for j in joints:
         sizes = ROVER_VALIDATION[_kind(j)] if is_rover(sc) else VALIDATION_STEPS
-        out += [Experiment(j, sign * s, measure=measure, settle=0.3) for s in sizes for sign in REPEATS]
+        # back home as long as out: the next step starts from rest, as the first did
+        out += [Experiment(j, sign * s, measure=measure, settle=measure) for s in sizes for sign in REPEATS]
         if not is_rover(sc):
             out.append(targets_trajectory(sc, j, home[j]))
     return out
