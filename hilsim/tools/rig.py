@@ -29,8 +29,9 @@ drive with and proves its twin on.
 the CAN bus): the run is realtime, as any run with hardware; the scenario's external servers and
 the services that stand in for hardware (the drive emulator) run too. The rig is then not waited
 for: it acts on the first control step at or after each of its steps (a trajectory still stamped
-ahead of its step, by ``REALTIME_LEAD``, so the step is exact in sim time), never drops a sample as stale, and a
-response with samples missing (at most ``REALTIME_LOSS`` of them) is interpolated onto the steps.
+``REALTIME_LEAD`` ahead, so the step is exact in sim time; a step the controller took later anyway,
+by less than that, is measured from when it took it), never drops a sample as stale, and a response
+with samples missing (at most ``REALTIME_LOSS`` of them) is interpolated onto the steps.
 A joint served by hardware is measured on its encoder: its server's reports
 (``hw/<server>/joint_states``, each stamped with the sim time it came from the drive), the latest
 report at each step. (Physics follows the same reports, once they have reached it: its truth of
@@ -84,7 +85,7 @@ HARDWARE_STAND_INS = ("drive-emulator", "gps-emulator", "motor-model")
 REALTIME_LOSS = 0.02  # realtime: the share of a window's truth samples that may be missing (interpolated)
 REPORT_GAP = 0.5  # [s] realtime: a joint served by hardware whose reports stop this long in a window: no measurement
 REALTIME_START = 0.5  # [s] realtime: sim time before the first experiment (the services' first steps are slow)
-REALTIME_LEAD = 0.15  # [s] realtime: how far ahead of its stamp a trajectory is sent (lockstep: LEAD periods)
+REALTIME_LEAD = 0.2  # [s] realtime: how far ahead of its stamp a trajectory is sent (lockstep: LEAD periods)
 LOOP_SENSORS = ("encoder", "imu")  # what the loops read (the rover's odometry waits for its imu)
 CONTROLLERS = ("joint_trajectory", "four_wheel_steer")
 CRAWL = 0.001  # [m/s] the rover's home: a crawl straight ahead holds every wheel's angle at 0
@@ -431,6 +432,11 @@ class StepRig(Service):
         out = []
         for e, lp, (s, end) in zip(self.experiments, self.loops, self.windows, strict=True):
             s_ns, end_ns = s * self.dt_ns, end * self.dt_ns
+            velocity = lp.quantity == "velocity"
+            refs = rv if velocity else rq
+            if self.realtime and not e.points:  # a step the controller took late: measured from when it did
+                late = self._late_start(e, lp, s_ns, rt, refs)
+                s_ns, end_ns = s_ns + late, end_ns + late
             sel = (tt >= s_ns) & (tt <= end_ns)
             t_ns, first = np.unique(tt[sel], return_index=True)
             rows = np.nonzero(sel)[0][first]
@@ -440,8 +446,6 @@ class StepRig(Service):
             if lost and not (self.realtime and lost <= REALTIME_LOSS * expected and t_ns.size > 1):
                 raise RigError(f"{e.joint}: {t_ns.size} truth samples in the window of the step, expected "
                                f"{expected} (samples were lost)")
-            velocity = lp.quantity == "velocity"
-            refs = rv if velocity else rq
             # the controller's reference proves the step was taken at the stamped step, not later
             if self.realtime:  # the controller may have skipped a step: the nearest on either side
                 before, at = np.nonzero(rt < s_ns)[0], np.nonzero(rt >= s_ns)[0]
@@ -473,6 +477,22 @@ class StepRig(Service):
                     raise RigError(f"{n}: truth/joint_states carries no {lp.quantity} to measure")
                 out.append(Response(e, (grid - s_ns) / 1e9, y, float(y[0]), float(target), n, lp.quantity, s_ns / 1e9))
         return out
+
+    def _late_start(self, e: Experiment, lp: _Loops, s_ns: int, rt: np.ndarray, refs: np.ndarray) -> int:
+        """Realtime: [ns] by which the controller took a step after its stamp (its reference reached it
+        late: the rig heard of its step late on a busy machine), if less than the rig's lead, so the
+        window ends before the way home; 0 if on time, or later than that (then :class:`LateStep`)."""
+        j = self.names.index(lp.joints[0])
+        tol = 1e-3 * abs(e.step) if self.rover else 1e-12
+        after = np.nonzero(rt >= s_ns)[0]
+        if not after.size:
+            return 0
+        order = after[np.argsort(rt[after])]
+        took = order[np.abs(refs[order, j] - lp.targets[0]) <= tol]
+        if not took.size or took[0] == order[0]:
+            return 0
+        late = int(rt[took[0]] - s_ns)
+        return late if late <= self.lead * self.dt_ns else 0
 
     def _encoder(self, n: str, grid: np.ndarray, velocity: bool) -> np.ndarray:
         """Joint ``n``'s server's latest report at each of ``grid`` [ns] (a sample and hold, as an encoder is read)."""
