@@ -103,6 +103,8 @@ def _fit_all(args: argparse.Namespace, recs: dict[str, Any]) -> list[Fit]:
 def _from_run(args: argparse.Namespace, run_dir: Path, joints: list[str]) -> int:
     """A past run's bag, fitted as it is; ``--write``: the twin of that run's scenario."""
     sc = run_scenario(run_dir)
+    if args.write:
+        _all_hardware(sc, joints)
     _say(args, f"hilsim identify {run_dir}: {', '.join(joints)} from the run's bag")
     fits = _fit_all(args, read_joints(run_dir, joints))
     written = None
@@ -126,10 +128,7 @@ def _from_scenario(args: argparse.Namespace, joints: list[str]) -> int:
         if full.joint(j).server == SIM:
             raise ConfigError(f"{full.source}: joints.{j}.server: sim; hilsim identify needs the joint served by its "
                               f"drive (a scenario with hardware in the loop, e.g. config/hil/arm-can-emulated.yaml)")
-    others = [n for n in full.joints if n != "default" and full.joint(n).server != SIM and n not in joints]
-    if others:
-        raise ConfigError(f"{full.source}: joints {', '.join(others)} are served by hardware too: identify them as "
-                          f"well (--joints {','.join([*joints, *others])}), so that the twin has no hardware")
+    _all_hardware(full, joints)
     sc = loop_scenario(args.scenario, overrides, args.hil, record=True)
     sc.logger.record = record_keys(sc)
     out = Path(args.out) if args.out else new_run_dir("runs", "identify")
@@ -172,6 +171,14 @@ def record_keys(sc: Scenario) -> list[str]:
     k = Keys.of(sc)
     names = ("joint_commands", "truth/joint_states", "controller/reference", "joint_trajectory", "hw", "health", "log")
     return [f"{k.topic_name(n).strip('/')}/**" for n in names]
+
+
+def _all_hardware(sc: Scenario, joints: list[str]) -> None:
+    """Every joint served by hardware is one to identify: the twin holds no hardware."""
+    others = [n for n in sc.joints if n != "default" and sc.joint(n).server != SIM and n not in joints]
+    if others:
+        raise ConfigError(f"{sc.source}: joints {', '.join(others)} are served by hardware too: identify them as "
+                          f"well (--joints {','.join([*joints, *others])}), so that the twin has no hardware")
 
 
 def _homes(sc: Scenario, joints: list[str]) -> dict[str, float]:

@@ -29,6 +29,7 @@ values, if every value is a multiple of it), its period from the reports' count 
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -41,7 +42,9 @@ from hilsim.core.config import DriveConfig
 from hilsim.sim.drive import simulate
 from hilsim.tools.identify.data import JointRecord
 
-MAX_POINTS = 3000  # samples the fit compares (the arrivals, evenly thinned): its cost is linear in them
+MAX_POINTS = 3000  # samples the fit compares (the reports, evenly thinned)
+MAX_SPAN = 20.0  # [s] of a record the fit simulates at most: the stretches with the most motion
+SEGMENT = 2.0  # [s] the stretches a longer record is cut into
 LIMITS = ("max_velocity", "max_acceleration")
 SAME_COUNT = 1e-6  # [rad] reported positions closer than this are the same encoder count
 
@@ -91,22 +94,51 @@ def _names(order: int, limits: tuple[str, ...]) -> list[str]:
     return ["dead_time", *(("natural_frequency", "damping_ratio") if order == 2 else ("time_constant",)), *limits]
 
 
+@dataclass
+class _Segment:
+    """A stretch of the record simulated on its own, from the state measured at its start."""
+
+    cmd_t: list[float]
+    cmd_p: list[float]
+    cmd_v: list[float]
+    t: np.ndarray
+    p0: float
+    v0: float
+
+
 class _Problem:
-    """The record prepared for the fit: setpoints, the samples compared, the start."""
+    """The record prepared for the fit: setpoints, the samples compared, the start. A record longer than
+    MAX_SPAN (a long past run) is cut into SEGMENT-long stretches and the ones with the most motion are
+    kept, MAX_SPAN of them, each simulated from the state measured at its start: the fit's cost is
+    linear in the time simulated."""
 
     def __init__(self, rec: JointRecord, max_points: int = MAX_POINTS) -> None:
         self.velocity_mode = rec.interface == "velocity"
         mt, mp, mv = rec.measured()
         idx = np.arange(mt.size)
+        if mt.size and mt[-1] - mt[0] > MAX_SPAN:
+            seg = np.floor((mt - mt[0]) / SEGMENT).astype(int)
+            y_all = mv if self.velocity_mode else mp
+            motion = {k: float(np.ptp(y_all[seg == k])) for k in np.unique(seg)}
+            best = sorted(sorted(motion, key=lambda k: -motion[k])[: int(MAX_SPAN / SEGMENT)])
+            idx = idx[np.isin(seg, best)]
         if idx.size > max_points:
             idx = idx[np.linspace(0, idx.size - 1, max_points).round().astype(int)]
         self.t = mt[idx]
         self.y = (mv if self.velocity_mode else mp)[idx]
-        self.p0, self.v0 = float(mp[idx[0]]), float(mv[idx[0]])
-        keep = rec.cmd_t <= self.t[-1]
-        self.cmd_t = rec.cmd_t[keep].tolist()
-        self.cmd_p = rec.cmd_p[keep].tolist()
-        self.cmd_v = rec.cmd_v[keep].tolist()
+        self.segments: list[_Segment] = []
+        # a new segment wherever the kept samples jump over a cut-out stretch
+        cuts = np.concatenate([[0], np.nonzero(np.diff(self.t) > SEGMENT / 2)[0] + 1, [self.t.size]])
+        for a, b in itertools.pairwise(cuts):
+            if b - a < 2:
+                continue
+            k = idx[a]
+            c = (rec.cmd_t >= self.t[a] - 1.0) & (rec.cmd_t <= self.t[b - 1])
+            self.segments.append(_Segment(rec.cmd_t[c].tolist(), rec.cmd_p[c].tolist(), rec.cmd_v[c].tolist(),
+                                          self.t[a:b], float(mp[k]), float(mv[k])))
+        keep = np.concatenate([np.arange(a, b) for a, b in itertools.pairwise(cuts) if b - a >= 2]) \
+            if self.segments else np.arange(0)
+        self.t, self.y = self.t[keep], self.y[keep]
         if len(self.t) < 20:
             raise FitError(f"{rec.joint}: only {len(self.t)} reports reached the simulation: nothing to fit")
         if float(np.ptp(self.y)) <= 0.0:
@@ -118,7 +150,8 @@ class _Problem:
         self.a_seen = float(np.percentile(dv, 99.5)) if dv.size else 0.0
 
     def simulate(self, cfg: DriveConfig) -> np.ndarray:
-        return simulate(cfg, self.cmd_t, self.cmd_p, self.cmd_v, self.t, self.p0, self.v0, self.velocity_mode)
+        return np.concatenate([simulate(cfg, g.cmd_t, g.cmd_p, g.cmd_v, g.t, g.p0, g.v0, self.velocity_mode)
+                               for g in self.segments])
 
 
 class _Model:
