@@ -126,6 +126,9 @@ class Experiment:
     settle: float = 1.0  # sim seconds back home (scenario gains) before the next experiment
     # a trajectory instead of a step: (time_from_start [s], position [rad], velocity [rad/s]) of the joint
     points: tuple[tuple[float, float, float], ...] = ()
+    # one of several repetitions: realtime, a step the controller took too late is not measured (its
+    # response says why, in ``lost``) rather than the whole run made again
+    spare: bool = False
 
 
 @dataclass
@@ -140,6 +143,7 @@ class Response:
     joint: str = ""  # the joint measured ("": the experiment's)
     quantity: str = "position"  # or "velocity" (a rover traction loop)
     start: float = 0.0  # [s] sim time of the step (t = 0)
+    lost: str = ""  # a spare experiment that could not be measured: why (t and y are empty)
 
     @property
     def name(self) -> str:
@@ -465,8 +469,13 @@ class StepRig(Service):
                     tol = 1e-3 * abs(e.step) if self.rover else 1e-12
                     if at is None or before is None or abs(refs[at, j] - target) > tol \
                             or abs(refs[before, j] - target) <= tol:
-                        raise LateStep(f"{n}: the step did not start at t={s_ns / 1e9:.3f} s in the controller "
-                                       f"(the reference reached it late)")
+                        why = (f"{n}: the step of {e.step:+g} {'rad/s' if velocity else 'rad'} did not start at "
+                               f"t={s_ns / 1e9:.3f} s in the controller (the reference reached it late)")
+                        if self.realtime and e.spare:
+                            out.append(Response(e, np.zeros(0), np.zeros(0), math.nan, float(target), n,
+                                                lp.quantity, s_ns / 1e9, why))
+                            continue
+                        raise LateStep(why)
                 if n in self.reports:  # served by hardware: its encoder's latest report at each step
                     y = self._encoder(n, grid, velocity)
                 else:

@@ -154,10 +154,15 @@ def _from_scenario(args: argparse.Namespace, joints: list[str]) -> int:
     tsc = loop_scenario(str(twin_path))
     twin = run_experiments(tsc, val, run_dir=out / "twin", progress=_progress(args, len(val)))
     steps, tracks = _compare(drive[len(exc):], twin)
-    write_responses(out, drive[len(exc):], twin)
+    for r in drive[len(exc):]:
+        if r.lost:
+            _say(args, f"not measured: {r.lost}")
+    write_responses(out, *zip(*[(d, t) for d, t in zip(drive[len(exc):], twin, strict=True)
+                                if not (d.lost or t.lost)], strict=True))
     ok = all(s.ok for s in steps) and all(t.ok for t in tracks)
     if args.json:
-        print(json.dumps(_as_json(args, out, twin_path, fits, steps, tracks, ok)))
+        lost = [r.lost for r in drive[len(exc):] if r.lost] + [r.lost for r in twin if r.lost]
+        print(json.dumps({**_as_json(args, out, twin_path, fits, steps, tracks, ok), "not_measured": lost}))
     else:
         print(table(steps, tracks))
         print(f"the twin responds as the drive did: {'yes' if ok else 'no'}")
@@ -197,10 +202,16 @@ def _compare(drive: list[Response], twin: list[Response]) -> tuple[list[StepComp
     for d, t in zip(drive, twin, strict=True):
         if d.experiment.points:
             tracks.append(compare_tracks(d, t))
-        else:
-            pair = steps.setdefault((d.name, abs(d.experiment.step)), ([], []))
-            pair[0].append(d)
-            pair[1].append(t)
+            continue
+        pair = steps.setdefault((d.name, abs(d.experiment.step)), ([], []))
+        if d.lost or t.lost:  # a repetition the controller took too late (realtime): the others decide
+            continue
+        pair[0].append(d)
+        pair[1].append(t)
+    for (j, size), (d, _) in steps.items():
+        if not d:
+            raise RigError(f"{j}: every repetition of the {size:g} step was taken too late by the controller "
+                           f"(a busy machine): nothing to compare; run again")
     return [compare_steps(d, t) for d, t in steps.values()], tracks
 
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -136,7 +137,7 @@ def _fmt(v: float | None) -> str:
     return f"{v:.4f}" if abs(v) >= 1e-3 or v == 0 else f"{v:.2e}"
 
 
-def write_responses(out: Path, drive: list[Response], twin: list[Response]) -> None:
+def write_responses(out: Path, drive: Sequence[Response], twin: Sequence[Response]) -> None:
     """Every validation response of the drive and of the twin: ``comparison.csv`` (one row per step of
     each: experiment, joint, its step or trajectory, time from its start, drive, twin) and
     ``comparison.png`` (one panel per experiment, the two over each other)."""

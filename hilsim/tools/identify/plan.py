@@ -112,7 +112,7 @@ def validation(sc: Scenario, joints: list[str], home: dict[str, float], measure:
     for j in joints:
         sizes = ROVER_VALIDATION[_kind(j)] if is_rover(sc) else VALIDATION_STEPS
         # back home as long as out: the next step starts from rest, as the first did
-        out += [Experiment(j, sign * s, measure=measure, settle=measure) for s in sizes for sign in REPEATS]
+        out += [Experiment(j, sign * s, measure=measure, settle=measure, spare=True) for s in sizes for sign in REPEATS]
         if not is_rover(sc):
             out.append(targets_trajectory(sc, j, home[j]))
     return out
