@@ -41,6 +41,10 @@ Writes:
   per estimate; when estimates arrive faster than they can be published one by one, each joint's
   newest estimate of the batch is published and the older ones are counted as coalesced (health
   ``estimates``, ``estimates_coalesced``, ``state_samples``);
+  ``<prefix>/<robot>/hw/bridge-can/setpoints`` (with ``setpoints: true``; sensor_msgs/JointState: the
+  setpoints of one command as they went on the bus, position and velocity feed-forward in joint
+  units, stamped with the sim time they did), what ``hilsim identify`` tells the drive's own dead
+  time from the way to it with;
   ``<prefix>/<robot>/health/bridge-can`` (per joint: status, fault, node, axis state and error,
   heartbeat age; frame counters) and ``<prefix>/<robot>/log/bridge-can``.
 """
@@ -89,6 +93,8 @@ class BridgeConfig(BaseModel):
     batch_window: float = Field(3e-4, ge=0, le=0.01, description="[s] the most an encoder estimate waits while "
                                 "the reader drains the frames that came with it (all published together, the "
                                 "newest per joint); 0: one sample per estimate")
+    setpoints: bool = Field(False, description="publish hw/bridge-can/setpoints: each command's setpoints as "
+                            "they went on the bus, stamped with the sim time they did (hilsim identify)")
     rx_buffer: int = Field(1 << 20, ge=0, description="[bytes] receive buffer asked for on the bus's socket "
                            "(socketcan, udp_multicast): frames wait there while the process is not scheduled "
                            "instead of being dropped; capped by net.core.rmem_max; 0: the system's default")
@@ -168,6 +174,7 @@ class CanBridgeService(Service):
     # ---------------------------------------------------------------- wiring
     def setup(self) -> None:
         self.pub = self.publisher(self.keys.server_state(self.name))
+        self.sp_pub = self.publisher(self.keys.server_setpoints(self.name)) if self.cfg.setpoints else None
         self.subscribe(self.keys.topic("joint_commands"), msgs.JointState, self._on_command)
         self.log.info("serving %s on CAN bus %s (profile %s)", ", ".join(
             f"{j.name} (node {j.node}, {j.interface})" for j in self.joints.values()),
@@ -323,6 +330,7 @@ class CanBridgeService(Service):
         self.clock.saw(msgs.ns_of(cmd.header.stamp), now)
         n = len(cmd.name)
         min_dt = 1.0 / self.cfg.command_rate_hz if self.cfg.command_rate_hz else 0.0
+        sent: list[tuple[str, float, float]] = []  # (joint, position, velocity) of the setpoints that went out
         for k, name in enumerate(cmd.name):
             j = self.joints.get(name)
             if j is None:
@@ -357,6 +365,10 @@ class CanBridgeService(Service):
             if self.link.send(frame):
                 j.sent_t = now
                 j.setpoints += 1
+                sent.append((name, q if q is not None else 0.0, dq))
+        if sent and self.sp_pub is not None:
+            self.sp_pub.put(msgs.JointState(header=msgs.header(self.clock.sim_ns(now)), name=[s[0] for s in sent],
+                                            position=[s[1] for s in sent], velocity=[s[2] for s in sent]))
 
     # ---------------------------------------------------------------- supervision
     def _supervise(self) -> None:

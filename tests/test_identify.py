@@ -92,9 +92,13 @@ def test_the_world_steps_a_simulated_drive_in_lockstep(scenario: Any) -> None:
             scenario("arm", {"joints.joint_1": bad})
 
 
-def emulated_record(params: dict[str, float], dead_time: float, cpr: int, span: float = 5.0) -> JointRecord:
+def emulated_record(params: dict[str, float], dead_time: float, cpr: int, span: float = 5.0,
+                    setpoints: bool = False) -> JointRecord:
     """What the project's drive emulator's own motor model (bridges/drive_emulator.py) does with steps and a
-    chirp, reported every 2 ms with its encoder's counts and a little jitter of the reports' times."""
+    chirp, reported every 2 ms with its encoder's counts and a little jitter of the reports' times. With
+    ``setpoints``, each command reaches the bus 1 to 4 ms after its stamp, and one at the large step is held
+    up 40 ms (a busy machine), as the bridge says in hw/<server>/setpoints; without, the commands reach it
+    at their stamps."""
     cfg = DriveEmulatorConfig(dead_time=dead_time, encoder_cpr=cpr, **params)
     motor = EmulatedMotor(cfg, 0.0)
     motor.t = 0.0
@@ -109,33 +113,42 @@ def emulated_record(params: dict[str, float], dead_time: float, cpr: int, span: 
     ph = 2 * math.pi * (0.5 * s + 1.5 * s * s / 1.2)
     cmd_p[ch] = 0.05 * np.sin(ph)
     cmd_v[ch] = 0.05 * np.cos(ph) * 2 * math.pi * (0.5 + 3.0 * s / 1.2)
+    way = rng.uniform(0.001, 0.004, cmd_t.size) if setpoints else np.zeros(cmd_t.size)
+    if setpoints:
+        way[np.searchsorted(cmd_t, 2.1)] = 0.040
+    sent = np.maximum.accumulate(cmd_t + way)  # the bus passes them on in order
     inp = (0.0, 0.0, 0.0)
     k, hw = 0, []
     for te in np.arange(0.002, span, 0.002):
-        while k < cmd_t.size and cmd_t[k] <= te:
-            inp = motor.advance(float(cmd_t[k]), True, "position", inp)
-            motor.take((float(cmd_p[k]), float(cmd_v[k]), 0.0), float(cmd_t[k]))
+        while k < cmd_t.size and sent[k] <= te:
+            inp = motor.advance(float(sent[k]), True, "position", inp)
+            motor.take((float(cmd_p[k]), float(cmd_v[k]), 0.0), float(sent[k]))
             k += 1
         inp = motor.advance(float(te), True, "position", inp)
         hw.append((te + rng.uniform(0.0, 3e-4), motor.encoder(), motor.v))
     h = np.array(hw)
+    sp = (sent, cmd_p, cmd_v) if setpoints else (np.zeros(0),) * 3
     return JointRecord("joint_1", "position", "bridge-can", cmd_t, cmd_p, cmd_v, h[:, 0], h[:, 1], h[:, 2],
-                       h[:, 0], h[:, 1], h[:, 2])
+                       h[:, 0], h[:, 1], h[:, 2], *sp)
 
 
 def test_the_fit_finds_what_the_emulator_was_given() -> None:
     """Dead time, ω_n, ζ, both limits and the encoder's quantum of the emulator's own motor model (which
     integrates on its own, at 0.5 ms), from steps and a chirp: each within a few % (the dead time within
-    1 ms), with uncertainties and residuals said; fitted again without the acceleration limit it is
-    clearly worse. A record that never reaches a limit does not fit it."""
+    1 ms), with uncertainties and residuals said, though the commands reached the drive late by 1 to 4 ms
+    and once by 40 ms: the drive's own dead time is told from the way to it (its median is the twin's);
+    fitted again without the acceleration limit it is clearly worse. A record that never reaches a
+    limit does not fit it."""
     given = {"natural_frequency": 30.0, "damping_ratio": 0.6, "max_velocity": 2.5, "max_acceleration": 25.0}
-    rec = emulated_record(given, dead_time=0.008, cpr=8192)
+    rec = emulated_record(given, dead_time=0.008, cpr=8192, setpoints=True)
     t0 = time.monotonic()
     f = fit_record(rec)
     took = time.monotonic() - t0
     d = f.drive
     assert d.order == 2 and all(f.reached.values()), f.as_json()
-    assert d.dead_time == pytest.approx(0.008, abs=1e-3)
+    assert f.own_dead_time == pytest.approx(0.008, abs=1e-3) and f.way is not None
+    assert f.way[0] == pytest.approx(0.0025, abs=3e-4) and 0.0035 < f.way[1] < 0.0045
+    assert d.dead_time == pytest.approx(f.own_dead_time + f.way[0], abs=1e-12)
     for k, v in given.items():
         assert getattr(d, k) == pytest.approx(v, rel=0.05), (k, f.as_json())
     assert d.resolution == pytest.approx(2 * math.pi / 8192, rel=1e-6) and d.period == pytest.approx(0.002, rel=0.01)

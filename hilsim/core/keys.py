@@ -73,7 +73,7 @@ PER_SERVICE_TOPICS: dict[str, type] = {
 }
 # Keys <prefix>/<robot>/hw/<server>/<topic>: what an external joint server (a bridge, the motor
 # model) publishes. One key per server, so each has exactly one writer.
-SERVER_TOPICS: dict[str, type] = {"joint_states": msgs.JointState}
+SERVER_TOPICS: dict[str, type] = {"joint_states": msgs.JointState, "setpoints": msgs.JointState}
 # /tf and /tf_static are global, as tf2 and rviz2 expect (a fleet prefixes its frames with the robot name)
 GLOBAL_TOPICS: dict[str, type] = {"clock": msgs.Clock, "tf": msgs.TFMessage, "tf_static": msgs.TFMessage}
 
@@ -226,6 +226,10 @@ class Keys:
     def server_state(self, server: str) -> str:
         """Measured state of the joints an external server serves (sensor_msgs/JointState)."""
         return self._data(self.topic_name(f"hw/{server}/joint_states"), SERVER_TOPICS["joint_states"])
+
+    def server_setpoints(self, server: str) -> str:
+        """The setpoints an external server passed on to its device, stamped with the sim time it did (opt-in)."""
+        return self._data(self.topic_name(f"hw/{server}/setpoints"), SERVER_TOPICS["setpoints"])
 
     @property
     def all_server_states(self) -> str:

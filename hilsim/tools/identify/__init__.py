@@ -65,7 +65,11 @@ def fit_summary(f: Fit) -> str:
     law = (f"order 2: natural frequency {d.natural_frequency:.4g} ± {f.sigma.get('natural_frequency', 0):.2g} rad/s, "
            f"damping ratio {d.damping_ratio:.4g} ± {f.sigma.get('damping_ratio', 0):.2g}" if d.order == 2 else
            f"order 1: time constant {d.time_constant * 1e3:.4g} ± {f.sigma.get('time_constant', 0) * 1e3:.2g} ms")
-    out = [f"{f.joint} ({f.interface}): dead time {d.dead_time * 1e3:.4g} ± {f.sigma['dead_time'] * 1e3:.2g} ms, {law}"]
+    dead = f"dead time {d.dead_time * 1e3:.4g} ± {f.sigma['dead_time'] * 1e3:.2g} ms"
+    if f.own_dead_time is not None and f.way is not None:
+        dead += (f" (the drive's own {f.own_dead_time * 1e3:.3g} ms, the way to it {f.way[0] * 1e3:.3g} ms: its "
+                 f"median; 95 % within {f.way[1] * 1e3:.3g} ms)")
+    out = [f"{f.joint} ({f.interface}): {dead}, {law}"]
     unit = {"max_velocity": ("velocity", "rad/s"), "max_acceleration": ("acceleration", "rad/s²")}
     lims = []
     for k in LIMITS:
@@ -129,7 +133,9 @@ def _from_scenario(args: argparse.Namespace, joints: list[str]) -> int:
             raise ConfigError(f"{full.source}: joints.{j}.server: sim; hilsim identify needs the joint served by its "
                               f"drive (a scenario with hardware in the loop, e.g. config/hil/arm-can-emulated.yaml)")
     _all_hardware(full, joints)
-    sc = loop_scenario(args.scenario, overrides, args.hil, record=True)
+    # the bridge says when each setpoint went on the bus: the drive's own dead time, apart from the way to it
+    extra = {"bridge-can.setpoints": True} if "bridge-can" in full.external_servers() else {}
+    sc = loop_scenario(args.scenario, {**overrides, **extra}, args.hil, record=True)
     sc.logger.record = record_keys(sc)
     out = Path(args.out) if args.out else new_run_dir("runs", "identify")
     for d in ("drive", "twin"):

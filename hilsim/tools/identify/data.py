@@ -7,6 +7,10 @@ machine):
 
 - the setpoints the controller sent it: ``joint_commands`` (position and its velocity feed-forward;
   a velocity joint: the velocity), stamped with the measurement they answer;
+- the setpoints as the bridge passed them on: ``hw/<server>/setpoints`` (``bridge-can.setpoints``, which
+  ``hilsim identify`` turns on), each stamped with the sim time it went on the bus: the fit takes
+  them as the drive's input, so that a command held up on its way (a busy machine) is not taken for
+  the drive's own slowness, and the way from the controller's step to the bus is measured apart;
 - the drive's reports: ``hw/<server>/joint_states``, each stamped with the sim time it came from the
   drive (:mod:`hilsim.core.simclock`): what the fit compares with, and the encoder's quantum and rate;
 - what physics had of the joint: ``truth/joint_states`` (the drive's latest report as it reached
@@ -44,14 +48,42 @@ class JointRecord:
     hw_t: np.ndarray  # the server's reports (stamped with the sim time they came from the drive)
     hw_p: np.ndarray
     hw_v: np.ndarray
+    sp_t: np.ndarray  # the setpoints as they went on the bus (empty if the server did not publish them)
+    sp_p: np.ndarray
+    sp_v: np.ndarray
 
     def window(self, t0: float, t1: float) -> JointRecord:
         """The part from ``t0`` to ``t1`` [s] (setpoints from before ``t0`` kept: the one in force matters)."""
         c = self.cmd_t <= t1
         o = (self.out_t >= t0) & (self.out_t <= t1)
         h = (self.hw_t >= t0) & (self.hw_t <= t1)
+        s = self.sp_t <= t1
         return JointRecord(self.joint, self.interface, self.server, self.cmd_t[c], self.cmd_p[c], self.cmd_v[c],
-                           self.out_t[o], self.out_p[o], self.out_v[o], self.hw_t[h], self.hw_p[h], self.hw_v[h])
+                           self.out_t[o], self.out_p[o], self.out_v[o], self.hw_t[h], self.hw_p[h], self.hw_v[h],
+                           self.sp_t[s], self.sp_p[s], self.sp_v[s])
+
+    def inputs(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """(t, position, velocity) of what the drive was given, and the way to it: with the setpoints as the
+        server sent them (20 or more), those, and for each the time since the stamp of the command it came
+        from [s]; else the commands at their stamps, and None."""
+        if self.sp_t.size < 20:
+            return self.cmd_t, self.cmd_p, self.cmd_v, None
+        way = []
+        k, n = 0, self.cmd_t.size
+        for t, p, v in zip(self.sp_t.tolist(), self.sp_p.tolist(), self.sp_v.tolist(), strict=True):
+            # the commands in order: the first not yet matched with the same setpoint (a command the server
+            # held back, e.g. while faulted, has no setpoint and is passed over)
+            j = k
+            while j < n and self.cmd_t[j] <= t and not (self._same(self.cmd_p[j], p) and self.cmd_v[j] == v):
+                j += 1
+            if j < n and self.cmd_t[j] <= t:
+                way.append(t - self.cmd_t[j])
+                k = j + 1
+        return self.sp_t, self.sp_p, self.sp_v, np.array(way)
+
+    @staticmethod
+    def _same(a: float, b: float) -> bool:
+        return a == b or (np.isnan(a) and b == 0.0)
 
     def measured(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(t, position, velocity) of the drive as measured: its reports, at the sim time each came from the
@@ -86,6 +118,8 @@ def read_joints(run_dir: Path, joints: list[str]) -> dict[str, JointRecord]:
     cmd: dict[str, list[tuple[float, float, float]]] = {j: [] for j in joints}
     out: dict[str, list[tuple[float, float, float]]] = {j: [] for j in joints}
     hw: dict[str, list[tuple[float, float, float]]] = {j: [] for j in joints}
+    sp: dict[str, list[tuple[float, float, float]]] = {j: [] for j in joints}
+    k_sp = {keys.server_setpoints(s) for s in set(servers.values()) if s != SIM}
     try:
         bag = open_bag(run_dir)
         for m in bag.messages():
@@ -95,6 +129,8 @@ def read_joints(run_dir: Path, joints: list[str]) -> dict[str, JointRecord]:
                 _take(out, msgs.decode(msgs.JointState, m.data))
             elif m.key in k_hw:
                 _take(hw, msgs.decode(msgs.JointState, m.data))
+            elif m.key in k_sp:
+                _take(sp, msgs.decode(msgs.JointState, m.data), commands=True)
     except (BagError, OSError) as e:
         raise ConfigError(f"{run_dir}: its bag cannot be read: {e}") from None
     recs = {}
@@ -106,8 +142,10 @@ def read_joints(run_dir: Path, joints: list[str]) -> dict[str, JointRecord]:
         o = np.array(sorted(out[j]))
         h = np.array(sorted(hw[j])) if hw[j] else np.zeros((0, 3))
         h = h[h[:, 0] > 0.0]  # a report stamped 0: before the server knew the sim time
+        s = np.array(sorted(sp[j])) if sp[j] else np.zeros((0, 3))
+        s = s[s[:, 0] > 0.0]
         recs[j] = JointRecord(j, sc.joint(j).interface, servers[j], c[:, 0], c[:, 1], c[:, 2], o[:, 0], o[:, 1],
-                              o[:, 2], h[:, 0], h[:, 1], h[:, 2])
+                              o[:, 2], h[:, 0], h[:, 1], h[:, 2], s[:, 0], s[:, 1], s[:, 2])
     return recs
 
 

@@ -2,7 +2,10 @@
 
 The model is :mod:`hilsim.sim.drive`'s (what a twin's joint is then simulated with): dead time, a
 closed position loop of order 2 (ω_n, ζ) or 1 (τ), a velocity and an acceleration limit. Each
-candidate is simulated over the recorded setpoints (:func:`hilsim.sim.drive.simulate`) and compared
+candidate is simulated over the recorded setpoints (:func:`hilsim.sim.drive.simulate`; with the
+setpoints as the bridge put them on the bus, at those times: the fitted dead time is then the
+drive's own, and the twin's is that plus the median way from the controller's step to the bus,
+:meth:`JointRecord.inputs`) and compared
 with what the drive's encoder reported, at the sim time each report came from the drive
 (:meth:`JointRecord.measured`); ``scipy.optimize.least_squares`` (trust region reflective, bounded)
 moves the parameters, ω_n, ζ, τ and the limits on a log scale. Its loss is robust (``soft_l1``, the
@@ -67,6 +70,10 @@ class Fit:
     n: int  # samples compared
     seen: dict[str, float]  # the largest |velocity| and |acceleration| the record shows
     reached: dict[str, bool]  # whether each limit was fitted (the motion reached it)
+    # with the setpoints as the server sent them: the drive's own dead time [s], and the way from the
+    # controller's step to the bus [s]: its median (in drive.dead_time, with the own) and 95th percentile
+    own_dead_time: float | None = None
+    way: tuple[float, float] | None = None
     candidates: list[dict[str, Any]] = field(default_factory=list)  # each model tried: order, limits, rms, aic
 
     def as_json(self) -> dict[str, Any]:
@@ -79,6 +86,8 @@ class Fit:
             "limits_reached": self.reached, "seen": self.seen,
             "encoder": {"resolution": d.resolution, "period": d.period},
             "residual_rms": self.rms, "residual_max": self.residual_max, "motion_rms": self.motion_rms,
+            "dead_time_own": self.own_dead_time,
+            "way_to_the_drive": {"median": self.way[0], "p95": self.way[1]} if self.way else None,
             "samples": self.n, "candidates": self.candidates,
         }
 
@@ -115,6 +124,7 @@ class _Problem:
     def __init__(self, rec: JointRecord, max_points: int = MAX_POINTS) -> None:
         self.velocity_mode = rec.interface == "velocity"
         mt, mp, mv = rec.measured()
+        it, ip, iv, self.way = rec.inputs()  # the setpoints as the drive got them, and the way to it
         idx = np.arange(mt.size)
         if mt.size and mt[-1] - mt[0] > MAX_SPAN:
             seg = np.floor((mt - mt[0]) / SEGMENT).astype(int)
@@ -133,8 +143,8 @@ class _Problem:
             if b - a < 2:
                 continue
             k = idx[a]
-            c = (rec.cmd_t >= self.t[a] - 1.0) & (rec.cmd_t <= self.t[b - 1])
-            self.segments.append(_Segment(rec.cmd_t[c].tolist(), rec.cmd_p[c].tolist(), rec.cmd_v[c].tolist(),
+            c = (it >= self.t[a] - 1.0) & (it <= self.t[b - 1])
+            self.segments.append(_Segment(it[c].tolist(), ip[c].tolist(), iv[c].tolist(),
                                           self.t[a:b], float(mp[k]), float(mv[k])))
         keep = np.concatenate([np.arange(a, b) for a, b in itertools.pairwise(cuts) if b - a >= 2]) \
             if self.segments else np.arange(0)
@@ -318,6 +328,10 @@ def fit_record(rec: JointRecord, progress: Callable[[str], None] | None = None,
             best = alt
     drive = best.model.drive(best.x)
     res = prob.simulate(drive) - prob.y
+    own = way = None
+    if prob.way is not None and prob.way.size:  # the twin's dead time counts from the controller's step
+        own, way = drive.dead_time, (float(np.median(prob.way)), float(np.percentile(prob.way, 95)))
+        drive = drive.model_copy(update={"dead_time": own + way[0]})
     return Fit(
         joint=rec.joint, interface=rec.interface, drive=drive, sigma=_sigma(best),
         rms=float(np.sqrt(np.mean(res ** 2))), residual_max=float(np.max(np.abs(res))),
@@ -326,4 +340,5 @@ def fit_record(rec: JointRecord, progress: Callable[[str], None] | None = None,
         reached={k: k in best.model.limits for k in LIMITS},
         candidates=[{"order": r.model.order, "limits": list(r.model.limits), "residual_rms": r.rms,
                      "aic": r.aic, "chosen": r is best} for r in tried],
+        own_dead_time=own, way=way,
     )
