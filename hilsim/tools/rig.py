@@ -86,6 +86,7 @@ REALTIME_LOSS = 0.02  # realtime: the share of a window's truth samples that may
 REPORT_GAP = 0.5  # [s] realtime: a joint served by hardware whose reports stop this long in a window: no measurement
 REALTIME_START = 0.5  # [s] realtime: sim time before the first experiment (the services' first steps are slow)
 REALTIME_LEAD = 0.2  # [s] realtime: how far ahead of its stamp a trajectory is sent (lockstep: LEAD periods)
+TRAJECTORY_LEAD = 1.0  # [s] realtime: the same for a trajectory experiment (the controller holds it until then)
 LOOP_SENSORS = ("encoder", "imu")  # what the loops read (the rover's odometry waits for its imu)
 CONTROLLERS = ("joint_trajectory", "four_wheel_steer")
 CRAWL = 0.001  # [m/s] the rover's home: a crawl straight ahead holds every wheel's angle at 0
@@ -159,6 +160,7 @@ class _Action:
     # rover's script
     points: tuple[tuple[float, float, float], ...] | None
     fresh: bool = False  # empty the joints' integrals before setting the gains (a trial's start)
+    lead: int = 0  # physics steps from k to the reference's step (the trajectory's stamp)
 
 
 @dataclass
@@ -232,7 +234,9 @@ class StepRig(Service):
                 restore.update({f"{n}.{f}": _live(getattr(g, f) if f != "output_limit" else limit) for f in e.gains})
             n_meas = self._steps(e.measure)
             n_settle = self._steps(e.settle)
-            s = k + self.lead
+            # realtime, a trajectory (that cannot be measured from a late start) is sent well ahead
+            lead = max(self.lead, self._steps(TRAJECTORY_LEAD)) if self.realtime and e.points else self.lead
+            s = k + lead
             kb = s + n_meas
             if self.rover:
                 assert lp.twist is not None
@@ -241,8 +245,9 @@ class StepRig(Service):
                 self.script += [(s * self.dt_ns / 1e9, *lp.twist), (kb * self.dt_ns / 1e9, CRAWL, 0.0, 0.0)]
             else:
                 pts = e.points or ((0.0, lp.targets[0], 0.0),)
-                self.actions[k] = _Action(k, own, lp.joints, pts, fresh=True)
-                self.actions[kb] = _Action(kb, restore, lp.joints, ((0.0, float(self.home[js[0]]), 0.0),))
+                self.actions[k] = _Action(k, own, lp.joints, pts, fresh=True, lead=lead)
+                self.actions[kb] = _Action(kb, restore, lp.joints, ((0.0, float(self.home[js[0]]), 0.0),),
+                                           lead=self.lead)
             self.windows.append((s, s + n_meas))
             self._done_at[kb] = i + 1
             k = kb + self.lead + n_settle
@@ -256,6 +261,9 @@ class StepRig(Service):
         # realtime: joints served by hardware, measured on their server's reports: joint -> [(stamp, p, v)]
         self.served = [n for n in self.names if sc.joint(n).server != SIM] if self.realtime else []
         self.reports: dict[str, list[tuple[int, float, float]]] = {n: [] for n in self.served}
+        # the truth: of the joints measured on it (realtime, with every joint measured served by hardware, none:
+        # 500 samples a second fewer for this process to take in, on a machine already busy)
+        self.watch_truth = not self.served or any(n not in self.reports for lp in self.loops for n in lp.joints)
         self.queue: queue.Queue[int] = queue.Queue()
         self.done = threading.Event()
         self.error = ""
@@ -314,12 +322,13 @@ class StepRig(Service):
         self.traj_pub = None if self.rover else self.publisher(self.keys.topic("joint_trajectory"))
         # realtime: every sample is a measurement, none is dropped as stale (stream=False)
         live = not self.realtime
-        self.subscribe(self.keys.truth("joint_states"), msgs.JointState, self._on_truth, stream=live)
         if not self.rover:  # the rover's references are in its joint_commands
             self.subscribe(self.keys.topic("controller/reference"), msgs.JointState, self._on_reference, stream=live)
         self.subscribe(self.keys.topic("joint_commands"), msgs.JointState, self._on_command, stream=live)
         if self.served:
             self.subscribe(self.keys.all_server_states, msgs.JointState, self._on_report, stream=False)
+        if self.watch_truth:
+            self.subscribe(self.keys.truth("joint_states"), msgs.JointState, self._on_truth, stream=live)
 
     def _ordered(self, m: msgs.JointState, values: Sequence[float]) -> list[float]:
         if list(m.name) == self.names:
@@ -337,6 +346,8 @@ class StepRig(Service):
 
     def _on_report(self, m: msgs.JointState, key: str) -> None:
         ns = msgs.ns_of(m.header.stamp)
+        if not self.watch_truth and ns >= self.end * self.dt_ns:
+            self.queue.put(self.end)  # the drive's last reports end the rig, whatever the controller answered
         for k, n in enumerate(m.name):
             if n in self.reports and ns > 0:
                 self.reports[n].append((ns, m.position[k], m.velocity[k] if m.velocity else math.nan))
@@ -402,7 +413,7 @@ class StepRig(Service):
             self._set_gains(a.gains)
         if a.points is None or self.traj_pub is None:
             return  # the rover: its script steps the twist at the stamp
-        stamp = (a.k + self.lead) * self.dt_ns
+        stamp = (a.k + a.lead) * self.dt_ns
         traj = msgs.JointTrajectory(
             header=msgs.header(stamp),
             joint_names=a.joints,
@@ -446,7 +457,8 @@ class StepRig(Service):
             rows = np.nonzero(sel)[0][first]
             expected = (end - s) + 1
             grid = s_ns + np.arange(expected, dtype=np.int64) * self.dt_ns
-            lost = expected - t_ns.size
+            on_truth = any(n not in self.reports for n in lp.joints)
+            lost = expected - t_ns.size if on_truth else 0
             if lost and not (self.realtime and lost <= REALTIME_LOSS * expected and t_ns.size > 1):
                 raise RigError(f"{e.joint}: {t_ns.size} truth samples in the window of the step, expected "
                                f"{expected} (samples were lost)")

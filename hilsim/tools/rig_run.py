@@ -71,7 +71,13 @@ def run_experiments(sc: Scenario, experiments: Sequence[Experiment], run_dir: Pa
     try:
         return _run_once(sc.model_copy(deep=True), experiments, run_dir, progress, wall_timeout)
     except LateStep as e:
-        logging.getLogger("hilsim.step-rig").warning("%s; running the experiments again", e)
+        aside = ""
+        if run_dir is not None and run_dir.exists():  # kept, apart: the run made again is run_dir's alone
+            late = next(run_dir.with_name(f"{run_dir.name}-late{i}") for i in range(1, 100)
+                        if not run_dir.with_name(f"{run_dir.name}-late{i}").exists())
+            run_dir.rename(late)
+            aside = f" (that run: {late})"
+        logging.getLogger("hilsim.step-rig").warning("%s; running the experiments again%s", e, aside)
         return _run_once(sc.model_copy(deep=True), experiments, run_dir, progress, wall_timeout)
 
 
