@@ -36,6 +36,19 @@ def test_second_order_overshoot_and_peak_time(zeta: float, wn: float) -> None:
     assert f.steady_state_error < 1e-5
 
 
+def test_a_quantised_peak_is_timed_at_the_middle_of_the_count_it_holds() -> None:
+    """An encoder of 8192 counts per turn holds the top count of a 0.2 rad step's overshoot for ~30 ms:
+    the peak time is the middle of that, within 2 ms of the analytic peak (its first sample is not)."""
+    zeta, wn = 0.6, 28.0
+    t = np.arange(0.0, 1.0, 2e-3)
+    q = 2 * math.pi / 8192
+    y = np.round(0.2 * second_order(t, zeta, wn) / q) * q
+    f = step_figures(t, y, 0.0, 0.2)
+    analytic = math.pi / (wn * math.sqrt(1 - zeta**2))
+    first = float(t[np.argmax(y)])
+    assert abs(f.peak_time_s - analytic) < 2e-3 < abs(first - analytic)
+
+
 def test_first_order_rise_and_settling() -> None:
     tau = 0.13
     t = np.arange(0.0, 2.0, 1e-3)  # coarse on purpose: crossings are interpolated

@@ -8,10 +8,12 @@ Definitions (``y0`` the value when the step is commanded, ``target`` the command
 - settling time (2 %): the time after which ``|y - target|`` stays within 2 % of ``|step|``
   (interpolated at the last exit of the band); ``inf`` if it is outside at the end;
 - overshoot: the largest excursion beyond the target, in percent of ``|step|`` (0 if none);
-- peak time: the time of the largest excursion. A response that does not overshoot (by more than
-  ``zero_overshoot`` rad) has its largest excursion *at* the target, so its peak time is the first
-  time it comes within ``zero_tol`` of the target (the paper's peak times, just after its settling
-  times, read the same way); ``inf`` if it never does;
+- peak time: the time of the largest excursion; where a quantised encoder holds it for several samples,
+  the middle of that first stretch (the top count is reached early or late by a fraction of a count's
+  worth of motion: near the peak, where the response is slow, that is tens of ms). A response that
+  does not overshoot (by more than ``zero_overshoot`` rad) has its largest excursion *at* the target,
+  so its peak time is the first time it comes within ``zero_tol`` of the target (the paper's peak
+  times, just after its settling times, read the same way); ``inf`` if it never does;
 - steady-state error: ``|mean(y) - target|`` over the last ``tail`` seconds of the record.
 
 Pure numpy: tested on a second-order plant with known analytic figures.
@@ -94,7 +96,10 @@ def step_figures(
     k = int(np.argmax(frac))
     overshoot = max(0.0, 100.0 * float(frac[k] - 1.0))
     if overshoot / 100.0 * abs(step) > zero_overshoot:
-        peak = float(t[k])
+        held = k
+        while held + 1 < frac.size and frac[held + 1] == frac[k]:  # the same count, held
+            held += 1
+        peak = float(t[k] + t[held]) / 2.0
     else:
         near = np.nonzero(err <= zero_tol)[0]
         peak = float(t[near[0]]) if near.size else math.inf
