@@ -162,6 +162,32 @@ def test_the_fit_finds_what_the_emulator_was_given() -> None:
     assert math.isinf(g.drive.max_velocity) and g.seen["velocity"] < 50.0
 
 
+def test_a_velocity_drive_is_fitted_on_its_speed() -> None:
+    """A wheel's traction drive (velocity control: the emulator's first-order loop of bandwidth 2ζω_n, an
+    acceleration limit) stepped in speed both ways: order 1, its time constant and limit found."""
+    cfg = DriveEmulatorConfig(natural_frequency=25.0, damping_ratio=0.8, max_acceleration=40.0, dead_time=0.005)
+    motor = EmulatedMotor(cfg, 0.0)
+    motor.t = 0.0
+    cmd_t = np.arange(0.0, 3.0, 0.01)
+    cmd_v = np.select([cmd_t < 0.2, cmd_t < 0.8, cmd_t < 1.4, cmd_t < 2.2], [0.0, 0.5, -2.5, 5.0], 0.0)
+    inp, k, hw = (0.0, 0.0, 0.0), 0, []
+    for te in np.arange(0.002, 3.0, 0.002):
+        while k < cmd_t.size and cmd_t[k] <= te:
+            inp = motor.advance(float(cmd_t[k]), True, "velocity", inp)
+            motor.take((0.0, float(cmd_v[k]), 0.0), float(cmd_t[k]))
+            k += 1
+        inp = motor.advance(float(te), True, "velocity", inp)
+        hw.append((te, motor.encoder(), motor.v))
+    h, z = np.array(hw), np.zeros(0)
+    rec = JointRecord("fl_traction", "velocity", "bridge-can", cmd_t, np.full(cmd_t.size, np.nan), cmd_v,
+                      h[:, 0], h[:, 1], h[:, 2], h[:, 0], h[:, 1], h[:, 2], z, z, z)
+    f = fit_record(rec)
+    assert f.drive.order == 1 and f.reached == {"max_velocity": False, "max_acceleration": True}, f.as_json()
+    assert f.drive.time_constant == pytest.approx(1 / (2 * 0.8 * 25.0), rel=0.05)
+    assert f.drive.max_acceleration == pytest.approx(40.0, rel=0.05)
+    assert f.drive.dead_time == pytest.approx(0.005, abs=2e-3) and f.rms < 0.05
+
+
 def test_the_encoder_quantum_is_read_from_the_reports() -> None:
     q = 2 * math.pi / 4096
     counts = np.random.default_rng(0).integers(-3000, 3000, 500)

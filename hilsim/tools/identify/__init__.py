@@ -41,7 +41,7 @@ from hilsim.tools.identify.compare import (
 )
 from hilsim.tools.identify.data import read_joints, run_scenario
 from hilsim.tools.identify.fit import LIMITS, Fit, FitError, fit_record
-from hilsim.tools.identify.plan import excitation, validation
+from hilsim.tools.identify.plan import excitation, is_rover, validation
 from hilsim.tools.identify.twin import twin_data, write_twin
 from hilsim.tools.rig import Response, RigError, rig_command
 from hilsim.tools.rig_run import loop_scenario, run_experiments
@@ -159,7 +159,7 @@ def _from_scenario(args: argparse.Namespace, joints: list[str]) -> int:
     _say(args, f"written: {twin_path}; the twin measured in {out / 'twin'} (lockstep)")
     tsc = loop_scenario(str(twin_path))
     twin = run_experiments(tsc, val, run_dir=out / "twin", progress=_progress(args, len(val)))
-    steps, tracks = _compare(drive[len(exc):], twin)
+    steps, tracks = _compare(drive[len(exc):], twin, is_rover(full))
     for r in drive[len(exc):]:
         if r.lost:
             _say(args, f"not measured: {r.lost}")
@@ -201,7 +201,8 @@ def _homes(sc: Scenario, joints: list[str]) -> dict[str, float]:
     return {j: float(h[names.index(j)]) for j in joints}
 
 
-def _compare(drive: list[Response], twin: list[Response]) -> tuple[list[StepComparison], list[TrackComparison]]:
+def _compare(drive: list[Response], twin: list[Response], rover: bool = False) -> tuple[
+        list[StepComparison], list[TrackComparison]]:
     """Each step size of each joint (its repetitions together), each trajectory, drive against twin."""
     steps: dict[tuple[str, float], tuple[list[Response], list[Response]]] = {}
     tracks = []
@@ -218,7 +219,7 @@ def _compare(drive: list[Response], twin: list[Response]) -> tuple[list[StepComp
         if not d:
             raise RigError(f"{j}: every repetition of the {size:g} step was taken too late by the controller "
                            f"(a busy machine): nothing to compare; run again")
-    return [compare_steps(d, t) for d, t in steps.values()], tracks
+    return [compare_steps(d, t, rover) for d, t in steps.values()], tracks
 
 
 def _progress(args: argparse.Namespace, total: int) -> Any:

@@ -25,8 +25,9 @@ from typing import Any
 import numpy as np
 
 from hilsim.tools.identify.plan import reference
-from hilsim.tools.metrics import Figures, step_figures
+from hilsim.tools.metrics import Figures
 from hilsim.tools.rig import Response
+from hilsim.tools.step_report import figures_of
 
 TIME_REL, TIME_ABS = 0.05, 0.010  # a time figure: within 5 % or 10 ms, whichever is larger
 OVERSHOOT_PP = 1.0  # [percentage points]
@@ -91,14 +92,13 @@ def _num(v: float) -> float | None:
     return v if math.isfinite(v) else None
 
 
-def compare_steps(drive: list[Response], twin: list[Response]) -> StepComparison:
-    """The repetitions of one step size (any sign) of one joint, on the drive and on the twin."""
-    return StepComparison(drive[0].name, abs(drive[0].experiment.step), [_figures(r) for r in drive],
-                          [_figures(r) for r in twin], "rad/s" if drive[0].quantity == "velocity" else "rad")
-
-
-def _figures(r: Response) -> Figures:
-    return step_figures(r.t, r.y, r.y0, r.target)
+def compare_steps(drive: list[Response], twin: list[Response], rover: bool = False) -> StepComparison:
+    """The repetitions of one step size (any sign) of one joint, on the drive and on the twin; the figures
+    as ``hilsim report step`` reads them (a rover's loop: "no overshoot" and "at the target" relative to
+    its step)."""
+    return StepComparison(drive[0].name, abs(drive[0].experiment.step), [r.figures for r in figures_of(drive, rover)],
+                          [r.figures for r in figures_of(twin, rover)],
+                          "rad/s" if drive[0].quantity == "velocity" else "rad")
 
 
 def compare_tracks(drive: Response, twin: Response) -> TrackComparison:
