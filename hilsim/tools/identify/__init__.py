@@ -31,6 +31,7 @@ from typing import Any
 from hilsim.core.config import SIM, ConfigError, Scenario
 from hilsim.core.keys import Keys
 from hilsim.core.scenario import load_scenario, parse_overrides
+from hilsim.sim import control
 from hilsim.tools.identify.compare import (
     StepComparison,
     TrackComparison,
@@ -128,7 +129,10 @@ def _from_scenario(args: argparse.Namespace, joints: list[str]) -> int:
 
     overrides = parse_overrides(args.set)
     full = load_scenario(args.scenario, overrides, args.hil)
+    names = control.joint_table(full.world.model).names
     for j in joints:
+        if j not in names:
+            raise ConfigError(f"--joints: {j} is not a joint of {full.world.model.name} (joints: {', '.join(names)})")
         if full.joint(j).server == SIM:
             raise ConfigError(f"{full.source}: joints.{j}.server: sim; hilsim identify needs the joint served by its "
                               f"drive (a scenario with hardware in the loop, e.g. config/hil/arm-can-emulated.yaml)")
@@ -193,7 +197,6 @@ def _all_hardware(sc: Scenario, joints: list[str]) -> None:
 
 
 def _homes(sc: Scenario, joints: list[str]) -> dict[str, float]:
-    from hilsim.sim import control
     from hilsim.tools.rig import _home
 
     names = list(control.joint_table(sc.world.model).names)
