@@ -32,7 +32,9 @@ def twin_data(sc: Scenario, fits: Sequence[Fit], bases: Sequence[Path], at: Path
               overrides: dict[str, Any] | None = None, from_run: bool = False) -> dict[str, Any]:
     """The twin file's content, for a file written at ``at``."""
     where = at.resolve().parent
-    ext = [os.path.relpath(Path(b).resolve(), where) for b in bases]
+    # relative to the twin (a twin beside its scenario moves with it); absolute when they share no folder
+    ext = [os.path.relpath(b, where) if os.path.commonpath([b, where]) != os.sep else str(b)
+           for b in (Path(x).resolve() for x in bases)]
     services = [s for s in sc.services if s not in JOINT_HARDWARE] or list(DEFAULT_SERVICES)
     data: dict[str, Any] = {"extends": ext[0] if len(ext) == 1 else ext, "name": f"{sc.name}-twin",
                             "clock": {"mode": "lockstep"}, "services": services}
