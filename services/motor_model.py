@@ -138,20 +138,22 @@ class MotorModelService(Service):
 
     def loop(self) -> None:
         dt = 1.0 / self.cfg.rate_hz
-        substeps = max(1, math.ceil(dt / 0.0005))  # integrate at ≤ 0.5 ms whatever the rate
-        next_t = time.monotonic()
+        next_t = last = time.monotonic()
         while not self.stop_event.is_set():
             next_t += dt
             with self.lock:
                 now = time.monotonic()
+                # the motor moves on the wall clock: a tick this process was late for covers the time that
+                # passed (at most 0.1 s), not one period, each command taken when it fell due
+                t, last = last, now
                 while self._inflight and self._inflight[0][0] <= now:
-                    _, stamp, entry = self._inflight.popleft()
+                    due, stamp, entry = self._inflight.popleft()
+                    self._move(t, due)
+                    t = max(t, due)
                     self.stamp_ns = max(self.stamp_ns, stamp)
                     for jn, (p, v, u) in entry.items():
                         self.motors[jn].command(p, v, u)
-                for m in self.motors.values():
-                    for _ in range(substeps):
-                        m.step(dt / substeps)
+                self._move(t, now)
                 self.sim_ns = self.stamp_ns
                 ms = list(self.motors.values())
                 self.pub.put(msgs.JointState(
@@ -164,6 +166,16 @@ class MotorModelService(Service):
             else:
                 self.overruns += 1
                 next_t = time.monotonic()  # do not try to catch up a backlog of ticks
+
+    def _move(self, t0: float, t1: float) -> None:
+        """Every motor from wall time ``t0`` to ``t1`` (at most 0.1 s), in substeps of at most 0.5 ms."""
+        span = min(max(0.0, t1 - t0), 0.1)
+        if span <= 0.0:
+            return
+        n = max(1, math.ceil(span / 0.0005))
+        for m in self.motors.values():
+            for _ in range(n):
+                m.step(span / n)
 
     def health_values(self) -> dict[str, Any]:
         age = time.monotonic() - self.last_cmd_wall if self.last_cmd_wall else float("inf")
