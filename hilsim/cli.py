@@ -10,6 +10,9 @@
     hilsim goal ROBOT --joints J1 … | --pose X Y Z [R P Y] | --xy X Y [--yaw THETA]
     hilsim gains ROBOT JOINT.GAIN=VALUE …
     hilsim plan evaluate --targets FILE [--criterion length|smoothness|weighted]
+    hilsim plan evaluate --scenes FILE [--planners NAMES] [--criterion C] [--json]
+    hilsim plan learn [--out DIR] [--seed N] [--scenes N] [--queries K] [--seeds S] [--train-only]
+    hilsim plan scenes --out DIR [--count N] [--seed S] [--queries K]
     hilsim bench loop|plan|can|mavlink|rover [--json]
     hilsim bench scale [--robots 1,2,4,8] [--subscribers 0,4] [--sim-seconds S] [--repeat K] [--compose] [--json]
     hilsim report step ROBOT [--joints J,…] [--step RAD] [--speed RAD/S] [--json]
@@ -207,7 +210,33 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--csv", help="CSV path; the recording goes next to it (default: OUT/plan_evaluate.csv)")
     ev.add_argument("--out", help="output directory (default runs/<timestamp>-plan-evaluate)")
     ev.add_argument("--execute", action="store_true")
+    ev.add_argument("--scenes", help="a scenes file (config/scenes/scenes.yaml's format): every query with every "
+                    "planner of --planners, compared (instead of --targets)")
+    ev.add_argument("--planners", help="with --scenes: comma-separated library names, and auto (the learned "
+                    "choice) and oracle (each query's best of the others); default every planner, auto and oracle")
+    ev.add_argument("--seeds", type=int, default=2, help="with --scenes: runs per query and planner (default 2)")
+    ev.add_argument("--jobs", type=int, help="with --scenes: worker processes (default: every core)")
+    ev.add_argument("--json", action="store_true", help="with --scenes: the figures as one JSON object, last line")
     ev.set_defaults(func=_lazy("hilsim.tools.evaluate", "cmd_evaluate"))
+    le = psub.add_parser("learn", help="the planner choice (planner: auto): a data set of planner runs, its model")
+    le.add_argument("--out", default="models/planner_choice",
+                    help="directory (default models/planner_choice: what planner: auto loads)")
+    le.add_argument("--seed", type=int, default=0, help="scenes, queries, split and model (default 0)")
+    le.add_argument("--scenes", type=int, default=40, help="random scenes besides the shipped ones (default 40)")
+    le.add_argument("--queries", type=int, default=6, help="sampled queries per scene (default 6)")
+    le.add_argument("--seeds", type=int, default=2, help="runs of each planner on each query (default 2)")
+    le.add_argument("--planners", help="comma-separated (default: the library's, auto aside)")
+    le.add_argument("--iterations", type=int, help="iteration budget per run (default: the library's)")
+    le.add_argument("--jobs", type=int, help="worker processes (default: every core)")
+    le.add_argument("--train-only", action="store_true", help="only the model, from OUT/data.csv as it is")
+    le.set_defaults(func=_lazy("hilsim.tools.learn", "cmd_learn"))
+    sc = psub.add_parser("scenes", help="random planning scenes with sampled queries (a scenes file)")
+    sc.add_argument("--out", required=True, help="directory: DIR/scenes.yaml and DIR/scenes/*.xml")
+    sc.add_argument("--count", type=int, default=12, help="scenes (default 12)")
+    sc.add_argument("--seed", type=int, default=1000, help="default 1000 (plan learn's scenes use --seed 0)")
+    sc.add_argument("--queries", type=int, default=6, help="queries per scene (default 6)")
+    sc.add_argument("--prefix", default="gen", help="scene names: PREFIX<seed>_<k>_<kind> (default gen)")
+    sc.set_defaults(func=_lazy("hilsim.tools.learn", "cmd_scenes"))
 
     bench = sub.add_parser("bench", help="benchmarks (figures and ratios against an in-run baseline)")
     bsub = bench.add_subparsers(dest="bench_cmd", required=True)
