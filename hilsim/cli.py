@@ -217,14 +217,16 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--seeds", type=int, default=2, help="with --scenes: runs per query and planner (default 2)")
     ev.add_argument("--jobs", type=int, help="with --scenes: worker processes (default: every core)")
     ev.add_argument("--json", action="store_true", help="with --scenes: the figures as one JSON object, last line")
+    ev.add_argument("--runs", help="with --scenes: keep every run in this CSV, and take the library planners' runs "
+                    "already there from it (resumable)")
     ev.set_defaults(func=_lazy("hilsim.tools.evaluate", "cmd_evaluate"))
     le = psub.add_parser("learn", help="the planner choice (planner: auto): a data set of planner runs, its model")
     le.add_argument("--out", default="models/planner_choice",
                     help="directory (default models/planner_choice: what planner: auto loads)")
     le.add_argument("--seed", type=int, default=0, help="scenes, queries, split and model (default 0)")
-    le.add_argument("--scenes", type=int, default=40, help="random scenes besides the shipped ones (default 40)")
+    le.add_argument("--scenes", type=int, default=18, help="random scenes besides the shipped ones (default 18)")
     le.add_argument("--queries", type=int, default=6, help="sampled queries per scene (default 6)")
-    le.add_argument("--seeds", type=int, default=2, help="runs of each planner on each query (default 2)")
+    le.add_argument("--seeds", type=int, default=1, help="runs of each planner on each query (default 1)")
     le.add_argument("--planners", help="comma-separated (default: the library's, auto aside)")
     le.add_argument("--iterations", type=int, help="iteration budget per run (default: the library's)")
     le.add_argument("--jobs", type=int, help="worker processes (default: every core)")

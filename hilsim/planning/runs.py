@@ -72,6 +72,7 @@ class RunRecord:
 
 
 MEASURED = ("cpu_s", "decision_ms")  # the columns left out of a data set's hash
+BROKEN = "error: "  # how the message of a run that broke (an exception, a crash) starts
 
 
 class RunContext:
@@ -81,6 +82,11 @@ class RunContext:
     def __init__(self, library: PlannerLibrary, models: dict[str, Any], queries: dict[str, list[tuple[Any, Any]]],
                  clearance: float, iterations: int | None = None, criterion: str = "weighted",
                  warm: Callable[[ArmModel], None] | None = None) -> None:
+        # OMPL's modules imported here, once, not by every child (importing seeds nothing)
+        import ompl.base
+        import ompl.geometric
+        import ompl.util  # noqa: F401
+
         self.library = library
         self.iterations = iterations or library.iterations
         self.clearance = clearance
@@ -130,7 +136,7 @@ def _child(ctx: RunContext, task: RunTask, conn: mpc.Connection) -> None:
         conn.send(run_one(ctx, task))
     except Exception as e:  # a planner's error is this run's failure, said in its record
         conn.send(RunRecord(task.scene, task.query, task.planner, task.seed, 0, float("nan"), float("nan"),
-                            float("nan"), 0, 0, 0, task.planner, f"{type(e).__name__}: {e}", 0.0))
+                            float("nan"), 0, 0, 0, task.planner, f"{BROKEN}{type(e).__name__}: {e}", 0.0))
     finally:
         conn.close()
 
@@ -192,7 +198,8 @@ def run_all(ctx: RunContext, tasks: Iterable[RunTask], jobs: int, on_record: Cal
                 except EOFError:  # the child died without a word (a crash in native code)
                     proc.join()
                     rec = RunRecord(task.scene, task.query, task.planner, task.seed, 0, float("nan"), float("nan"),
-                                    float("nan"), 0, 0, 0, task.planner, f"worker died (exit {proc.exitcode})", 0.0)
+                                    float("nan"), 0, 0, 0, task.planner, f"{BROKEN}worker died (exit {proc.exitcode})",
+                                    0.0)
                 conn.close()
                 proc.join()
                 on_record(rec)

@@ -1,6 +1,6 @@
 """``hilsim plan learn``: the planner choice's data set and model; ``hilsim plan scenes``: scenes alone.
 
-``hilsim plan learn [--out models/planner_choice] [--seed 0] [--scenes 40] [--queries 6] [--seeds 2]``
+``hilsim plan learn [--out models/planner_choice] [--seed 0] [--scenes 18] [--queries 6] [--seeds 1]``
 
 1. **Scenes** (``OUT/scenes.yaml``, MJCF files in ``OUT/scenes/``): the shipped scenes of
    ``config/scenes/scenes.yaml`` with ``--queries`` more sampled queries each, and ``--scenes`` random

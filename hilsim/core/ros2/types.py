@@ -845,11 +845,14 @@ trajectory_msgs/JointTrajectory trajectory
 float64 planning_time
 float64[] execution_error
 string planner
+string choice
 ---
 std_msgs/Header header
 string goal_id
 string state
 float64 progress
+string planner
+string choice
 """,
 }
 

@@ -86,7 +86,7 @@ def evaluate(
             continue
         pb = Problem(arm, start, q, seed=sc.seed + k, max_iterations=lib.iterations,
                      time_limit=sc.planner.planning_time * lib.wall_cap_factor, resolution=lib.resolution)
-        res = lib.create(name).solve(pb)
+        res = lib.create(name, criterion=sc.planner.criterion).solve(pb)
         if res.path is None:
             out.append(Evaluation(nm, q, False, res.message))
             continue
