@@ -26,18 +26,26 @@ import weakref
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 
 from hilsim.core.config import MODELS_DIR
 from hilsim.planning.collision import ArmModel
 from hilsim.planning.features import FEATURES, FeatureModel
-from hilsim.planning.problem import PlannerConfigError, PlanOutcome, Problem
+from hilsim.planning.problem import Planner, PlannerConfigError, PlanOutcome, Problem
 from hilsim.planning.scoring import CRITERIA, TIME_WEIGHT, check_criterion, scores
 
-if TYPE_CHECKING:
-    from hilsim.planning.library import PlannerLibrary
+
+class PlannerLibrary(Protocol):
+    """What the choice needs of :class:`hilsim.planning.library.PlannerLibrary` (which builds ``auto``
+    from here: imported the other way round would be a circle)."""
+
+    path: Path
+    specs: dict[str, dict[str, Any]]
+
+    def create(self, name: str, overrides: dict[str, Any] | None = None, *, criterion: str | None = None
+               ) -> Planner: ...
 
 MODEL_DIR = MODELS_DIR / "planner_choice"
 MODEL_FILE = "model.pkl"
