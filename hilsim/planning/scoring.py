@@ -25,7 +25,7 @@ import numpy as np
 
 CRITERIA = ("length", "smoothness", "weighted")
 FAIL_SCORE = 3.0  # a failed run: as bad as a path three times the best one
-TIME_WEIGHT = 0.5  # score per second of planning: 100 ms cost as much as a path 5 % longer than the best
+TIME_WEIGHT = 2.0  # score per second of planning: 100 ms cost as much as a path 20 % longer than the best
 CHECK_S = 12e-6  # seconds per collision check (the planning-time unit of the score)
 
 
