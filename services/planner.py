@@ -614,7 +614,8 @@ class PlannerService(Service):
             self.log.info(
                 "%s: %s planned %d waypoints in %.3f s (%d iterations), trajectory %.2f s%s",
                 goal.goal_id, goal.used, len(out.path), wall, out.iterations, traj.duration,
-                f"; {goal.choice}" if goal.choice else "",
+                f"; {goal.choice} (decided in {1e3 * out.extra.get('decision_s', 0.0):.1f} ms CPU)"
+                if goal.choice else "",
             )
         return start_ns
 

@@ -53,7 +53,7 @@ def test_auto_planner_runs_the_arm_task(tmp_path: Path) -> None:
     for r in steps.values():
         # the choice names the criterion and ranks every planner with its predicted score; the planner
         # that planned is the first of the ranking (or a fallback after it)
-        assert r.choice.startswith("auto (length, ") and " < " in r.choice, r.choice
+        assert r.choice.startswith("auto (length): ") and " < " in r.choice, r.choice
         ranked = [part.split()[0] for part in r.choice.split(": predicted score (success) ", 1)[1].split(" < ")]
         assert r.planner in ranked and r.planner != "auto", (r.planner, r.choice)
     # the recording: the bag holds the very results, choice included

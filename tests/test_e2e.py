@@ -411,7 +411,7 @@ def test_an_interactive_run_takes_goals_until_ctrl_c(tmp_path: Path) -> None:
                                "--timeout", "120", "--planner", "auto"], capture_output=True, text=True, timeout=180)
         assert goal.returncode == 0 and "succeeded" in goal.stdout, goal.stdout + goal.stderr
         # the learned choice said what it picked and why, in the feedback and in the result
-        assert goal.stdout.count("choice: auto (weighted, ") == 2, goal.stdout
+        assert goal.stdout.count("choice: auto (weighted): ") == 2, goal.stdout
         with obs.lock:
             last = np.array(obs.truth[-1][1]) if obs.truth else None
         assert last is not None and np.abs(last - target).max() <= 0.01 + 0.002, last  # the truth, not its word

@@ -211,10 +211,11 @@ class Decision:
     seconds: float  # what deciding cost: CPU seconds of the deciding thread (features and model)
 
     def text(self, planned: str | None = None, tried: Sequence[str] = ()) -> str:
-        """One line: the choice and why, e.g. ``auto (weighted, 1.3 ms): aorrtc 1.08 (success 100 %) <
-        bitstar 1.12 (98 %) < …``; with the attempts that failed before ``planned``."""
+        """One line: the choice and why, e.g. ``auto (weighted): predicted score (success) aorrtc 1.08
+        (100 %) < bitstar 1.12 (98 %) < …``; with the attempts that failed before ``planned``."""
         parts = [f"{p} {self.score[p]:.2f} ({100 * self.success[p]:.0f} %)" for p in self.ranking]
-        head = f"auto ({self.criterion}, {1e3 * self.seconds:.1f} ms): predicted score (success) "
+        # no measured time in it: the text goes into recorded messages, the same in every run of a seed
+        head = f"auto ({self.criterion}): predicted score (success) "
         tail = ""
         if tried:
             tail = f"; {', '.join(tried)} failed, {planned or 'none'} {'planned' if planned else 'succeeded'}"
