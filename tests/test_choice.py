@@ -17,7 +17,7 @@ from hilsim.planning.choice import MODEL_DIR, choice_report, load_model, query_t
 from hilsim.planning.collision import ArmModel
 from hilsim.planning.library import PlannerLibrary
 from hilsim.planning.problem import PlanOutcome, Problem
-from hilsim.planning.runs import RunRecord
+from hilsim.planning.runs import RunContext, RunRecord, RunTask, run_all
 from hilsim.planning.scenes import SCENES, load_scenes
 from hilsim.tools.evaluate.scenes import ORACLE, summarise
 from hilsim.tools.learn import split_scenes
@@ -139,3 +139,22 @@ def test_the_oracle_is_each_querys_best_planner() -> None:
     assert s["b"]["score"] == pytest.approx(((2.0 + 3.0) / 2 + 1.0) / 2)  # query 0: 2.0 and a failure (3)
     assert s["b"]["success_rate"] == pytest.approx(3 / 4)
     assert s[ORACLE]["score"] == pytest.approx(1.0) and s[ORACLE]["success_rate"] == 1.0  # a, then b
+
+
+def test_auto_runs_are_the_runs_of_the_planner_it_picks() -> None:
+    """Same seed, same choice, same plan: auto's run in a fresh process twice, and the run of the
+    planner it picked with that seed, are one and the same (but for the measured times)."""
+    lib = PlannerLibrary.load()
+    scene = load_scenes(SCENES)["table_obstacle"]
+    ctx = RunContext(lib, {"t": scene.model}, {"t": scene.queries}, 0.005, 300, "length",
+                     lambda arm: lib.create("auto", criterion="length").prepare(arm))  # type: ignore[attr-defined]
+    recs: list[RunRecord] = []
+    run_all(ctx, [RunTask("t", 0, "auto", 5), RunTask("t", 0, "auto", 5)], 2, recs.append)
+    picked = recs[0].used
+    run_all(ctx, [RunTask("t", 0, picked, 5)], 1, recs.append)
+
+    def same(r: RunRecord) -> tuple[object, ...]:
+        return (r.success, r.sum_P, r.sum_A, r.duration_s, r.waypoints, r.iterations, r.checks, r.used)
+
+    assert recs[0].success and picked != "auto"
+    assert same(recs[0]) == same(recs[1]) == same(recs[2]), recs
