@@ -282,6 +282,7 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--json", action="store_true")
     bp.add_argument("--seeds", type=int, default=10)
     bp.add_argument("--no-equal-time", action="store_true", help="skip the equal-wall-time pass")
+    bp.add_argument("--choice", action="store_true", help="only planner: auto's model load and decision time")
     bp.set_defaults(func=_lazy("hilsim.planning.bench", "cmd_bench"))
     br = bsub.add_parser("rover", help="the rover scenario with navigation: lockstep real-time factor, laser rays/s")
     br.add_argument("--json", action="store_true")

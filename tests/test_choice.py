@@ -67,16 +67,20 @@ def _report(train: object, test: object, planners: list[str]) -> dict[str, dict[
 
 def test_the_choice_beats_a_fixed_planner_on_scenes_it_never_saw() -> None:
     """Trained on the shipped data set's training scenes, the choice scores better on its test scenes
-    than the single planner best on the training scenes (HyperPlan's choice), under every criterion;
-    trained on features shuffled across the queries it does not."""
+    than every single planner, even the one best on those test scenes, under every criterion; trained
+    on features shuffled across the queries (the model then knows nothing of the query) it does not."""
     train, test, planners = _shipped_table()
+
+    def gains(rep: dict[str, dict[str, float]]) -> dict[str, float]:
+        """Per criterion: how much better than the best single planner on the test scenes."""
+        return {c: min(r[p] for p in planners) - r["auto"] for c, r in rep.items()}
+
     rep = _report(train, test, planners)
-    for c, r in rep.items():
-        assert r["auto"] < r["hyperplan"] - 0.02, (c, r)
+    assert all(g > 0.02 for g in gains(rep).values()), rep
     shuffled = train.subset(np.arange(len(train.keys)))  # type: ignore[attr-defined]
     shuffled.X = shuffled.X[np.random.default_rng(0).permutation(len(shuffled.X))]
     blind = _report(shuffled, test, planners)
-    assert not all(r["auto"] < r["hyperplan"] - 0.02 for r in blind.values()), blind
+    assert not any(g > 0.02 for g in gains(blind).values()), blind
 
 
 def test_auto_decides_deterministically_and_falls_back(monkeypatch: pytest.MonkeyPatch) -> None:

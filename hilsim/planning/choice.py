@@ -223,6 +223,7 @@ class Decision:
 
 
 _FEATURES: weakref.WeakKeyDictionary[ArmModel, FeatureModel] = weakref.WeakKeyDictionary()
+_WARM: weakref.WeakSet[ArmModel] = weakref.WeakSet()  # collision models a decision was made for
 
 
 def feature_model(arm: ArmModel) -> FeatureModel:
@@ -260,8 +261,14 @@ class AutoPlanner:
                                      "is in the library")
 
     def prepare(self, arm: ArmModel) -> None:
-        """Build the world's feature model before the first goal (its scene features take a few ms)."""
-        feature_model(arm)
+        """Before the first goal: build the world's feature model (its scene features take a few ms)
+        and decide once, so that the first real decision is as quick as the others (the first call of
+        every code path costs more). Once per collision model."""
+        if arm in _WARM:
+            return
+        mid = (arm.lower + arm.upper) / 2
+        self.decide(arm, mid, np.clip(mid + 0.5, arm.lower, arm.upper))
+        _WARM.add(arm)
 
     def decide(self, arm: ArmModel, start: np.ndarray, goal: np.ndarray) -> Decision:
         fm = feature_model(arm)  # built once per collision model (prepare), not part of a decision
