@@ -551,6 +551,8 @@ class PlannerService(Service):
             # the measured state, a step of at most 2 tolerances.
             start = anchor
         planner = self.library.create(goal.planner, criterion=self.criterion)
+        if hasattr(planner, "prepare"):  # auto named by a goal, not the default: ready it (once)
+            planner.prepare(self.plan_arm)
         if self.lockstep:
             budget: dict[str, Any] = {
                 "max_iterations": self.iterations,
