@@ -202,7 +202,7 @@ def train_model(rows: list[dict[str, str]], scenes: dict[str, Scene], planners: 
         "features": list(FEATURES),
         "criteria": list(CRITERIA),
         "score": {"fail_score": FAIL_SCORE, "time_weight_per_s": TIME_WEIGHT, "check_s": CHECK_S},
-        "forest": dict(FOREST, kind="sklearn.ensemble.RandomForestRegressor", random_state=seed, n_jobs=1),
+        "forest": dict(FOREST, kind="sklearn.ensemble.ExtraTreesRegressor", random_state=seed, n_jobs=1),
         "scenes": {n: {"kind": s.kind or "shipped", "queries": len(s.queries),
                        "split": "test" if n in test_names else "train"} for n, s in scenes.items()},
         "train_queries": len(train.keys),
