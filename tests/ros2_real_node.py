@@ -168,7 +168,9 @@ def main() -> int:
                        "accel_norm": math.sqrt(m.linear_acceleration.x**2 + m.linear_acceleration.y**2
                                                + m.linear_acceleration.z**2)}
     if "robot_description" in last:
-        seen["robot_description"] = last["robot_description"].data[:200]
+        text = last["robot_description"].data
+        seen["robot_description"] = {"bytes": len(text), "robot": "<robot " in text,
+                                     "whole": text.rstrip().endswith("</robot>")}
     for k in ("odom", "truth_odom"):
         if k in last:
             m = last[k]
