@@ -256,6 +256,7 @@ def build_parser() -> argparse.ArgumentParser:
     b2.add_argument("--json", action="store_true")
     b2.add_argument("--count", type=int, default=5000, help="samples per writer")
     b2.add_argument("--rate", type=float, default=1000.0, help="samples per second")
+    b2.add_argument("--repeat", type=int, default=3, help="passes of each writer, interleaved (the best is kept)")
     b2.add_argument("--python", default=".venv-ros2/kilted/bin/python",
                     help="a ROS 2 Python with rclpy (default: .venv-ros2/kilted, made by scripts/ros2-venvs.sh)")
     b2.add_argument("--inside", action="store_true", help=argparse.SUPPRESS)
