@@ -120,6 +120,20 @@ def default_to_dds(sc: Scenario) -> list[str]:
     return out
 
 
+_DOMAINS: dict[int, Any] = {}  # one Cyclone domain per id in a process (a fleet's bridges, composed)
+_DOMAINS_LOCK = threading.Lock()
+
+
+def _shared_domain(domain_id: int, xml: str) -> Any:
+    """The process's Cyclone domain ``domain_id``, made with ``xml`` by the first bridge that asks (Cyclone
+    refuses a second one of the same id); kept while a participant lives in it."""
+    with _DOMAINS_LOCK:
+        d = _DOMAINS.get(domain_id)
+        if d is None:
+            d = _DOMAINS[domain_id] = Domain(domain_id, xml)
+        return d
+
+
 # ------------------------------------------------------------------------------ QoS on DDS
 def dds_qos(q: wire.Qos, *, reader: bool = False, ros_type: str | None = None) -> Qos:
     # a writer never waits for a slow DDS reader (max_blocking_time 0): the simulation does not run at the
@@ -216,7 +230,7 @@ class Ros2DdsBridgeService(Service):
     # ---------------------------------------------------------------- wiring
     def setup(self) -> None:
         assert self.session is not None
-        self._domain = Domain(self.domain_id, self.discovery.xml)
+        self._domain = _shared_domain(self.domain_id, self.discovery.xml)
         # a ROS 2 participant says its enclave in USER_DATA (rmw_dds_common): how the RMWs tell one from a bare DDS app
         pq = Qos(Policy.Userdata(participant_user_data(self.sc.ros2.enclave)))
         self.dp = DomainParticipant(self.domain_id, qos=pq)

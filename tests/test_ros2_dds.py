@@ -217,3 +217,26 @@ def remote_endpoints(trace: str) -> dict[tuple[str, str], tuple[str, str, str, i
                               {"0": "volatile", "1": "transient local"}.get(dur, dur), int(depth),
                               "XCDR1" if rep == "0" else rep)
     return out
+
+
+def test_one_overlay_adds_the_bridge_to_any_scenario() -> None:
+    """``services+: [bridge-ros2-dds]``: the scenario's own services and the bridge, whatever they are."""
+    arm, rover = (load_scenario(n, overlays=[OVERLAY]) for n in ("arm", "rover"))
+    assert arm.services == ["physics", "sensors", "controller", "planner", "logger", "bridge-ros2-dds"]
+    assert rover.services == ["physics", "sensors", "controller", "navigator", "logger", "bridge-ros2-dds"]
+    fleet = load_scenario("arm", {"robots": 2}, overlays=[OVERLAY])
+    assert [p for p in fleet.processes() if p.startswith("bridge")] == ["bridge-ros2-dds@arm0", "bridge-ros2-dds@arm1"]
+    # what each robot's bridge offers by default: what it publishes
+    assert ros2_dds.default_to_dds(arm) == ["joint_states", "tf", "/tf_static", "/clock", "robot_description", "imu"]
+    assert {"scan", "odom"} <= set(ros2_dds.default_to_dds(rover)) and "gps/fix" not in ros2_dds.default_to_dds(rover)
+
+
+@pytest.mark.e2e
+def test_a_fleet_runs_a_bridge_per_robot_in_one_process(tmp_path: Path) -> None:
+    with network_namespace("ddsfleet") as ns:
+        out = subprocess.run(["ip", "netns", "exec", ns, sys.executable, "-m", "hilsim.cli", "up", "arm", "--set",
+                              "robots=2", "--hil", str(OVERLAY), "--duration", "0.2", "--out", str(tmp_path / "run")],
+                             capture_output=True, text=True, cwd=tmp_path, timeout=240)
+    log = "".join(p.read_text() for p in (tmp_path / "run").glob("bridge-ros2-dds*.log"))
+    assert out.returncode == 3 and "died" not in out.stdout, out.stdout[-3000:]  # STOPPED (duration), nothing failed
+    assert "as node /arm0/bridge_ros2_dds" in log and "as node /arm1/bridge_ros2_dds" in log, log
