@@ -13,7 +13,7 @@
     hilsim plan evaluate --scenes FILE [--planners NAMES] [--criterion C] [--json]
     hilsim plan learn [--out DIR] [--seed N] [--scenes N] [--queries K] [--seeds S] [--train-only]
     hilsim plan scenes --out DIR [--count N] [--seed S] [--queries K]
-    hilsim bench loop|plan|can|mavlink|rover [--json]
+    hilsim bench loop|plan|can|mavlink|rover|ros2 [--json]
     hilsim bench scale [--robots 1,2,4,8] [--subscribers 0,4] [--sim-seconds S] [--repeat K] [--compose] [--json]
     hilsim report step ROBOT [--joints J,…] [--step RAD] [--speed RAD/S] [--json]
     hilsim inertia FILE [--link NAME] [--urdf FILE] [--json]
@@ -284,6 +284,15 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--no-equal-time", action="store_true", help="skip the equal-wall-time pass")
     bp.add_argument("--choice", action="store_true", help="only planner: auto's model load and decision time")
     bp.set_defaults(func=_lazy("hilsim.planning.bench", "cmd_bench"))
+    b2 = bsub.add_parser("ros2", help="the ROS 2 bridge's DDS writes: Cyclone DDS (bridge-ros2-dds) vs rclpy")
+    b2.add_argument("--json", action="store_true")
+    b2.add_argument("--count", type=int, default=5000, help="samples per writer")
+    b2.add_argument("--rate", type=float, default=1000.0, help="samples per second")
+    b2.add_argument("--repeat", type=int, default=3, help="passes of each writer, interleaved (the best is kept)")
+    b2.add_argument("--python", default=".venv-ros2/kilted/bin/python",
+                    help="a ROS 2 Python with rclpy (default: .venv-ros2/kilted, made by scripts/ros2-venvs.sh)")
+    b2.add_argument("--inside", action="store_true", help=argparse.SUPPRESS)
+    b2.set_defaults(func=_lazy("hilsim.tools.bench_ros2", "cmd_ros2"))
     br = bsub.add_parser("rover", help="the rover scenario with navigation: lockstep real-time factor, laser rays/s")
     br.add_argument("--json", action="store_true")
     br.add_argument("--sim-seconds", type=float, default=20.0)
