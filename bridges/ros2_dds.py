@@ -43,12 +43,10 @@ counts and ``matched:`` peers, ``loop_dropped``, ``dds_write_failed``), ``log/br
 
 from __future__ import annotations
 
-import os
 import threading
 from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import cache
 from typing import Any, Literal
 
 import zenoh
@@ -59,32 +57,22 @@ import zenoh.ext as zenoh_ext
 from cyclonedds._clayer import ddspy_take, ddspy_write
 from cyclonedds.core import InstanceState, Policy, Qos, ReadCondition, SampleState, ViewState, WaitSet
 from cyclonedds.domain import Domain, DomainParticipant
-from cyclonedds.idl import IdlStruct, make_idl_struct
-from cyclonedds.idl import types as idl
 from cyclonedds.pub import DataWriter
 from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 from pydantic import BaseModel, ConfigDict, Field
 
+from hilsim.bridges import dds_discovery
+from hilsim.bridges.dds_graph import GraphAnnouncer, participant_user_data
+from hilsim.bridges.dds_types import dds_struct, user_data
 from hilsim.bridges.link import OncePer
 from hilsim.core import keys as keyscheme
-from hilsim.core import msgs, transport
+from hilsim.core import msgs, registry, transport
 from hilsim.core.config import ConfigError, Scenario
 from hilsim.core.ros2 import types as ros2types
 from hilsim.core.ros2 import wire
 from hilsim.core.service import Publisher, Service
-
-#: Cyclone DDS on this machine only: no interface but loopback, no multicast, discovery by unicast
-#: to the ports of participant indices 0..MaxAutoParticipantIndex on 127.0.0.1 (so ParticipantIndex
-#: auto, each participant taking a free one). A lab sets CYCLONEDDS_URI instead (docs/ros2.md).
-LOOPBACK_CONFIG = (
-    '<CycloneDDS><Domain Id="any">'
-    '<General><Interfaces><NetworkInterface name="lo"/></Interfaces><AllowMulticast>false</AllowMulticast></General>'
-    "<Discovery><ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>32</MaxAutoParticipantIndex>"
-    '<Peers><Peer address="127.0.0.1"/></Peers></Discovery>'
-    "</Domain></CycloneDDS>"
-)
 
 QosName = Literal["default", "sensor_data", "clock", "tf", "latched"]
 PROFILES: dict[str, wire.Qos] = {
@@ -101,14 +89,15 @@ TOPIC_QOS: dict[str, QosName] = {"scan": "sensor_data", "imu": "sensor_data", "g
                                  "robot_description": "latched"}
 CLOCK = "/clock"
 TAKE_AT_ONCE = 64  # samples taken from one reader per wake-up
+DDS_RETCODE_TIMEOUT = -10  # dds_write's answer when a reliable reader is too far behind
 
 
 class Ros2DdsConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    to_dds: list[str] = Field(
-        default_factory=lambda: ["joint_states", "odom", "scan", "imu", "gps/fix", "tf", CLOCK],
-        description="topics republished on DDS: the robot's (relative to its namespace, as in docs/keys.md) "
-                    "or the simulation's (/clock; tf is the robot's or /tf, wherever docs/keys.md puts it)")
+    to_dds: list[str] | None = Field(
+        None, description="topics republished on DDS: the robot's (relative to its namespace, as in docs/keys.md) "
+                          "or the simulation's (/clock; tf is the robot's or /tf, wherever docs/keys.md puts it); "
+                          "default: what the scenario's robot publishes (default_to_dds)")
     from_dds: list[str] = Field(default_factory=lambda: ["cmd_vel", "joint_trajectory"],
                                 description="the robot's topics taken from DDS onto their Zenoh keys")
     qos: dict[str, QosName] = Field(default_factory=dict, description="per topic, over the defaults (sensor_data "
@@ -116,48 +105,47 @@ class Ros2DdsConfig(BaseModel):
                                     "robot_description; else default)")
 
 
-# ------------------------------------------------------------------------------ ROS 2 types on DDS
-_PRIMITIVE: dict[str, Any] = {
-    "bool": bool, "byte": idl.byte, "char": idl.uint8, "int8": idl.int8, "uint8": idl.uint8,
-    "int16": idl.int16, "uint16": idl.uint16, "int32": idl.int32, "uint32": idl.uint32,
-    "int64": idl.int64, "uint64": idl.uint64, "float32": idl.float32, "float64": idl.float64, "string": str,
-}
+def default_to_dds(sc: Scenario) -> list[str]:
+    """What a ROS 2 user of this scenario's robot reads: its encoders and frames, the clock, its
+    description, its enabled sensors' outputs (imu, scan, gps/fix), and the wheel odometry of a
+    mobile base's controller."""
+    out = ["joint_states", "tf", "/tf_static", CLOCK, "robot_description"]
+    for s in sc.sensors.values():
+        if s.enabled:
+            topic = registry.load("sensors", s.type).output_topic
+            if topic not in out:
+                out.append(topic)
+    if "odom" in getattr(registry.service_class("controller", sc), "writes_topics", ()):
+        out.append("odom")
+    return out
 
 
-@cache
-def dds_struct(ros_type: str) -> type[IdlStruct]:
-    """The cyclonedds type of a ROS 2 message (``nav_msgs/msg/Odometry`` -> ``nav_msgs::msg::dds_::Odometry_``),
-    field for field after its definition in :mod:`hilsim.core.ros2.types` (nested types likewise)."""
-    members: dict[str, Any] = {}
-    for f in ros2types.fields(ros_type):
-        if f.is_nested:
-            t: Any = dds_struct(f.type)
-        elif f.type == "string" and f.string_bound:
-            t = idl.bounded_str[f.string_bound]
-        elif f.type in _PRIMITIVE:
-            t = _PRIMITIVE[f.type]
-        else:
-            raise ValueError(f"{ros_type}.{f.name}: type {f.type} has no DDS mapping here")
-        if f.container == "array":
-            t = idl.array[t, f.size]
-        elif f.container == "sequence":
-            t = idl.sequence[t]
-        elif f.container == "bounded_sequence":
-            t = idl.sequence[t, f.size]
-        members[f.name] = t
-    if not members:  # rosidl gives an empty struct this member
-        members["structure_needs_at_least_one_member"] = idl.uint8
-    dds_name = ros2types.dds_type_name(ros_type)
-    return make_idl_struct(dds_name.rsplit("::", 1)[-1], dds_name, members)
+_DOMAINS: dict[int, Any] = {}  # one Cyclone domain per id in a process (a fleet's bridges, composed)
+_DOMAINS_LOCK = threading.Lock()
 
 
-def dds_qos(q: wire.Qos, *, reader: bool = False) -> Qos:
-    reliability = (Policy.Reliability.Reliable(duration(milliseconds=100)) if q.reliability == wire.Reliability.RELIABLE
+def _shared_domain(domain_id: int, xml: str) -> Any:
+    """The process's Cyclone domain ``domain_id``, made with ``xml`` by the first bridge that asks (Cyclone
+    refuses a second one of the same id); kept while a participant lives in it."""
+    with _DOMAINS_LOCK:
+        d = _DOMAINS.get(domain_id)
+        if d is None:
+            d = _DOMAINS[domain_id] = Domain(domain_id, xml)
+        return d
+
+
+# ------------------------------------------------------------------------------ QoS on DDS
+def dds_qos(q: wire.Qos, *, reader: bool = False, ros_type: str | None = None) -> Qos:
+    # a writer never waits for a slow DDS reader (max_blocking_time 0): the simulation does not run at the
+    # pace of a lab's node; what such a reader could not take in time is dropped for it, and counted
+    reliability = (Policy.Reliability.Reliable(duration(seconds=0)) if q.reliability == wire.Reliability.RELIABLE
                    else Policy.Reliability.BestEffort)
     durability = (Policy.Durability.TransientLocal if q.durability == wire.Durability.TRANSIENT_LOCAL
                   else Policy.Durability.Volatile)
     history = Policy.History.KeepAll if q.history == wire.History.KEEP_ALL else Policy.History.KeepLast(q.depth)
     policies = [reliability, durability, history, Policy.DataRepresentation(use_cdrv0_representation=True)]
+    if ros_type is not None:  # the ROS 2 type hash, where rclpy's graph reads it
+        policies.append(Policy.Userdata(user_data(ros_type)))
     if reader:
         policies.append(Policy.IgnoreLocal.Participant)  # never what this bridge wrote itself
     return Qos(*policies)
@@ -189,23 +177,28 @@ class Ros2DdsBridgeService(Service):
         super().__init__(scenario)
         where = f"{scenario.source or 'scenario'}: {self.name}"
         self.domain_id = self.keys.domain
-        self.out = [self._route(n, f"{where}.to_dds") for n in self.cfg.to_dds]
+        to_dds = default_to_dds(scenario) if self.cfg.to_dds is None else self.cfg.to_dds
+        self.out = [self._route(n, f"{where}.to_dds") for n in to_dds]
         self.inn = [self._route(n, f"{where}.from_dds") for n in self.cfg.from_dds]
         for r in self.inn:
             if r.key == self.keys.clock or r.name.startswith("truth/"):
                 raise ConfigError(f"{where}.from_dds: {r.name} is written by physics; a second writer from DDS "
                                   f"would fight it")
-        for names, what in ((self.cfg.to_dds, "to_dds"), (self.cfg.from_dds, "from_dds")):
+        for names, what in ((to_dds, "to_dds"), (self.cfg.from_dds, "from_dds")):
             if len(set(names)) != len(names):
                 raise ConfigError(f"{where}.{what}: a topic is listed twice")
         unknown = sorted(set(self.cfg.qos) - {r.name for r in [*self.out, *self.inn]})
         if unknown:
             raise ConfigError(f"{where}.qos: {', '.join(unknown)} not in to_dds or from_dds")
-        self.uri = os.environ.get("CYCLONEDDS_URI", "").strip()
+        try:
+            self.discovery = dds_discovery.discovery()
+        except ConfigError as e:
+            raise ConfigError(f"{where}: {e}") from None
         self._said = OncePer(self.WARN_EVERY)
         self._dds_lock = threading.Lock()  # DDS entities exist while held and _dds_open
         self._dds_open = False
         self._domain: Any = None
+        self._graph: GraphAnnouncer | None = None
         self.dp: Any = None
         self._topics: dict[str, Any] = {}
         self._own_gids: set[bytes] = set()  # this bridge's Zenoh publishers: never back to DDS
@@ -214,6 +207,7 @@ class Ros2DdsBridgeService(Service):
         self.dds_in: Counter[str] = Counter()
         self.loop_dropped = 0
         self.write_failed = 0
+        self.slow_dropped: Counter[str] = Counter()
 
     def _route(self, name: str, where: str) -> Route:
         bare = name.lstrip("/")
@@ -236,18 +230,22 @@ class Ros2DdsBridgeService(Service):
     # ---------------------------------------------------------------- wiring
     def setup(self) -> None:
         assert self.session is not None
-        if self.uri:
-            self.dp = DomainParticipant(self.domain_id)  # Cyclone reads CYCLONEDDS_URI itself
-        else:
-            self._domain = Domain(self.domain_id, LOOPBACK_CONFIG)
-            self.dp = DomainParticipant(self.domain_id)
+        self._domain = _shared_domain(self.domain_id, self.discovery.xml)
+        # a ROS 2 participant says its enclave in USER_DATA (rmw_dds_common): how the RMWs tell one from a bare DDS app
+        pq = Qos(Policy.Userdata(participant_user_data(self.sc.ros2.enclave)))
+        self.dp = DomainParticipant(self.domain_id, qos=pq)
         for r in self.out:
-            r.writer = DataWriter(self.dp, self._topic(r), qos=dds_qos(PROFILES[r.qos]))
+            r.writer = DataWriter(self.dp, self._topic(r), qos=dds_qos(PROFILES[r.qos], ros_type=self._ros_type(r)))
             self._own_writers.add(r.writer.get_instance_handle())
         for r in self.inn:
             r.pub = self.publisher(r.key)
             self._own_gids.add(r.pub.gid)
-            r.reader = DataReader(self.dp, self._topic(r), qos=dds_qos(PROFILES[r.qos], reader=True))
+            r.reader = DataReader(self.dp, self._topic(r),
+                                  qos=dds_qos(PROFILES[r.qos], reader=True, ros_type=self._ros_type(r)))
+        # the ROS 2 graph: one node, /<robot>/bridge_ros2_dds, holding every reader and writer
+        self._graph = GraphAnnouncer(self.dp)
+        self._graph.announce([(self.keys.namespace, self.node_name, [r.reader for r in self.inn],
+                               [r.writer for r in self.out])])
         self._dds_open = True
         # Zenoh -> DDS: the payloads as they are (no decode), from announced writers only
         local = getattr(self.session, "local_subscriber", None)
@@ -264,9 +262,14 @@ class Ros2DdsBridgeService(Service):
             r.decls.append(self.session.liveliness().declare_token(self.graph_token("MS", r.key, qos)))
             if local is not None:  # composed (hilsim.run.compose): the process's own services' messages
                 r.decls.append(local(r.key, lambda k, m, att, r=r: self._to_dds(r, k, msgs.encode(m), att)))
-        self.log.info("DDS domain %d (%s): to DDS %s; from DDS %s", self.domain_id,
-                      "CYCLONEDDS_URI" if self.uri else "loopback only", ", ".join(r.dds_topic for r in self.out),
+        self.log.info("DDS domain %d (%s) as node %s/%s: to DDS %s; from DDS %s", self.domain_id,
+                      self.discovery.said, self.keys.namespace.rstrip("/"), self.node_name,
+                      ", ".join(r.dds_topic for r in self.out),
                       ", ".join(r.dds_topic for r in self.inn) or "nothing")
+
+    @staticmethod
+    def _ros_type(r: Route) -> str:
+        return msgs.type_name(r.cls)
 
     def _topic(self, r: Route) -> Any:
         t = self._topics.get(r.dds_topic)
@@ -304,7 +307,12 @@ class Ros2DdsBridgeService(Service):
                 return
             rc = ddspy_write(r.writer._ref, data)
         with self.lock:
-            if rc < 0:
+            if rc == DDS_RETCODE_TIMEOUT:  # a reliable reader that has not acknowledged enough yet
+                self.slow_dropped[r.dds_topic] += 1
+                if self._said.due(f"slow:{r.dds_topic}"):
+                    self.warn(f"a DDS reader of {r.dds_topic} is too slow: {self.slow_dropped[r.dds_topic]} samples "
+                              "dropped for it so far (the simulation does not wait for DDS)")
+            elif rc < 0:
                 self.write_failed += 1
                 if self._said.due(f"write:{r.dds_topic}"):
                     self.warn(f"DDS write on {r.dds_topic} failed (return code {rc}, {self.write_failed} so far): "
@@ -357,11 +365,13 @@ class Ros2DdsBridgeService(Service):
     # ---------------------------------------------------------------- reporting, end
     def health_values(self) -> dict[str, Any]:
         v: dict[str, Any] = {"dds_domain": self.domain_id,
-                             "dds_config": "CYCLONEDDS_URI" if self.uri else "loopback only",
+                             "dds_config": self.discovery.said,
                              "loop_dropped": self.loop_dropped, "dds_write_failed": self.write_failed}
         for r in self.out:
             v[f"dds_out:{r.dds_topic}"] = self.dds_out[r.dds_topic]
             v[f"matched:{r.dds_topic}"] = self._matched(r.writer)
+            if self.slow_dropped[r.dds_topic]:
+                v[f"slow_reader_dropped:{r.dds_topic}"] = self.slow_dropped[r.dds_topic]
         for r in self.inn:
             v[f"dds_in:{r.dds_topic}"] = self.dds_in[r.dds_topic]
             v[f"matched_writers:{r.dds_topic}"] = self._matched(r.reader)
@@ -390,5 +400,6 @@ class Ros2DdsBridgeService(Service):
             for r in [*self.out, *self.inn]:
                 r.writer = r.reader = None
             self._topics.clear()
+            self._graph = None
             self.dp = None  # deleting the participant deletes what is left of it
             self._domain = None

@@ -10,7 +10,10 @@
     hilsim goal ROBOT --joints J1 … | --pose X Y Z [R P Y] | --xy X Y [--yaw THETA]
     hilsim gains ROBOT JOINT.GAIN=VALUE …
     hilsim plan evaluate --targets FILE [--criterion length|smoothness|weighted]
-    hilsim bench loop|plan|can|mavlink|rover [--json]
+    hilsim plan evaluate --scenes FILE [--planners NAMES] [--criterion C] [--json]
+    hilsim plan learn [--out DIR] [--seed N] [--scenes N] [--queries K] [--seeds S] [--train-only]
+    hilsim plan scenes --out DIR [--count N] [--seed S] [--queries K]
+    hilsim bench loop|plan|can|mavlink|rover|ros2 [--json]
     hilsim bench scale [--robots 1,2,4,8] [--subscribers 0,4] [--sim-seconds S] [--repeat K] [--compose] [--json]
     hilsim report step ROBOT [--joints J,…] [--step RAD] [--speed RAD/S] [--hil FILE] [--json]
     hilsim identify SCENARIO|RUN_DIR --joints J[,…] [--write FILE] [--json]
@@ -208,7 +211,35 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--csv", help="CSV path; the recording goes next to it (default: OUT/plan_evaluate.csv)")
     ev.add_argument("--out", help="output directory (default runs/<timestamp>-plan-evaluate)")
     ev.add_argument("--execute", action="store_true")
+    ev.add_argument("--scenes", help="a scenes file (config/scenes/scenes.yaml's format): every query with every "
+                    "planner of --planners, compared (instead of --targets)")
+    ev.add_argument("--planners", help="with --scenes: comma-separated library names, and auto (the learned "
+                    "choice) and oracle (each query's best of the others); default every planner, auto and oracle")
+    ev.add_argument("--seeds", type=int, default=2, help="with --scenes: runs per query and planner (default 2)")
+    ev.add_argument("--jobs", type=int, help="with --scenes: worker processes (default: every core)")
+    ev.add_argument("--json", action="store_true", help="with --scenes: the figures as one JSON object, last line")
+    ev.add_argument("--runs", help="with --scenes: keep every run in this CSV, and take the library planners' runs "
+                    "already there from it (resumable)")
     ev.set_defaults(func=_lazy("hilsim.tools.evaluate", "cmd_evaluate"))
+    le = psub.add_parser("learn", help="the planner choice (planner: auto): a data set of planner runs, its model")
+    le.add_argument("--out", default="models/planner_choice",
+                    help="directory (default models/planner_choice: what planner: auto loads)")
+    le.add_argument("--seed", type=int, default=0, help="scenes, queries, split and model (default 0)")
+    le.add_argument("--scenes", type=int, default=18, help="random scenes besides the shipped ones (default 18)")
+    le.add_argument("--queries", type=int, default=6, help="sampled queries per scene (default 6)")
+    le.add_argument("--seeds", type=int, default=1, help="runs of each planner on each query (default 1)")
+    le.add_argument("--planners", help="comma-separated (default: the library's, auto aside)")
+    le.add_argument("--iterations", type=int, help="iteration budget per run (default: the library's)")
+    le.add_argument("--jobs", type=int, help="worker processes (default: every core)")
+    le.add_argument("--train-only", action="store_true", help="only the model, from OUT/data.csv as it is")
+    le.set_defaults(func=_lazy("hilsim.tools.learn", "cmd_learn"))
+    sc = psub.add_parser("scenes", help="random planning scenes with sampled queries (a scenes file)")
+    sc.add_argument("--out", required=True, help="directory: DIR/scenes.yaml and DIR/scenes/*.xml")
+    sc.add_argument("--count", type=int, default=12, help="scenes (default 12)")
+    sc.add_argument("--seed", type=int, default=1000, help="default 1000 (plan learn's scenes use --seed 0)")
+    sc.add_argument("--queries", type=int, default=6, help="queries per scene (default 6)")
+    sc.add_argument("--prefix", default="gen", help="scene names: PREFIX<seed>_<k>_<kind> (default gen)")
+    sc.set_defaults(func=_lazy("hilsim.tools.learn", "cmd_scenes"))
 
     bench = sub.add_parser("bench", help="benchmarks (figures and ratios against an in-run baseline)")
     bsub = bench.add_subparsers(dest="bench_cmd", required=True)
@@ -252,7 +283,17 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--json", action="store_true")
     bp.add_argument("--seeds", type=int, default=10)
     bp.add_argument("--no-equal-time", action="store_true", help="skip the equal-wall-time pass")
+    bp.add_argument("--choice", action="store_true", help="only planner: auto's model load and decision time")
     bp.set_defaults(func=_lazy("hilsim.planning.bench", "cmd_bench"))
+    b2 = bsub.add_parser("ros2", help="the ROS 2 bridge's DDS writes: Cyclone DDS (bridge-ros2-dds) vs rclpy")
+    b2.add_argument("--json", action="store_true")
+    b2.add_argument("--count", type=int, default=5000, help="samples per writer")
+    b2.add_argument("--rate", type=float, default=1000.0, help="samples per second")
+    b2.add_argument("--repeat", type=int, default=3, help="passes of each writer, interleaved (the best is kept)")
+    b2.add_argument("--python", default=".venv-ros2/kilted/bin/python",
+                    help="a ROS 2 Python with rclpy (default: .venv-ros2/kilted, made by scripts/ros2-venvs.sh)")
+    b2.add_argument("--inside", action="store_true", help=argparse.SUPPRESS)
+    b2.set_defaults(func=_lazy("hilsim.tools.bench_ros2", "cmd_ros2"))
     br = bsub.add_parser("rover", help="the rover scenario with navigation: lockstep real-time factor, laser rays/s")
     br.add_argument("--json", action="store_true")
     br.add_argument("--sim-seconds", type=float, default=20.0)

@@ -40,5 +40,9 @@ if command -v podman >/dev/null && command -v mmdebstrap >/dev/null; then
   CONTAINERS_CONF="${CONTAINERS_CONF:-$PWD/config/podman/containers.conf}" bash docker/build-offline.sh --base-only \
     || echo "scripts/test.sh: could not build the base image (docker/build-offline.sh --base-only)" >&2
 fi
+# real ROS 2 (Kilted and Jazzy rclpy wheels) for tests/test_ros2_real.py, in venvs of their own, installed
+# beside the suite (mostly downloads); the tests that need them wait for them
+mkdir -p .venv-ros2
+bash scripts/ros2-venvs.sh > .venv-ros2/install.log 2>&1 &
 .venv/bin/ruff check .
 exec .venv/bin/python -m pytest -q "$@"

@@ -99,6 +99,8 @@ class Goal:
     traj_msg: msgs.JointTrajectory = field(default_factory=msgs.JointTrajectory)
     planning_wall: float = 0.0
     invalid: tuple[int, str] | None = None  # a task target that fails validation: reported in turn
+    used: str = ""  # the planner that plans (planner: auto: the one it picked), once known
+    choice: str = ""  # planner: auto: what it picked and why
 
 
 class PlannerService(Service):
@@ -129,10 +131,14 @@ class PlannerService(Service):
         self.library = PlannerLibrary.load(scenario.planner.library)
         self.iterations = scenario.planner.iterations or self.library.iterations
         self.default_planner = scenario.planner.planner
-        self.library.create(self.default_planner)  # an unknown default is a configuration error at start
+        self.criterion = scenario.planner.criterion  # what planner: auto chooses for
+        # an unknown default is a configuration error at start
+        default = self.library.create(self.default_planner, criterion=self.criterion)
         # one model for the query handlers (validation, IK), one for the planning worker
         self.arm = ArmModel(scenario.world.model, scenario.planner.clearance)
         self.plan_arm = ArmModel(scenario.world.model, scenario.planner.clearance, self.arm.joint_names)
+        if hasattr(default, "prepare"):  # planner: auto builds its world's features now, not on the first goal
+            default.prepare(self.plan_arm)
         self.n = self.arm.n
         self.vmax, self.amax, self.jmax = self.library.joint_limits(self.n, self.arm.velocity_limits())
         self.q: np.ndarray | None = None  # latest measured joint positions (model order)
@@ -257,7 +263,7 @@ class PlannerService(Service):
             return self._reject(f"INVALID_GOAL: goal id {gid!r} is reserved for the scenario task", gid)
         name = g.planner or self.default_planner
         try:
-            self.library.create(name)
+            self.library.create(name, criterion=self.criterion)
         except (UnknownPlanner, PlannerConfigError) as e:
             return self._reject(f"INVALID_GOAL: {e}", gid)
         q, reason = self._target_of(g)
@@ -342,7 +348,8 @@ class PlannerService(Service):
             trajectory=goal.traj_msg,
             planning_time=goal.planning_wall,
             execution_error=err,
-            planner=goal.planner,
+            planner=goal.used or goal.planner,
+            choice=goal.choice,
         )
         self.pub_result.put(result)
         action_id = self.action_goals.pop(goal.goal_id, None)
@@ -393,7 +400,8 @@ class PlannerService(Service):
 
     def _feedback(self, goal: Goal, progress: float, now_ns: int) -> None:
         goal.last_feedback_ns = now_ns
-        fb = msgs.MoveFeedback(header=msgs.header(now_ns), goal_id=goal.goal_id, state=goal.state, progress=progress)
+        fb = msgs.MoveFeedback(header=msgs.header(now_ns), goal_id=goal.goal_id, state=goal.state, progress=progress,
+                               planner=goal.used or goal.planner, choice=goal.choice)
         self.pub_feedback.put(fb)
         action_id = self.action_goals.get(goal.goal_id)
         if action_id is not None and self.move is not None:
@@ -542,7 +550,9 @@ class PlannerService(Service):
             # last target (which was validated): plan from that target; the first waypoint stays
             # the measured state, a step of at most 2 tolerances.
             start = anchor
-        planner = self.library.create(goal.planner)
+        planner = self.library.create(goal.planner, criterion=self.criterion)
+        if hasattr(planner, "prepare"):  # auto named by a goal, not the default: ready it (once)
+            planner.prepare(self.plan_arm)
         if self.lockstep:
             budget: dict[str, Any] = {
                 "max_iterations": self.iterations,
@@ -554,7 +564,8 @@ class PlannerService(Service):
             budget = {"max_iterations": self.sc.planner.iterations, "time_limit": goal.planning_time}
         seed = self.sc.seed + self.plans
         pb = Problem(self.plan_arm, start, goal.target, seed=seed, resolution=self.library.resolution,
-                     cancelled=lambda: goal.canceled, **budget)
+                     cancelled=lambda: goal.canceled, report=lambda used, why: self._chosen(goal, used, why, t),
+                     **budget)
         w0 = time.perf_counter()
         if np.max(np.abs(goal.target - start)) < 1e-6:
             out = PlanOutcome(np.array([start, goal.target]), "already there")
@@ -575,6 +586,8 @@ class PlannerService(Service):
         with self.lock:
             self.last_planning_time = wall
             goal.planning_wall = wall
+            goal.used = str(out.extra.get("planner", goal.planner))
+            goal.choice = str(out.extra.get("choice", ""))
             if out.wall_cap_hit:
                 self.warn(f"{goal.goal_id}: planning hit the wall-clock cap ({pb.time_limit:g} s): not deterministic")
             if goal.canceled or goal.state != "planning":
@@ -601,10 +614,19 @@ class PlannerService(Service):
             goal.state = "executing"
             self._feedback(goal, 0.0, t)
             self.log.info(
-                "%s: %s planned %d waypoints in %.3f s (%d iterations), trajectory %.2f s",
-                goal.goal_id, goal.planner, len(out.path), wall, out.iterations, traj.duration,
+                "%s: %s planned %d waypoints in %.3f s (%d iterations), trajectory %.2f s%s",
+                goal.goal_id, goal.used, len(out.path), wall, out.iterations, traj.duration,
+                f"; {goal.choice} (decided in {1e3 * out.extra.get('decision_s', 0.0):.1f} ms CPU)"
+                if goal.choice else "",
             )
         return start_ns
+
+    def _chosen(self, goal: Goal, used: str, why: str, t: int) -> None:
+        """planner: auto has chosen (before it plans): the goal's feedback says which planner and why."""
+        with self.lock:
+            goal.used, goal.choice = used, why
+            if goal.state == "planning" and not goal.canceled:
+                self._feedback(goal, 0.0, t)
 
 
 

@@ -103,6 +103,7 @@ class FourWheelSteerController(Service):
     name: ClassVar[str] = "controller"
     stop_rank: ClassVar[int] = 20
     ack_via: ClassVar[str] = "joint_commands"
+    writes_topics: ClassVar[tuple[str, ...]] = ("joint_commands", "odom")  # e.g. what a ROS 2 bridge offers
 
     @classmethod
     def lockstep_period(cls, sc: Scenario) -> int | None:

@@ -392,7 +392,8 @@ def test_sim_rate_sees_physics_behind_but_not_a_late_delivery() -> None:
 
 def test_an_interactive_run_takes_goals_until_ctrl_c(tmp_path: Path) -> None:
     """`hilsim up arm --interactive`: the task's targets are not run, the run stays up and says how to
-    stop it and what to try, a `hilsim goal` moves the arm there (judged by the physics truth), and
+    stop it and what to try, a `hilsim goal` (planned by the learned choice, `--planner auto`) moves the
+    arm there (judged by the physics truth), and
     Ctrl-C stops it cleanly: every service gone, exit code 0 (how such a run ends)."""
     ep = f"tcp/127.0.0.1:{transport.free_port()}"
     router = transport.open_router(ep)
@@ -407,8 +408,10 @@ def test_an_interactive_run_takes_goals_until_ctrl_c(tmp_path: Path) -> None:
         kids = children_of(p.pid)
         target = [0.3, 0.0, 0.0, 0.0, 0.0, 0.0]
         goal = subprocess.run([*HILSIM, "goal", "arm", "--joints", *map(str, target), "--connect", ep,
-                               "--timeout", "120"], capture_output=True, text=True, timeout=180)
+                               "--timeout", "120", "--planner", "auto"], capture_output=True, text=True, timeout=180)
         assert goal.returncode == 0 and "succeeded" in goal.stdout, goal.stdout + goal.stderr
+        # the learned choice said what it picked and why, in the feedback and in the result
+        assert goal.stdout.count("choice: auto (weighted): ") == 2, goal.stdout
         with obs.lock:
             last = np.array(obs.truth[-1][1]) if obs.truth else None
         assert last is not None and np.abs(last - target).max() <= 0.01 + 0.002, last  # the truth, not its word

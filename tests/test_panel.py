@@ -258,15 +258,21 @@ def test_browser_start_run_goal_gain_stop(tmp_path: Path, router: str) -> None:
                 for body in GARBAGE:
                     assert 400 <= _http(panel.url + path, raw=body)[0] < 500, (path, body[:40])
 
-            # a joint goal from the sliders' fields, reached: by the page, and by the physics truth
+            # a joint goal from the sliders' fields, planned by the learned choice (planner auto),
+            # reached: by the page, and by the physics truth; the row says what auto picked and why
             for name, q in zip(st["scenario"]["joints"], GOAL, strict=True):
                 page.fill(f"#joint-{name}", str(q))
+            page.select_option("#goal-planner", "auto")
             t_sent = time.monotonic()
             page.click("#send-joints")
             page.wait_for_selector("#goals tbody tr[data-state='reached']", timeout=60_000)
             reach_s = time.monotonic() - t_sent
             goal = panel.state()["goals"][0]
             assert goal["success"] is True, goal
+            assert goal["choice"].startswith("auto (") and goal["planner"] not in ("", "auto"), goal
+            cell = page.text_content("#goals tbody tr[data-state='reached'] td.planner") or ""
+            assert cell.startswith(goal["planner"]) and goal["choice"] in cell, cell
+            page.select_option("#goal-planner", "")
             # the truth at the sim time the planner said "reached" (the test's own view may lag on a
             # loaded machine: wait until it has got that far)
             done_ns = round(goal["sim"] * 1e9)

@@ -38,10 +38,15 @@ REPO = Path(__file__).resolve().parent.parent
 OVERLAY = REPO / "config" / "ros2" / "dds.yaml"
 PEER = Path(__file__).resolve().parent / "dds_peer.py"
 DOMAIN = 42
-# the peer's own Cyclone configuration: loopback, no multicast, unicast discovery on 127.0.0.1
+# the peer's own Cyclone configuration: loopback, no multicast, unicast discovery on 127.0.0.1; and it
+# matches the bridge by type name, as a lab's node on rmw_cyclonedds does (that RMW gives Cyclone no type
+# information, so Cyclone compares names): the cyclonedds binding always has XTypes type information, and the
+# bridge announces the type objects Fast DDS 3 writes (bridges/dds_types.py), which Cyclone's own
+# assignability check does not take, so the peer ignores the type information of Cyclone (vendor 1.16) peers
 PEER_URI = ('<CycloneDDS><Domain Id="any"><General><Interfaces><NetworkInterface name="lo"/></Interfaces>'
             "<AllowMulticast>false</AllowMulticast></General><Discovery><ParticipantIndex>auto</ParticipantIndex>"
-            '<Peers><Peer address="127.0.0.1"/></Peers></Discovery></Domain></CycloneDDS>')
+            '<Peers><Peer address="127.0.0.1"/></Peers></Discovery><Compatibility><IgnoreTypeInformation>1.16'
+            "</IgnoreTypeInformation></Compatibility></Domain></CycloneDDS>")
 
 
 def bridge(**overrides: Any) -> ros2_dds.Ros2DdsBridgeService:
@@ -135,7 +140,9 @@ def netns() -> Iterator[str]:
 
 @pytest.mark.e2e
 def test_a_dds_node_reads_odom_and_scan_and_drives_the_rover_with_cmd_vel(netns: str, tmp_path: Path) -> None:
-    env = {k: v for k, v in os.environ.items() if k != "CYCLONEDDS_URI"}  # the bridge's loopback default
+    # the bridge kept to this machine as a ROS 2 node is (bridges/dds_discovery.py), the peer on its own loopback
+    env = {**{k: v for k, v in os.environ.items() if k != "CYCLONEDDS_URI"},
+           "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
     trace = tmp_path / "peer-dds.log"  # what the peer's Cyclone saw of the bridge's endpoints (SEDP)
     peer_uri = PEER_URI.replace("</Domain>", "<Tracing><Category>discovery</Category>"
                                 f"<OutputFile>{trace}</OutputFile></Tracing></Domain>")
@@ -191,7 +198,7 @@ def test_a_dds_node_reads_odom_and_scan_and_drives_the_rover_with_cmd_vel(netns:
     }
     for ep, w in want.items():
         assert seen_eps.get(ep) == (*w, "XCDR1"), (ep, seen_eps.get(ep), sorted(seen_eps))
-    assert lan_tx(netns) == 0, "DDS (or anything) left through the LAN interface: the default must stay on lo"
+    assert lan_tx(netns) == 0, "DDS (or anything) left through the LAN interface: LOCALHOST must stay on lo"
 
 
 _SEDP = re.compile(r"SEDP ST0 \S+ .*?(writer|reader) .*? NEW .*?topic_name=\"([^\"]+)\",type_name=\"([^\"]+)\""
@@ -210,3 +217,26 @@ def remote_endpoints(trace: str) -> dict[tuple[str, str], tuple[str, str, str, i
                               {"0": "volatile", "1": "transient local"}.get(dur, dur), int(depth),
                               "XCDR1" if rep == "0" else rep)
     return out
+
+
+def test_one_overlay_adds_the_bridge_to_any_scenario() -> None:
+    """``services+: [bridge-ros2-dds]``: the scenario's own services and the bridge, whatever they are."""
+    arm, rover = (load_scenario(n, overlays=[OVERLAY]) for n in ("arm", "rover"))
+    assert arm.services == ["physics", "sensors", "controller", "planner", "logger", "bridge-ros2-dds"]
+    assert rover.services == ["physics", "sensors", "controller", "navigator", "logger", "bridge-ros2-dds"]
+    fleet = load_scenario("arm", {"robots": 2}, overlays=[OVERLAY])
+    assert [p for p in fleet.processes() if p.startswith("bridge")] == ["bridge-ros2-dds@arm0", "bridge-ros2-dds@arm1"]
+    # what each robot's bridge offers by default: what it publishes
+    assert ros2_dds.default_to_dds(arm) == ["joint_states", "tf", "/tf_static", "/clock", "robot_description", "imu"]
+    assert {"scan", "odom"} <= set(ros2_dds.default_to_dds(rover)) and "gps/fix" not in ros2_dds.default_to_dds(rover)
+
+
+@pytest.mark.e2e
+def test_a_fleet_runs_a_bridge_per_robot_in_one_process(tmp_path: Path) -> None:
+    with network_namespace("ddsfleet") as ns:
+        out = subprocess.run(["ip", "netns", "exec", ns, sys.executable, "-m", "hilsim.cli", "up", "arm", "--set",
+                              "robots=2", "--hil", str(OVERLAY), "--duration", "0.2", "--out", str(tmp_path / "run")],
+                             capture_output=True, text=True, cwd=tmp_path, timeout=240)
+    log = "".join(p.read_text() for p in (tmp_path / "run").glob("bridge-ros2-dds*.log"))
+    assert out.returncode == 3 and "died" not in out.stdout, out.stdout[-3000:]  # STOPPED (duration), nothing failed
+    assert "as node /arm0/bridge_ros2_dds" in log and "as node /arm1/bridge_ros2_dds" in log, log

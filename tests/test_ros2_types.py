@@ -190,15 +190,32 @@ def test_every_needed_standard_type_is_covered() -> None:
 @pytest.mark.parametrize("name", STANDARD_MSGS)
 def test_standard_types_agree_with_rosbags(name: str) -> None:
     assert _ours(name) == _rosbags_fields(JAZZY.fielddefs[name][1])
-    if name == "service_msgs/msg/ServiceEventInfo":
+    if name in CHAR_MSGS:
         # rosbags hashes .msg ``char`` as FIELD_TYPE_CHAR; rosidl turns ``char`` into an IDL uint8
-        # (rosidl_adapter's MSG_TYPE_TO_IDL), which the published AddTwoInts service hash confirms.
-        text = types.definition(name).replace("char[16]", "uint8[16]")
+        # (rosidl_adapter's MSG_TYPE_TO_IDL), which the published AddTwoInts service hash and what a
+        # real ROS 2 participant announces for ros_discovery_info (below) confirm.
         store = get_typestore(Stores.EMPTY)
-        store.register(_rosbags_types(name, text))
+        for n in CHAR_MSGS[name]:
+            store.register(_rosbags_types(n, types.definition(n).replace("char[16]", "uint8[16]")))
         assert types.type_hash(name) == store.hash_rihs01(name)
         return
     assert types.type_hash(name) == JAZZY.hash_rihs01(name)
+
+
+# the types that hold a .msg ``char``, and what each needs registered (dependencies first)
+_GID = ["rmw_dds_common/msg/Gid"]
+CHAR_MSGS = {"service_msgs/msg/ServiceEventInfo": ["builtin_interfaces/msg/Time", "service_msgs/msg/ServiceEventInfo"],
+             "rmw_dds_common/msg/Gid": _GID,
+             "rmw_dds_common/msg/NodeEntitiesInfo": [*_GID, "rmw_dds_common/msg/NodeEntitiesInfo"],
+             "rmw_dds_common/msg/ParticipantEntitiesInfo": [*_GID, "rmw_dds_common/msg/NodeEntitiesInfo",
+                                                            "rmw_dds_common/msg/ParticipantEntitiesInfo"]}
+
+
+def test_ros_discovery_info_has_the_hash_real_participants_announce() -> None:
+    # the USER_DATA of a Kilted rclpy node's ros_discovery_info writer (rmw_fastrtps_cpp), as Cyclone's
+    # discovery trace printed it: typehash=RIHS01_91a0…;
+    assert types.type_hash("rmw_dds_common/msg/ParticipantEntitiesInfo") == (
+        "RIHS01_91a0593bacdcc50ea9bdcf849a938b128412cc1ea821245c663bcd26f83c295e")
 
 
 def test_rosbags_has_what_it_can() -> None:

@@ -238,3 +238,41 @@ class UpRun:
             out, _ = self.p.communicate()
         return out
 
+
+
+def ros2_python(distro: str, wait: float = 600.0) -> Path:
+    """The Python of a real ROS 2 venv (``scripts/ros2-venvs.sh``: Kilted or Jazzy wheels), waiting for
+    ``scripts/test.sh``'s install running beside the suite; skipped without it, failed under CI."""
+    import pytest
+
+    d = REPO / ".venv-ros2" / distro
+    end = time.monotonic() + wait
+    while not (d / ".ready").exists() and not (d / ".failed").exists() and time.monotonic() < end:
+        try:
+            os.kill(int((d / ".installing").read_text()), 0)  # its installer is still at it
+        except FileNotFoundError:
+            if time.monotonic() > end - wait + 5:
+                break  # nobody is installing it (five seconds for an installer just started)
+        except (OSError, ValueError):
+            break  # an installer that died half way
+        time.sleep(1.0)
+    if (d / ".ready").exists():
+        return d / "bin" / "python"
+    why = (d / ".failed").read_text().strip() if (d / ".failed").exists() else "not installed"
+    msg = f"real ROS 2 {distro} ({d}): {why}; bash scripts/ros2-venvs.sh installs it"
+    if os.environ.get("CI", "").lower() == "true":
+        pytest.fail(msg)
+    pytest.skip(msg)
+
+
+def lan_netns(tag: str) -> contextlib.AbstractContextManager[str]:
+    """A network namespace as a lab's LAN host has it for DDS: ``lo`` up with multicast and the multicast
+    route (ROS 2 nodes on default settings discover each other by multicast on 239.255.0.1); nothing
+    in it reaches a real interface."""
+    @contextlib.contextmanager
+    def make() -> Iterator[str]:
+        with network_namespace(tag) as ns:
+            for args in (["link", "set", "lo", "multicast", "on"], ["route", "add", "224.0.0.0/4", "dev", "lo"]):
+                subprocess.run(["ip", "-n", ns, *args], check=True, capture_output=True, timeout=20)
+            yield ns
+    return make()

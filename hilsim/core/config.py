@@ -200,6 +200,10 @@ class PlannerConfig(_Model):
         None, gt=0, description="iteration budget per plan: lockstep default the library's; in realtime "
         "only when set, and planning_time still caps it"
     )
+    criterion: Literal["length", "smoothness", "weighted"] = Field(
+        "weighted", description="what planner: auto chooses for: hilsim plan evaluate's criterion "
+        "(joint path length, acceleration variance, or both), plus planning time"
+    )
 
 
 class TaskConfig(_Model):

@@ -115,12 +115,37 @@ def _read(path: Path, chain: tuple[Path, ...] = ()) -> dict[str, Any]:
     return _merge(merged, data)
 
 
+APPEND = "+"  # ``services+: [bridge-ros2-dds]``: add to the list below instead of replacing it
+
+
 def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
-    """``over`` on top of ``base``: sections merge key by key, anything else is replaced."""
+    """``over`` on top of ``base``: sections merge key by key, anything else is replaced; a key
+    ``name+`` adds the items of its list that ``name``'s list does not have yet (an overlay adds a
+    service to whatever services the scenario has, without restating them)."""
     out = dict(base)
     for k, v in over.items():
+        if k.endswith(APPEND) and isinstance(v, list):
+            name = k[:-len(APPEND)]
+            if isinstance(out.get(name), list):
+                out[name] = [*out[name], *(x for x in v if x not in out[name])]
+            else:  # nothing below says it yet: added to the schema's default when the scenario is built
+                out[k] = [*out.get(k, []), *(x for x in v if x not in out.get(k, []))]
+            continue
         out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
     return out
+
+
+def _apply_appends(data: dict[str, Any]) -> None:
+    """``name+`` left at the top level (no file below gave ``name``): added to the field's default."""
+    for k in [k for k in data if k.endswith(APPEND)]:
+        name, items = k[:-len(APPEND)], data.pop(k)
+        field = Scenario.model_fields.get(name)
+        if field is None or not isinstance(items, list):
+            data[k] = items  # the schema names the unknown field or the wrong type
+            continue
+        have = list(data[name]) if isinstance(data.get(name), list) else list(field.get_default(
+            call_default_factory=True) or [])
+        data[name] = [*have, *(x for x in items if x not in have)]
 
 
 def _shown(value: Any) -> str:
@@ -188,6 +213,7 @@ def load_scenario(
 def _build(path: Path, data: dict[str, Any], where: str) -> Scenario:
     """The scenario from merged raw ``data`` of the file ``path``: validated, checked, or a
     one-line ConfigError starting with ``where``."""
+    _apply_appends(data)
     _apply_env(data)
     _resolve_paths(data, path.resolve().parent)
     try:

@@ -25,11 +25,7 @@ What the base does once for all:
 
 from __future__ import annotations
 
-import contextlib
-import itertools
 import logging
-import os
-import signal
 import sys
 import threading
 import time
@@ -45,187 +41,19 @@ from hilsim.core.config import ConfigError, Scenario, format_error
 from hilsim.core.fleet import split_id
 from hilsim.core.keys import Keys
 from hilsim.core.provenance import Provenance
+from hilsim.core.publisher import Publisher
 from hilsim.core.registry import service_class
-from hilsim.core.ros2 import wire
+from hilsim.core.ros2_node import Ros2Node
 from hilsim.core.scenario import robot_scenario
+from hilsim.core.signals import on_stop_signals, watch_signals
 
 T = TypeVar("T")
-# node and entity ids of the ROS 2 graph: unique per Zenoh session, as rmw_zenoh counts them per
-# context; one counter per process keeps them unique however many services share a session
-_ENTITY_IDS = itertools.count()
+__all__ = ["LEVEL_ERROR", "LEVEL_OK", "LEVEL_WARN", "Publisher", "Service", "instantiate", "on_stop_signals",
+           "setup_logging", "watch_signals"]
 LEVEL_OK, LEVEL_WARN, LEVEL_ERROR = 0, 1, 2
 
 
-class Publisher:
-    """Encodes, sends and counts messages on one key."""
-
-    def __init__(self, service: Service, key: str, *, latched: bool = False) -> None:
-        self.key = key
-        self._svc = service
-        if latched:  # transient-local: the last sample kept for subscribers that come later
-            self._pub = transport.latched_publisher(service.session, key)
-        else:  # realtime: a subscriber that cannot keep up loses samples rather than delaying us
-            self._pub = transport.publisher(service.session, key,
-                                            drop_when_congested=service.sc.clock.mode == "realtime")
-        self.seq = 0
-        self._lock = threading.Lock()
-        # composed (hilsim.run.compose): also handed, unencoded, to the subscribers in this process
-        self._local = getattr(self._pub, "deliver", None)
-        # announce as a ROS 2 publisher does (its gid is its token's hash): receivers accept this key
-        # only from announced writers (hilsim.core.provenance), and `ros2 topic list` sees it
-        token = service.graph_token("MP", key, wire.QOS_LATCHED if latched else None)
-        self.gid = wire.entity_gid(token)
-        # the recorder takes batches (logger.batch): every sample also goes to the service's batch. A
-        # latched one is put as before too (always: it is kept for late subscribers); in the batch as
-        # well, because the recorder's late-joiner subscription, made when it sees the publisher's
-        # token, can miss it (seen: its query for the cache came before the put, the put before the
-        # subscription reached us); the recorder drops the second copy
-        self._batch = service.batcher
-        self._bidx = self._batch.writer(key, self.gid) if self._batch is not None else 0
-        # pay only for what is consumed: encoded and put only while a subscriber anywhere matches
-        # (Zenoh's matching status; one that appears mid-run, e.g. a ROS 2 node, turns it on at once;
-        # composed, the process's publisher for the outside keeps its own: ``remote``). A latched
-        # sample is kept for later subscribers, so it is always put.
-        self.matching = True
-        self._matching = None
-        if not latched and self._local is None and isinstance(self._pub, zenoh.Publisher):
-            self.matching = self._pub.matching_status.matching
-            self._matching = self._pub.declare_matching_listener(self._on_matching)
-        self._token = service.session.liveliness().declare_token(token)
-
-    def _on_matching(self, status: Any) -> None:
-        self.matching = bool(status.matching)
-
-    def put(self, msg: Any) -> None:
-        if self._batch is not None:
-            self._put_batched(msg)
-            return
-        # one at a time: a key written from two threads (logs, health) must still reach receivers
-        # with growing sequence numbers, or they reject one sample as a duplicate or out of order
-        # Not matched: counted as published all the same (a subscriber that comes later starts at a
-        # later sequence number), neither encoded nor put.
-        if self._local is None:
-            data = msgs.encode(msg) if self.matching else None
-            with self._lock:
-                self.seq += 1
-                if data is not None:
-                    self._pub.put(data, attachment=transport.attachment_bytes(self.seq, self.gid))
-        else:
-            with self._lock:
-                self.seq += 1
-                att = transport.Attachment(self.seq, time.time_ns(), self.gid)
-                self._local(msg, att)
-                if self._pub.remote:  # encoded only while a subscriber outside the process exists
-                    self._pub.put(msgs.encode(msg), attachment=att.encode())
-        self._svc.counts_out[self.key] += 1
-
-    def _put_batched(self, msg: Any) -> None:
-        # Encoded once, for the batch (the recorder) and, only while some other subscriber matches
-        # (the recorder does not subscribe to this key now), for the key itself: a key only the
-        # recorder reads costs an append, not a put. Sequence numbers and source times are the same
-        # on both ways, so the recorder drops one it gets twice (a subscriber appearing, a race).
-        b = self._batch
-        assert b is not None
-        svc = self._svc
-        with self._lock:
-            self.seq += 1
-            t_ns = time.time_ns()
-            if self._local is None:
-                data = msgs.encode(msg)
-                if self.matching:
-                    self._pub.put(data, attachment=transport.Attachment(self.seq, t_ns, self.gid).encode())
-                    svc.counts_put[self.key] += 1
-            else:
-                att = transport.Attachment(self.seq, t_ns, self.gid)
-                self._local(msg, att)
-                data = msgs.encode(msg)
-                if self._pub.remote:
-                    self._pub.put(data, attachment=att.encode())
-                    svc.counts_put[self.key] += 1
-            full = b.add(self._bidx, self.seq, t_ns, data)
-        if full:  # sent outside our lock: another publisher of the service may be adding meanwhile
-            b.flush()
-        svc.counts_out[self.key] += 1
-
-    def wanted(self, *, covered: bool = False) -> bool:
-        """Whether a sample put now would reach anyone (a matching subscriber outside, or, composed, one
-        in the process, or the recorder's batch): a caller may then skip even building the message
-        (:meth:`skip`). ``covered``: the same values go out in a fleet sample too (robots as arrays),
-        which the recorder records robot by robot (hilsim.record.rows), so its batch does not want
-        this one."""
-        if self._batch is not None and not covered:  # the recorder takes every sample in its batch
-            return True
-        if self._local is None:
-            return self.matching
-        return bool(self._pub.remote) or self._svc.session.has_local(self.key)
-
-    def skip(self) -> None:
-        """A sample nobody would receive: counted as :meth:`put` counts it, neither built nor sent."""
-        with self._lock:
-            self.seq += 1
-        self._svc.counts_out[self.key] += 1
-
-    def undeclare(self) -> None:
-        self._token.undeclare()
-        if self._matching is not None:
-            with contextlib.suppress(zenoh.ZError):  # gone with its session already
-                self._matching.undeclare()
-        self._pub.undeclare()
-
-
-def watch_signals(on_signal: Callable[[int], None],
-                  signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> Callable[[], None]:
-    """Call ``on_signal(signum)`` from a watcher thread for every one of ``signals`` that arrives (main
-    thread only; elsewhere nothing is installed); returns what puts the previous handlers back.
-
-    A Python signal handler runs in the main thread between two bytecodes, maybe while that
-    thread holds a lock: inside ``Event.wait``, or in a first handler's ``Event.set`` when a
-    second signal lands. Setting an Event there took its non-reentrant lock twice and hung the
-    process for good (seen: a controller that outlived its killed launcher); one that raised
-    (KeyboardInterrupt) cut the launcher's own stopping short. So the handlers do nothing (set
-    explicitly: a process started in the background of a script inherits SIGINT ignored); the
-    interpreter's C handler writes the signal number to a wake-up pipe, and a thread reads it and
-    calls back where taking locks is safe."""
-    if threading.current_thread() is not threading.main_thread():
-        return lambda: None  # signals reach the main thread only: its caller's business
-    r, w = os.pipe()
-    os.set_blocking(w, False)
-    old_fd = signal.set_wakeup_fd(w, warn_on_full_buffer=False)
-    old = {s: signal.signal(s, lambda *_: None) for s in signals}
-    wanted = {int(s) for s in signals}
-
-    def watch() -> None:
-        while True:
-            try:
-                data = os.read(r, 64)
-            except OSError:
-                return
-            if not data:
-                return
-            for b in data:
-                if b in wanted:
-                    on_signal(b)
-
-    t = threading.Thread(target=watch, daemon=True, name="signals")
-    t.start()
-
-    def restore() -> None:
-        signal.set_wakeup_fd(old_fd)
-        for s, h in old.items():
-            signal.signal(s, h)
-        os.close(w)  # the watcher reads the end of the pipe and returns
-        t.join(1.0)
-        os.close(r)
-
-    return restore
-
-
-def on_stop_signals(callback: Callable[[], None], signals: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)) -> None:
-    """Call ``callback`` (from a watcher thread, :func:`watch_signals`) when one of ``signals`` arrives."""
-    watch_signals(lambda _signum: callback(), signals)
-
-
-class Service:
+class Service(Ros2Node):
     """One hilsim service process. Subclasses set ``name`` and implement :meth:`setup`.
 
     What the launcher and physics need to know of a service is declared here, by the class:
@@ -322,26 +150,8 @@ class Service:
         """Service-specific figures added to the health message."""
         return {}
 
-    # ------------------------------------------------------------------ the ROS 2 graph
-    @property
-    def node_name(self) -> str:
-        """This service as a ROS 2 node: ``controller`` (``motor-model`` is ``motor_model``)."""
-        return self.name.split("@")[0].replace("-", "_")
-
-    def graph_token(self, kind: str, key: str, qos: wire.Qos | None = None) -> str:
-        """The rmw_zenoh liveliness token of this node's publisher (``MP``) or subscription (``MS``) on a
-        concrete data key, as a ROS 2 node on rmw_zenoh_cpp declares it (:mod:`hilsim.core.ros2.wire`)."""
-        if qos is None:
-            qos = wire.QOS_CLOCK if key == self.keys.clock else wire.QOS_DEFAULT
-        return self.keys.entity_token(kind, key, zid=self._zid, node_id=self._node_id, entity_id=next(_ENTITY_IDS),
-                                      node=self.node_name, enclave=self.sc.ros2.enclave, qos=qos)
-
     def _declare_node(self, session: Any) -> None:
-        info = getattr(session, "info", None)
-        self._zid = str(info.zid()) if info is not None else "1"  # an in-process bus has no Zenoh id
-        self._node_id = next(_ENTITY_IDS)
-        self._declared.append(session.liveliness().declare_token(wire.node_token(
-            self.keys.domain, self._zid, self._node_id, self.sc.ros2.enclave, self.keys.namespace, self.node_name)))
+        self.declare_node(session)
         if self._takes_batches(session):
             # before any publisher announces itself: the recorder learns this node batches first
             # (a race would only cost it a subscription it drops again, and duplicates it drops)
@@ -495,70 +305,6 @@ class Service:
                 query.reply_err(f"{type(e).__name__}: {e}")
 
         self._declared.append(self.session.declare_queryable(key, on_query))
-
-    def ros2_service(
-        self,
-        name: str,
-        srv_type: str,
-        req_cls: type[T],
-        handler: Callable[[T, Callable[[Any], None]], Any],
-    ) -> str:
-        """Serve ROS 2 service ``name`` (below the robot's namespace, or absolute) of type ``srv_type``
-        (``action_msgs/srv/CancelGoal``, ``control_msgs/action/FollowJointTrajectory_SendGoal``) as a
-        node on rmw_zenoh_cpp does: a complete queryable on :meth:`Keys.ros2_service`, a service
-        server's graph token (``SS``); each reply carries the response's CDR and an attachment with the
-        request's sequence number and client gid (:func:`hilsim.core.ros2.wire.reply_attachment`).
-
-        ``handler(request, reply)`` runs under :attr:`lock` and returns the response message, or None to
-        answer later by calling ``reply(response)`` once (an action's get_result waits for its goal's
-        end; the query stays open until then). A request that does not decode is answered with an
-        error reply. Returns the key."""
-        assert self.session is not None
-        key = self.keys.ros2_service(name, srv_type)
-
-        def on_query(query: zenoh.Query) -> None:
-            self.counts_in[key] += 1
-            payload = query.payload.to_bytes() if query.payload is not None else b""
-            request_att = query.attachment.to_bytes() if query.attachment is not None else b""
-            try:
-                req = msgs.decode(req_cls, payload)
-            except msgs.BadMessage as e:
-                self.rejected[key] += 1
-                self.warn(f"rejected request on {key}: {e}")
-                query.reply_err(str(e))
-                return
-            answered = threading.Lock()
-
-            def reply(rep: Any) -> None:
-                if not answered.acquire(blocking=False):
-                    return  # answered already
-                try:
-                    att = wire.reply_attachment(request_att, time.time_ns())
-                    kw = {} if att is None else {"attachment": att}
-                    query.reply(key, msgs.encode(rep), **kw)
-                    self.counts_replied[key] += 1
-                except zenoh.ZError as e:  # the client or the session went away meanwhile
-                    self.log.debug("reply on %s not sent: %s", key, e)
-                finally:
-                    query.drop()  # the query's end: the client stops waiting for more replies
-
-            try:
-                with self.lock:
-                    rep = handler(req, reply)
-            except Exception as e:
-                self.fault(f"error answering {key}: {type(e).__name__}: {e}", exc=e)
-                query.reply_err(f"{type(e).__name__}: {e}")
-                return
-            if rep is not None:
-                reply(rep)
-
-        try:
-            qable = self.session.declare_queryable(key, on_query, complete=True)
-        except TypeError:  # the in-process bus (hilsim.core.inproc) knows no options
-            qable = self.session.declare_queryable(key, on_query)
-        self._declared.append(qable)
-        self._declared.append(self.session.liveliness().declare_token(self.graph_token("SS", key)))
-        return key
 
     def reject(self, key: str, reason: str) -> bool:
         """A sample that cannot be used: counted per key, logged with the key; returns False."""

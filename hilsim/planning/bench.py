@@ -152,10 +152,48 @@ def format_report(rep: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def bench_choice(decisions: int = 200, seed: int = 0) -> dict[str, Any]:
+    """``planner: auto``: what loading its model costs (scikit-learn's import apart: once per process),
+    and what a decision costs (CPU of the deciding thread: features and model) on random queries in
+    the arm's world, after the warm-up decision a service makes before its first goal."""
+    import time
+
+    from hilsim.core.config import MODELS_DIR
+    from hilsim.planning import choice
+
+    lib = PlannerLibrary.load()
+    c0 = time.process_time()
+    import sklearn.ensemble  # noqa: F401  (its import, ~1.5 s of CPU, is not the model's load)
+
+    import_s = time.process_time() - c0
+    t0, c0 = time.perf_counter(), time.process_time()
+    choice.load_model(MODELS_DIR / "planner_choice")
+    load_wall, load_cpu = time.perf_counter() - t0, time.process_time() - c0
+    auto = lib.create("auto")
+    arm = ArmModel(MODELS_DIR / "arm" / "tabletop.xml", 0.005)
+    auto.prepare(arm)  # type: ignore[attr-defined]
+    rng = np.random.default_rng(seed)
+    ms = []
+    for _ in range(decisions):
+        a, b = rng.uniform(arm.lower, arm.upper), rng.uniform(arm.lower, arm.upper)
+        ms.append(1e3 * auto.decide(arm, a, b).seconds)  # type: ignore[attr-defined]
+    return {"decisions": decisions, "decision_ms_median": float(np.median(ms)),
+            "decision_ms_p95": float(np.percentile(ms, 95)), "decision_ms_max": float(np.max(ms)),
+            "load_ms_wall": 1e3 * load_wall, "load_ms_cpu": 1e3 * load_cpu, "sklearn_import_s_cpu": import_s}
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from hilsim.planning import quiet_ompl_at_exit
 
     quiet_ompl_at_exit()
+    if getattr(args, "choice", False):
+        rep = bench_choice()
+        print(json.dumps(rep, indent=2) if args.json else (
+            f"planner: auto: model loaded in {rep['load_ms_wall']:.1f} ms ({rep['load_ms_cpu']:.1f} ms CPU; "
+            f"importing scikit-learn first: {rep['sklearn_import_s_cpu']:.2f} s CPU); {rep['decisions']} decisions: "
+            f"median {rep['decision_ms_median']:.2f} ms, p95 {rep['decision_ms_p95']:.2f} ms, "
+            f"max {rep['decision_ms_max']:.2f} ms CPU"))
+        return 0
     if args.seeds < 1:
         print("hilsim bench plan: --seeds must be at least 1")
         return 2

@@ -191,8 +191,13 @@ def cmd_goal(args: argparse.Namespace) -> int:
             return 1
         print(f"accepted: goal {resp.goal_id}")
 
+        shown: set[str] = set()
+
         def show(fb: msgs.MoveFeedback) -> None:
             print(f"  [{msgs.seconds(fb.header.stamp):8.3f} s] {fb.state:<10} {100 * fb.progress:5.1f} %", flush=True)
+            if fb.choice and fb.choice not in shown:  # planner: auto said what it picked and why
+                shown.add(fb.choice)
+                print(f"  choice: {fb.choice}", flush=True)
 
         try:
             res = client.wait(resp.goal_id, args.timeout, on_feedback=show)
@@ -214,7 +219,7 @@ def cmd_goal(args: argparse.Namespace) -> int:
             f"{'succeeded' if res.success else 'failed'} (code {res.error_code}): {res.message}; "
             f"planner {res.planner}, "
             f"planning {res.planning_time:.3f} s, {len(res.trajectory.points)} trajectory points, "
-            f"joint error [{err}] rad"
+            f"joint error [{err}] rad" + (f"\nchoice: {res.choice}" if res.choice else "")
         )
         return 0 if res.success else 1
     finally:

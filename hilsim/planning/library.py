@@ -1,12 +1,14 @@
 """The planner library: planners chosen by name from ``config/planners.yaml`` or plug-ins.
 
 Every planner implements :class:`Planner`: ``solve(problem) -> PlanOutcome`` on a
-:class:`Problem` (arm model with collision checking, start, goal, budget). Three kinds exist:
+:class:`Problem` (arm model with collision checking, start, goal, budget). Four kinds exist:
 
 - ``kind: ompl`` — an OMPL geometric planner by class name (``RRTstar``, ``InformedRRTstar``,
   ``RRTConnect``, ``BITstar``, ``SORRTstar``, ``AORRTC``, …); each YAML parameter ``foo_bar``
   is applied through the planner's ``setFooBar`` method;
 - ``kind: improved_rrtstar`` — the paper's improved RRT* (:mod:`hilsim.planning.improved`);
+- ``kind: auto`` — the learned planner choice (:mod:`hilsim.planning.choice`): per goal, the library
+  planner its model predicts best for the criterion, the next best when that one fails;
 - ``kind: plugin`` / any name not in the YAML — a factory registered in the Python entry-point
   group ``hilsim.planners``: ``factory(name: str, params: dict) -> Planner``. A package adds
   a planner with e.g. ``[project.entry-points."hilsim.planners"] my_rrt = "pkg.mod:make"``,
@@ -150,8 +152,10 @@ def plugin_factories() -> dict[str, importlib.metadata.EntryPoint]:
 class PlannerLibrary:
     """Planner specs from a YAML file (``planners:`` mapping) plus entry-point plug-ins."""
 
-    def __init__(self, specs: dict[str, dict[str, Any]], settings: dict[str, Any] | None = None) -> None:
+    def __init__(self, specs: dict[str, dict[str, Any]], settings: dict[str, Any] | None = None,
+                 path: Path | None = None) -> None:
         self.specs = specs
+        self.path = path or DEFAULT_LIBRARY  # paths in params (auto's model) are relative to it
         settings = settings or {}
         self.limits: dict[str, Any] = settings.get("limits") or {}
         try:
@@ -173,12 +177,14 @@ class PlannerLibrary:
         specs = data.get("planners")
         if not isinstance(specs, dict) or not all(isinstance(v, dict) for v in specs.values()):
             raise PlannerConfigError(f"{p}: 'planners' must map names to {{kind, class, params}} entries")
-        return cls(specs, data)
+        return cls(specs, data, p)
 
     def names(self) -> list[str]:
         return sorted(set(self.specs) | set(plugin_factories()))
 
-    def create(self, name: str, overrides: dict[str, Any] | None = None) -> Planner:
+    def create(self, name: str, overrides: dict[str, Any] | None = None, *, criterion: str | None = None) -> Planner:
+        """The planner ``name``; ``criterion`` (length | smoothness | weighted, the scenario's
+        ``planner.criterion``) is what ``auto`` chooses for (the others minimise their own cost)."""
         spec = self.specs.get(name)
         plugins = plugin_factories()
         if spec is None and name not in plugins:
@@ -190,6 +196,10 @@ class PlannerLibrary:
             return OmplPlanner(name, str(spec["class"]), params)
         if kind == "improved_rrtstar":
             return ImprovedRRTStar(name, params)
+        if kind == "auto":
+            from hilsim.planning.choice import AutoPlanner
+
+            return AutoPlanner(name, params, self, criterion)
         if kind == "plugin":
             ep = plugins.get(str((spec or {}).get("entry_point", name)))
             if ep is None:
@@ -199,7 +209,7 @@ class PlannerLibrary:
             except (ImportError, AttributeError) as e:
                 raise PlannerConfigError(f"planner {name!r}: cannot load entry point {ep.value}: {e}") from None
             return factory(name, params)
-        raise PlannerConfigError(f"planner {name!r}: unknown kind {kind!r} (ompl, improved_rrtstar, plugin)")
+        raise PlannerConfigError(f"planner {name!r}: unknown kind {kind!r} (ompl, improved_rrtstar, auto, plugin)")
 
     def joint_limits(self, n: int, model_velocity: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
         """Per-joint (velocity, acceleration, jerk) limits for trajectories: from ``limits:`` in the

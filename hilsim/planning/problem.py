@@ -33,6 +33,8 @@ class Problem:
     resolution: float = 0.01  # rad between collision checks along a motion
     # asked between iterations: True ends the search at once (a goal canceled while planning)
     cancelled: Callable[[], bool] | None = None
+    # told (planner, why) by a planner that chooses another (auto) once it has chosen, before it plans
+    report: Callable[[str, str], None] | None = None
 
 
 @dataclass

@@ -201,3 +201,14 @@ def path_msg(path: np.ndarray, joint_names: list[str], stamp_ns: int) -> msgs.Jo
         for i, q in enumerate(np.asarray(path))
     ]
     return msgs.JointTrajectory(header=msgs.header(stamp_ns), joint_names=list(joint_names), points=pts)
+
+
+def joint_path_lengths(q: np.ndarray) -> np.ndarray:
+    """The arm paper's P_i = Σ_j |q_i^{j+1} − q_i^j| for each joint (columns of q, the timed samples)."""
+    q = np.asarray(q, float)
+    return np.sum(np.abs(np.diff(q, axis=0)), axis=0) if len(q) > 1 else np.zeros(q.shape[1])
+
+
+def acceleration_variance(qdd: np.ndarray) -> np.ndarray:
+    """The arm paper's A_i = D(a_i): population variance of each joint's acceleration samples."""
+    return np.var(np.asarray(qdd, float), axis=0)

@@ -229,7 +229,8 @@ class Monitor:
         g = rv.goals.get(gid)
         if g is None:
             g = rv.goals[gid] = {"id": gid, "service": service, "state": "sent", "progress": 0.0,
-                                 "done": False, "success": None, "message": "", "error": [], "wall": time.time()}
+                                 "done": False, "success": None, "message": "", "error": [], "wall": time.time(),
+                                 "planner": "", "choice": ""}
             while len(rv.goals) > 12:  # the oldest go first (dicts keep insertion order)
                 rv.goals.pop(next(iter(rv.goals)))
         return g
@@ -243,6 +244,8 @@ class Monitor:
                 g = self._goal(self.robot(_robot_of(str(sample.key_expr), self.prefix)), fb.goal_id, service)
                 if not g["done"]:
                     g.update(state=fb.state, progress=fb.progress, sim=msgs.seconds(fb.header.stamp))
+                    if fb.planner:  # planner: auto says what it picked and why once it has chosen
+                        g.update(planner=fb.planner, choice=fb.choice or g["choice"])
         return on
 
     def _result_cb(self, service: str) -> Any:
@@ -253,6 +256,7 @@ class Monitor:
             with self.lock:
                 g = self._goal(self.robot(_robot_of(str(sample.key_expr), self.prefix)), r.goal_id, service)
                 state = "reached" if r.success else "canceled" if "cancel" in r.message.lower() else "failed"
+                g.update(planner=r.planner or g["planner"], choice=r.choice or g["choice"])
                 g.update(state=state, done=True, success=r.success, message=r.message,
                          error=list(r.execution_error), progress=1.0 if r.success else g["progress"],
                          sim=msgs.seconds(r.header.stamp))

@@ -52,6 +52,8 @@ class MoveFeedback(IdlStruct, typename="hilsim_msgs/action/Move_Feedback"):
     goal_id: str = ""
     state: str = ""  # planning | executing | settling
     progress: float64 = 0.0
+    planner: str = ""  # the planner planning (for planner: auto, the one it picked), once known
+    choice: str = ""  # planner: auto: what it picked and why (predicted scores), else empty
 
 
 @dataclass
@@ -64,7 +66,8 @@ class MoveResult(IdlStruct, typename="hilsim_msgs/action/Move_Result"):
     trajectory: JointTrajectory = field(default_factory=JointTrajectory)
     planning_time: float64 = 0.0
     execution_error: sequence[float64] = field(default_factory=list)
-    planner: str = ""
+    planner: str = ""  # the planner that planned (for planner: auto, the one it picked or fell back to)
+    choice: str = ""  # planner: auto: what it picked and why (predicted scores), else empty
 
 
 # error codes of MoveResult (MoveIt-like)

@@ -476,6 +476,21 @@ builtin_interfaces/Time stamp
 char[16] client_gid
 int64 sequence_number
 """,
+    # rmw_dds_common (Jazzy, Kilted): what every ROS 2 participant on DDS publishes on ros_discovery_info,
+    # the nodes it holds and their readers' and writers' gids (how rclpy's graph finds a topic's node)
+    "rmw_dds_common/msg/Gid": """
+char[16] data
+""",
+    "rmw_dds_common/msg/NodeEntitiesInfo": """
+string<=256 node_namespace
+string<=256 node_name
+Gid[] reader_gid_seq
+Gid[] writer_gid_seq
+""",
+    "rmw_dds_common/msg/ParticipantEntitiesInfo": """
+Gid gid
+NodeEntitiesInfo[] node_entities_info_seq
+""",
     "geometry_msgs/msg/Point": """
 float64 x
 float64 y
@@ -845,11 +860,14 @@ trajectory_msgs/JointTrajectory trajectory
 float64 planning_time
 float64[] execution_error
 string planner
+string choice
 ---
 std_msgs/Header header
 string goal_id
 string state
 float64 progress
+string planner
+string choice
 """,
 }
 

@@ -2,7 +2,7 @@
 (MoveFeedback) is two rows ``RowWriter.message`` writes itself.
 
 Entity paths: ``<planner|navigator>/result``: TextLog (success or failure, code, planner,
-planning time, points, execution error), ``…/result/planning_time``: Scalars; from
+planning time, points, execution error; ``planner: auto``'s choice and why), ``…/result/planning_time``: Scalars; from
 ``RowWriter.message``: ``<planner|navigator>/feedback`` TextLog and ``…/feedback/progress`` Scalars.
 """
 
@@ -22,6 +22,7 @@ class TaskRows(RowsBase):
             f"{msg.goal_id}: {'success' if msg.success else 'failure'} (code {msg.error_code}) {msg.message}; "
             f"planner {msg.planner}, planning {msg.planning_time:.3f} s, "
             f"{len(msg.trajectory.points)} points, max execution error {err:.4f}"
+            + (f"; {msg.choice}" if msg.choice else "")
         )
         self._text(f"{root}{topic}", t, text, "INFO" if msg.success else "WARN")
         self._scalar(f"{root}{topic}/planning_time", t, msg.planning_time)

@@ -167,7 +167,8 @@ class RowWriter(FastRows, JointRows, ImuRows, MobileRows, StatusRows, TaskRows, 
             self._path(root, topic, robot, msg)
         elif isinstance(msg, msgs.MoveFeedback):
             t = msgs.ns_of(msg.header.stamp)
-            self._text(f"{root}{topic}", t, f"{msg.goal_id}: {msg.state} {msg.progress:.0%}")
+            self._text(f"{root}{topic}", t, f"{msg.goal_id}: {msg.state} {msg.progress:.0%}"
+                       + (f" ({msg.planner}; {msg.choice})" if msg.choice else ""))
             self._scalar(f"{root}{topic}/progress", t, msg.progress)
         elif isinstance(msg, msgs.MoveResult):
             self._result(root, topic, msg)

@@ -3,6 +3,8 @@
 An arm scenario (joint targets, the paper's Table III): :mod:`hilsim.tools.evaluate.arm`; a mobile
 robot (a scenario with a navigator; the rover's goals): :mod:`hilsim.tools.evaluate.rover`. What both
 share (the criteria and the choice of the best, where the CSV goes): :mod:`hilsim.tools.evaluate.common`.
+Planners compared on the queries of a scenes file (``--scenes``, the learned choice ``auto`` among
+them): :mod:`hilsim.tools.evaluate.scenes`.
 """
 
 from __future__ import annotations
@@ -16,6 +18,10 @@ def cmd_evaluate(args: argparse.Namespace) -> int:
 
     quiet_ompl_at_exit()
     sc = load_scenario(args.scenario)
+    if getattr(args, "scenes", None):  # planners compared on a scenes file's queries
+        from hilsim.tools.evaluate.scenes import cmd_evaluate_scenes
+
+        return cmd_evaluate_scenes(sc, args)
     if "navigator" in sc.services:  # a mobile robot: rover goals
         from hilsim.tools.evaluate.rover import cmd_evaluate_goals
 

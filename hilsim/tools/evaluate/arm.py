@@ -28,7 +28,12 @@ import numpy as np
 from hilsim.core.config import ConfigError, Scenario
 from hilsim.planning.collision import ArmModel
 from hilsim.planning.library import PlannerLibrary, Problem
-from hilsim.planning.trajectory import TimedTrajectory, time_parameterize
+from hilsim.planning.trajectory import (
+    TimedTrajectory,
+    acceleration_variance,
+    joint_path_lengths,
+    time_parameterize,
+)
 from hilsim.tools.evaluate.common import choose, execute, output_csv, read_targets
 
 
@@ -52,17 +57,6 @@ class Evaluation:
     def smoothness(self) -> float:
         """Σ_i A_i, what ``smoothness`` minimises."""
         return float(np.sum(self.A))
-
-
-def joint_path_lengths(q: np.ndarray) -> np.ndarray:
-    """P_i = Σ_j |q_i^{j+1} − q_i^j| for each joint (columns of q)."""
-    q = np.asarray(q, float)
-    return np.sum(np.abs(np.diff(q, axis=0)), axis=0) if len(q) > 1 else np.zeros(q.shape[1])
-
-
-def acceleration_variance(qdd: np.ndarray) -> np.ndarray:
-    """A_i = D(a_i): population variance of each joint's acceleration samples."""
-    return np.var(np.asarray(qdd, float), axis=0)
 
 
 def load_targets(path: str | Path, n: int) -> tuple[list[str], list[np.ndarray], np.ndarray | None]:
@@ -92,7 +86,7 @@ def evaluate(
             continue
         pb = Problem(arm, start, q, seed=sc.seed + k, max_iterations=lib.iterations,
                      time_limit=sc.planner.planning_time * lib.wall_cap_factor, resolution=lib.resolution)
-        res = lib.create(name).solve(pb)
+        res = lib.create(name, criterion=sc.planner.criterion).solve(pb)
         if res.path is None:
             out.append(Evaluation(nm, q, False, res.message))
             continue

@@ -329,7 +329,9 @@ function renderGoals(st) {
     const err = g.error && g.error.length ? "max error " + Math.max(...g.error.map(Math.abs)).toFixed(4) : "";
     const res = g.done ? (g.success ? "reached" : "failed") + (g.message ? ": " + g.message : "") + (err ? "; " + err : "") : "";
     tr.innerHTML = `<td>${esc(g.id)}</td><td class="${g.success === false ? "down" : g.success ? "up" : ""}">${esc(g.state)}</td>
-      <td class="num">${Math.round(100 * (Number(g.progress) || 0))} %</td><td>${esc(res)}</td><td></td>`;
+      <td class="num">${Math.round(100 * (Number(g.progress) || 0))} %</td>
+      <td class="planner" title="${esc(g.choice || "")}">${esc(g.planner || "")}${g.choice ? "<br><small>" + esc(g.choice) + "</small>" : ""}</td>
+      <td>${esc(res)}</td><td></td>`;
     if (!g.done) {
       const b = document.createElement("button");
       b.type = "button"; b.className = "small"; b.textContent = "Cancel"; b.setAttribute("aria-label", "cancel goal " + g.id);
