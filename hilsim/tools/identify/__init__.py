@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -87,6 +88,10 @@ def fit_summary(f: Fit) -> str:
 @rig_command
 def cmd_identify(args: argparse.Namespace) -> int:
     joints = _joints(args.joints)
+    for name in ("scale", "measure"):
+        v = getattr(args, name)
+        if not (math.isfinite(v) and v > 0):
+            raise ConfigError(f"--{name} {v}: expected a positive number")
     source = Path(args.scenario)
     if source.is_dir():
         return _from_run(args, source, joints)
