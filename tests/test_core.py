@@ -120,6 +120,13 @@ def test_missing_file_and_bad_yaml(tmp_path: Path) -> None:
         load_scenario(tmp_path / "x.yaml")
 
 
+def test_an_unknown_planner_is_refused_before_anything_starts() -> None:
+    with pytest.raises(ConfigError, match=r"^--set planner\.planner=rrtstr: planner\.planner: unknown planner "
+                       r"'rrtstr'.*available: .*auto.*rrtstar"):
+        load_scenario("arm", {"planner.planner": "rrtstr"})
+    assert load_scenario("arm", {"planner.planner": "auto"}).planner.planner == "auto"
+
+
 def _arm_edited(tmp_path: Path, *edits: tuple[str, str]) -> Path:
     text = (REPO / "config" / "arm.yaml").read_text()
     for old, new in edits:

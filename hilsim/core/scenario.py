@@ -294,7 +294,7 @@ def check_model(sc: Scenario, where: str, field: str = "") -> None:
             if len(t) != len(names):
                 raise ConfigError(f"{where}: {field}task.targets[{i}]: expected {len(names)} values, one per "
                                   f"joint of {model.name} {listed}, got {len(t)}")
-        _check_library_limits(sc, len(names), f"{model.name} {listed}")
+        _check_library_limits(sc, len(names), f"{model.name} {listed}", f"{where}: {field}")
     elif "navigator" in sc.services:
         for i, t in enumerate(sc.task.targets):
             if len(t) not in (2, 3):
@@ -302,13 +302,21 @@ def check_model(sc: Scenario, where: str, field: str = "") -> None:
                                   f"(got {len(t)} numbers)")
 
 
-def _check_library_limits(sc: Scenario, n: int, joints: str) -> None:
+def _check_library_limits(sc: Scenario, n: int, joints: str, where: str = "") -> None:
     """The planner library's ``limits``: a number, or one per joint (a ConfigError naming the library)."""
     lib = sc.planner.library or CONFIG_DIR / "planners.yaml"
     try:
-        limits = (yaml.safe_load(Path(lib).read_text()) or {}).get("limits") or {}
+        data = yaml.safe_load(Path(lib).read_text()) or {}
+        limits = data.get("limits") or {}
     except (OSError, yaml.YAMLError, AttributeError):
         return  # an unreadable library is the planner's to report, with its reason
+    # the planner by name: in the library or a plug-in (said here, before anything starts, not by a dying planner)
+    from importlib.metadata import entry_points
+
+    names = set(data.get("planners") or {}) | {ep.name for ep in entry_points(group="hilsim.planners")}
+    if names and sc.planner.planner not in names:
+        raise ConfigError(f"{where}planner.planner: unknown planner {sc.planner.planner!r} (not in {lib} nor a "
+                          f"plug-in); available: {', '.join(sorted(names))}")
     for key, v in limits.items() if isinstance(limits, dict) else ():
         if isinstance(v, list) and len(v) != n:
             raise ConfigError(f"{lib}: limits.{key}: expected a number or {n} values, one per joint of "
