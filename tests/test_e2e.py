@@ -210,7 +210,8 @@ def test_killed_service_is_reported_and_nothing_hangs(tmp_path: Path) -> None:
         goal = subprocess.run([*HILSIM, "goal", "arm", "--joints", "0.866", "-0.789", "-0.399", "0", "-0.382", "0",
                                "--connect", ep, "--timeout", "120"], capture_output=True, text=True, timeout=180)
         assert goal.returncode == 0, goal.stdout + goal.stderr
-        assert "accepted" in goal.stdout and "executing" in goal.stdout and "succeeded" in goal.stdout, goal.stdout
+        assert "accepted" in goal.stdout and "executing" in goal.stdout and "succeeded:" in goal.stdout, goal.stdout
+        assert "(code" not in goal.stdout, goal.stdout  # a success is said by the word, not "(code 1)"
         bad_goal = subprocess.run([*HILSIM, "goal", "arm", "--joints", "9", "0", "0", "0", "0", "0", "--connect", ep],
                                   capture_output=True, text=True, timeout=60)
         assert bad_goal.returncode == 1, bad_goal.stdout

@@ -146,7 +146,7 @@ class Follower:
                 self.outcome.result_robots.append(robot)
                 err = max((abs(e) for e in res.execution_error), default=float("nan"))
                 status = "reached" if res.success else f"FAILED ({res.message})"
-                if key.endswith("/navigator/result"):  # a rover goal: [m, rad]
+                if name.endswith("/navigator/result"):  # a rover goal: [m, rad] (the key ends with its type and hash)
                     pos, yaw = (*res.execution_error, float("nan"), float("nan"))[:2]
                     what = f"position error {pos:.3f} m, yaw error {yaw:.3f} rad (odometry)"
                 else:

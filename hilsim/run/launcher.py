@@ -80,6 +80,7 @@ __all__ = ["Child", "Launcher", "Outcome", "Restart", "cmd_router", "cmd_up", "d
 
 LOGGER_NICE = 10
 RESTART_READY_TIMEOUT = 120.0  # wall seconds a restarted service has to announce itself
+REMOTE_MISSES = 2  # --only: polls in a row that must miss a remote service's token before it has left
 REMOTE_GRACE_S = 10.0  # --only: how long a departed remote writer's samples are still its own
 
 
@@ -138,6 +139,7 @@ class Launcher:
         self.local = local_units(sc, only)
         self.remote: dict[str, bool] = {}  # remote service -> alive now
         self.remote_left: dict[str, float] = {}  # remote service -> monotonic time it left
+        self.remote_missed: dict[str, int] = {}  # remote service -> polls in a row that did not find it
         self.run_dir = run_dir
         self.keys = Keys.of(sc)
         # the keys followed: the robot's, or with robots > 1 every robot's (<prefix>/*/…)
@@ -306,16 +308,28 @@ class Launcher:
 
     def _poll_remote(self) -> None:
         """Ask who is alive: a remote service's departure must not hang on one liveliness event
-        (seen lost through the router under load), so the run still ends, bounded."""
+        (seen lost through the router under load), so the run still ends, bounded. A service counts
+        as gone only when ``REMOTE_MISSES`` polls in a row did not find it: one query's reply can miss
+        a token that is there (seen at a run's start: "left", then "back" 2 s later, though nothing
+        had left); a reply without any token at all (this host's services answer too) says nothing."""
         try:
             replies = self.session.liveliness().get(self.follow_keys.all_alive, timeout=1.0)
             alive = {fleet.service_id(self.sc, str(r.ok.key_expr), "alive") for r in replies if r.ok is not None}
         except zenoh.ZError:
             return
+        if not alive:
+            return
         with self.lock:
             for svc, up in list(self.remote.items()):
-                if up != (svc in alive) and (up or svc in self.remote_left):  # left, or back
-                    self._on_remote(svc, not up)
+                if svc in alive:
+                    self.remote_missed.pop(svc, None)
+                    if not up and svc in self.remote_left:  # back
+                        self._on_remote(svc, True)
+                elif up:
+                    self.remote_missed[svc] = self.remote_missed.get(svc, 0) + 1
+                    if self.remote_missed[svc] >= REMOTE_MISSES:  # left, its departure event lost
+                        self.remote_missed.pop(svc)
+                        self._on_remote(svc, False)
 
     def check_children(self) -> bool:
         """True if a service died and is not restarted (recorded in the outcome); a service
