@@ -403,6 +403,7 @@ def test_an_interactive_run_takes_goals_until_ctrl_c(tmp_path: Path) -> None:
     kids: list[psutil.Process] = []
     try:
         hint = wait_line(p, "interactive:", 120, lines)
+        assert ", clock realtime, " in lines[0], lines[0]  # at wall-clock pace unless --clock lockstep
         assert hint.strip() == (f"interactive: Ctrl-C to stop; try hilsim goal arm --joints 0.866 -0.789 -0.399 0 "
                                 f"-0.382 0 --connect {ep}"), hint
         kids = children_of(p.pid)

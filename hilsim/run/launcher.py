@@ -563,17 +563,19 @@ def _interactive_hint(la: Launcher, example: list[float] | None) -> str:
     return f"interactive: Ctrl-C to stop; try {try_}"
 
 
-def cmd_up(args: argparse.Namespace) -> int:
-    """``hilsim up``: its exit code is the summary's (:mod:`hilsim.run.summary`): 0 every target
-    reached, 1 failed, 3 stopped by ``--duration`` before its task ended, 128 + N interrupted by
-    signal N (Ctrl-C: 130, SIGTERM: 143); a second stop signal kills the services at once."""
-    from hilsim.core.config import ConfigError
+def up_overrides(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, str]]:
+    """The scenario fields ``hilsim up``'s options set (``--set`` and the rest), and where each came from.
+    ``--interactive`` runs at wall-clock pace (realtime): a person sends goals at their pace, and sim time
+    must not race ahead of them (nor a lockstep run's recording fill the disk faster than the run goes);
+    ``--clock lockstep`` (or ``--set clock.mode=lockstep``) asks for lockstep all the same."""
     from hilsim.core.scenario import parse_overrides
 
     overrides = parse_overrides(args.set)
     origins: dict[str, str] = {}  # where an override came from, for its errors
     if args.clock:
         overrides["clock.mode"], origins["clock.mode"] = args.clock, f"--clock {args.clock}"
+    elif getattr(args, "interactive", False) and "clock.mode" not in overrides:
+        overrides["clock.mode"], origins["clock.mode"] = "realtime", "--interactive (realtime unless --clock lockstep)"
     if args.duration is not None:
         overrides["duration"], origins["duration"] = args.duration, f"--duration {args.duration:g}"
     if args.seed is not None:
@@ -583,6 +585,16 @@ def cmd_up(args: argparse.Namespace) -> int:
     if args.compose:
         overrides["compose"] = [[n.strip() for n in g.split(",") if n.strip()] for g in args.compose]
         origins["compose"] = " ".join(f"--compose {g}" for g in args.compose)
+    return overrides, origins
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    """``hilsim up``: its exit code is the summary's (:mod:`hilsim.run.summary`): 0 every target
+    reached, 1 failed, 3 stopped by ``--duration`` before its task ended, 128 + N interrupted by
+    signal N (Ctrl-C: 130, SIGTERM: 143); a second stop signal kills the services at once."""
+    from hilsim.core.config import ConfigError
+
+    overrides, origins = up_overrides(args)
     interactive = getattr(args, "interactive", False)
     if interactive and args.duration is not None:
         raise ConfigError("--interactive: the run stays up until Ctrl-C; drop --duration")
