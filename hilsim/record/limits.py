@@ -74,6 +74,10 @@ class BagSeries:
         """Bytes this process wrote to the bag, every file of it."""
         return self.closed_bytes + self.writer.size
 
+    def add(self, key: str, data: bytes, log_ns: int, seq: int = 0, gid: bytes | None = None) -> None:
+        """Queue one sample in the current file (:meth:`BagWriter.add`)."""
+        self.writer.add(key, data, log_ns, seq, gid)
+
     def flush(self) -> Counter[str]:
         """Write the queued messages (:meth:`BagWriter.flush`), then start the next file if the current
         one is as large or as long as allowed; returns the messages per key written."""
