@@ -775,6 +775,8 @@ class LoggerService(Service):
             unannounced = Counter(self.unannounced)
             duplicates = Counter(self.duplicates)
             after_stop = Counter(self.after_stop)
+        with self._route_lock:
+            plain = set(self._plain) if self.batching else set()
         lost = self.lost()
         keys = sorted(set(received) | set(recorded) | set(lost))
         summary = {
@@ -789,6 +791,9 @@ class LoggerService(Service):
                 "unannounced": unannounced[k],
                 **({"duplicates": duplicates[k]} if self.batching or duplicates[k] else {}),
                 **({"after_stop": after_stop[k]} if self.stopped is not None else {}),
+                # batching: a key the recorder subscribed one by one for a writer no batch covers (a ROS 2
+                # node, a tool, another run's bridge): its before_first were published before that subscription
+                **({"key_subscribed": True} if k in plain else {}),
             }
             for k in keys
         }
@@ -809,6 +814,11 @@ class LoggerService(Service):
             f"lost {total_lost} in {len(keys)} keys -> {self.rrd_path}"
             + (f"; bagged {sum(bagged.values())} -> {self.bag_dir}" if bag else "")
         )
+        early = {k: before[k] for k in sorted(plain) if before[k]}
+        if early:
+            lines.append(f"not recorded: {sum(early.values())} samples their writers published before the recorder's "
+                         "subscription reached them (logger.batch): "
+                         + ", ".join(f"{k} {n}" for k, n in early.items()))
         if self.stopped is not None:
             lines.append(f"recording stopped at sim time {self.stopped_at.get('sim_time')} s: {self.stopped}; "
                          f"{sum(after_stop.values())} samples after it not recorded")

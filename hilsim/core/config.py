@@ -217,9 +217,10 @@ class LoggerConfig(_Model):
                               description="key expressions under <domain id>/, e.g. arm/** (hilsim.core.keys)")
     bag: bool = Field(True, description="also write <run dir>/bag/, a rosbag2 bag (MCAP) of every sample's raw CDR "
                       "(docs/recording.md)")
-    batch: int = Field(0, ge=0, le=65535, description="samples per batch the run's services send the recorder on one "
-                       "key each instead of every sample on its own key (0: off, the recorder subscribes to every key; "
-                       "docs/recording.md)")
+    batch: int = Field(256, ge=0, le=65535, description="samples per batch the run's services send the recorder on "
+                       "one key each instead of every sample on its own key; writers outside them (ROS 2 nodes, "
+                       "tools, bridges of other runs) are subscribed key by key from their publisher tokens (0: off, "
+                       "the recorder subscribes to every key; docs/recording.md)")
     batch_max_age_ms: float = Field(50.0, gt=0, le=10_000, description="a batch not full is sent when its first "
                                     "sample is this old (wall ms), so a slow key's samples do not wait")
     max_bag_size: int = Field(0, ge=0, description="split the bag: a new file once the current one holds this many "

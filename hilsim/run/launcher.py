@@ -110,11 +110,14 @@ def _pdeathsig() -> None:
         pass
 
 
-def _recorder_child() -> None:
-    """The logger runs at a lower CPU priority: it buffers what it receives, so on a small
-    machine the loop's services get the cores first and the logger catches up when idle."""
-    _pdeathsig()
-    os.nice(LOGGER_NICE)
+def _renice(pid: int, nice: int) -> None:
+    """Give every thread of a process the niceness ``nice`` (Linux keeps it per thread; threads made
+    later inherit their maker's). Gone or not permitted: left as it is."""
+    try:
+        for tid in os.listdir(f"/proc/{pid}/task"):
+            os.setpriority(os.PRIO_PROCESS, int(tid), nice)
+    except OSError:
+        pass
 
 
 @dataclass
@@ -224,7 +227,7 @@ class Launcher:
                 stderr=logf,
                 stdin=subprocess.DEVNULL,
                 env=env,
-                preexec_fn=_recorder_child if name == "logger" else _pdeathsig,
+                preexec_fn=_pdeathsig,
             )
         if name == "logger":
             # the logger's stdout is its per-key summary, shown to the user at the end
@@ -288,6 +291,13 @@ class Launcher:
                 c.alive.discard(svc)
             if sample.kind == zenoh.SampleKind.PUT and not c.ready and c.alive >= set(fleet.members(self.sc, name)):
                 c.ready = True
+                if name == "logger":
+                    # The recorder runs at a lower CPU priority once it is set up: it buffers what it
+                    # receives, so on a small machine the loop's services get the cores first and it
+                    # catches up when idle. Not before: niced from its start, on a machine busy with
+                    # other work it took minutes to import and set up, and the whole run (and a HIL
+                    # device's start-up timeouts) waited for it.
+                    _renice(c.proc.pid, LOGGER_NICE)
                 if c.restarts:
                     back = time.monotonic() - c.died_at
                     r = next((r for r in reversed(self.outcome.restarts) if r.name == name), None)

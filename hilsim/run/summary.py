@@ -147,6 +147,14 @@ def summarise(la: FinishedRun) -> int:
             if mismatch:
                 line += f"; MISMATCH (received but not recorded) on {mismatch}"
             print(line)
+            # batches: a writer outside them (a ROS 2 node) is subscribed once its publisher token is seen; what
+            # it put before that subscription reached it is not in the recording (said, not a failure)
+            early = {k: v.get("before_first", 0) for k, v in counts.items() if v.get("key_subscribed")}
+            early = {k: n for k, n in early.items() if n}
+            if early:
+                keys = ", ".join(f"{short(k)} {n}" for k, n in sorted(early.items(), key=lambda kv: -kv[1])[:8])
+                print(f"  not recorded: {sum(early.values())} samples their writers published before the recorder "
+                      f"subscribed to them (logger.batch: docs/recording.md, \"Batches\"): {keys}")
             if stopped is not None:  # logger.max_size or min_free: the files hold the run up to there, whole
                 print(f"  recording stopped at sim time {stopped.get('sim_time')} s: {stopped.get('reason')}; "
                       f"{stopped.get('after_stop', 0)} samples after it not recorded (the run went on)")
