@@ -8,7 +8,7 @@
 # estimate, then one line per package pip takes (its "Collecting" lines, counted, with the seconds
 # so far), the long "Installing collected packages" step announced, and the total time. pip's whole
 # output goes to .venv/pip-install.log; when pip fails, its last lines are shown.
-VENV_ESTIMATE="about 3 minutes on a 2-core machine (195 s measured for .[test], about 90 packages)"
+VENV_ESTIMATE="about 3 minutes on a 2-core machine (195 s measured for .[test], about 75 packages)"
 
 _pip_progress() {
   local t0="$1" n=0 line
