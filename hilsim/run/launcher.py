@@ -458,6 +458,8 @@ class Launcher:
                         self.say(f"  killing {name} (pid {c.proc.pid}): silent, it cannot stop by itself")
                         c.proc.kill()
                     else:
+                        if name == "logger":  # the loop has stopped: the recorder drains at full priority
+                            _renice(c.proc.pid, 0)  # (raising it back needs root or CAP_SYS_NICE; else as it was)
                         c.proc.send_signal(signal.SIGINT)
                         c.proc.send_signal(signal.SIGCONT)  # a stopped (suspended) service must handle it too
                     try:
