@@ -370,7 +370,8 @@ def _logger_run(scenario: Any, session: Any, run_service: Any, run_dir: Path, ov
                 body: Any) -> Any:
     from hilsim.services.logger import LoggerService
 
-    svc = LoggerService(scenario("arm", {"logger.run_dir": str(run_dir), **overrides}))
+    # the unbatched path: the test's own publishers announce nothing, so only `**` takes them
+    svc = LoggerService(scenario("arm", {"logger.run_dir": str(run_dir), "logger.batch": 0, **overrides}))
     st = run_service(svc)
     with st:
         body(svc)
