@@ -183,6 +183,9 @@ def test_killed_service_is_reported_and_nothing_hangs(tmp_path: Path) -> None:
         pids = {part.split(" (pid ")[0].strip(): int(part.split("(pid ")[1].rstrip(")\n"))
                 for part in ready[6:].split(", ")}
         procs = [psutil.Process(pid) for pid in pids.values()]
+        # the recorder at a lower CPU priority once it is set up (every thread), the others not
+        logger_nice = {os.getpriority(os.PRIO_PROCESS, int(t)) for t in os.listdir(f"/proc/{pids['logger']}/task")}
+        assert logger_nice == {10} and os.getpriority(os.PRIO_PROCESS, pids["physics"]) == 0, logger_nice
 
         # topic tools against the running system
         echo = subprocess.run([*HILSIM, "topic", "echo", "/arm/joint_states", "--count", "2", "--json",

@@ -79,6 +79,7 @@ __all__ = ["Child", "Launcher", "Outcome", "Restart", "cmd_router", "cmd_up", "d
            "open_default_router", "stop_order", "summarise", "world_scenario"]
 
 LOGGER_NICE = 10
+ROUTER_PRIORITY = 5  # realtime: SCHED_FIFO of the run's router (physics 10, the HIL bridges 20)
 RESTART_READY_TIMEOUT = 120.0  # wall seconds a restarted service has to announce itself
 REMOTE_MISSES = 2  # --only: polls in a row that must miss a remote service's token before it has left
 REMOTE_GRACE_S = 10.0  # --only: how long a departed remote writer's samples are still its own
@@ -189,6 +190,8 @@ class Launcher:
             self.sc.zenoh.auth = rr.client_config
             guests = f"; guests read with {rr.guest_config}" if rr.guest_config else ""
             self.say(f"zenoh router: {self.router_ep} (user and password in {rr.client_config}{guests})")
+            if self.sc.clock.mode == "realtime":
+                self._raise_router_priority()
         self.sc.zenoh.connect = [self.router_ep]
         self.sc.logger.run_dir = self.run_dir.resolve()
         cfg = self.run_dir / "scenario.yaml"
@@ -207,6 +210,20 @@ class Launcher:
         self.order = [n for n in stop_order(self.sc) if n in self.local]
         for name in reversed(self.order):
             self.children[name] = Child(name, self._spawn(name, 0), self.run_dir / f"{name}.log")
+
+    def _raise_router_priority(self) -> None:
+        """Realtime: every sample of the loop crosses the run's router, in this process. Physics steps
+        with SCHED_FIFO, and so do the HIL bridges (config/hil/can.yaml), but on a machine busy with
+        other work the router's threads waited for a CPU for a quarter of a second at a time, and
+        physics faulted a joint server as silent whose estimates were on their way (issue 36). So the
+        router gets SCHED_FIFO too, below physics; the processes this one starts do not inherit it
+        (SCHED_RESET_ON_FORK). Without the privilege (root or CAP_SYS_NICE) it stays as it is."""
+        try:
+            for tid in sorted(int(t) for t in os.listdir("/proc/self/task")):
+                os.sched_setscheduler(tid, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(ROUTER_PRIORITY))
+        except (PermissionError, AttributeError, OSError) as e:
+            self.say(f"  (the router could not get a real-time scheduling class: {e}; on a busy machine the "
+                     "realtime loop's samples may wait for it)")
 
     def _spawn(self, name: str, attempt: int) -> subprocess.Popen[bytes]:
         """Start ``hilsim run NAME``; a restart (``attempt`` > 0) appends to the same log."""
