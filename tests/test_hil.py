@@ -116,19 +116,23 @@ def test_mixed_interfaces_hold_and_reach_a_target(tmp_path: Path) -> None:
 def test_the_routers_process_runs_realtime_and_its_children_do_not_inherit_it() -> None:
     """Realtime: the launcher (the run's router) asks for SCHED_FIFO below physics, as the HIL bridges
     do above it, so a busy machine does not hold the loop's samples in the router (a joint server was
-    faulted silent while its estimates waited there); a process it starts is an ordinary one."""
+    faulted silent while its estimates waited there); threads it makes later (Zenoh starts its receive
+    runtime with the first link) are realtime too, and a service it starts is an ordinary process."""
     code = (
-        "import os, subprocess, sys, types\n"
-        "from hilsim.run.launcher import ROUTER_PRIORITY, Launcher\n"
+        "import os, subprocess, sys, threading, types\n"
+        "from hilsim.run.launcher import ROUTER_PRIORITY, Launcher, _pdeathsig\n"
         "said = []\n"
         "Launcher._raise_router_priority(types.SimpleNamespace(say=said.append))\n"
-        "mine = {os.sched_getscheduler(int(t)) & ~os.SCHED_RESET_ON_FORK for t in os.listdir('/proc/self/task')}\n"
+        "later = []\n"
+        "t = threading.Thread(target=lambda: later.append(os.sched_getscheduler(0)))\n"
+        "t.start(); t.join()\n"
+        "mine = {os.sched_getscheduler(int(t)) for t in os.listdir('/proc/self/task')}\n"
         "child = subprocess.run([sys.executable, '-c', 'import os; print(os.sched_getscheduler(0))'],\n"
-        "                       capture_output=True, text=True).stdout.strip()\n"
-        "print(mine == {os.SCHED_FIFO}, os.sched_getparam(0).sched_priority == ROUTER_PRIORITY,\n"
-        "      child == str(os.SCHED_OTHER), said)\n")
+        "                       capture_output=True, text=True, preexec_fn=_pdeathsig).stdout.strip()\n"
+        "print(mine == {os.SCHED_FIFO}, later == [os.SCHED_FIFO], os.sched_getparam(0).sched_priority == \n"
+        "      ROUTER_PRIORITY, child == str(os.SCHED_OTHER), said)\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     if os.geteuid() != 0:
         assert "could not get a real-time scheduling class" in r.stdout, r.stdout + r.stderr
         return
-    assert r.stdout.strip() == "True True True []", r.stdout + r.stderr
+    assert r.stdout.strip() == "True True True True []", r.stdout + r.stderr

@@ -102,11 +102,17 @@ def stop_order(sc: Scenario) -> list[str]:
 
 
 def _pdeathsig() -> None:
-    """In the child: get SIGTERM when the launcher dies, and leave the terminal's signals to it."""
+    """In the child: get SIGTERM when the launcher dies, and leave the terminal's signals to it; an
+    ordinary scheduling class whatever the launcher's (a realtime run's router: each service asks
+    for its own)."""
     os.setpgrp()
     try:
         libc = ctypes.CDLL("libc.so.6", use_errno=True)
         libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+    try:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     except OSError:
         pass
 
@@ -216,11 +222,13 @@ class Launcher:
         with SCHED_FIFO, and so do the HIL bridges (config/hil/can.yaml), but on a machine busy with
         other work the router's threads waited for a CPU for a quarter of a second at a time, and
         physics faulted a joint server as silent whose estimates were on their way (issue 36). So the
-        router gets SCHED_FIFO too, below physics; the processes this one starts do not inherit it
-        (SCHED_RESET_ON_FORK). Without the privilege (root or CAP_SYS_NICE) it stays as it is."""
+        router gets SCHED_FIFO too, below physics, and so do the threads Zenoh starts later (its receive
+        and send runtimes start with their first link: with SCHED_RESET_ON_FORK they came up ordinary);
+        the processes this one starts are set back to an ordinary class (:func:`_pdeathsig`). Without the
+        privilege (root or CAP_SYS_NICE) it stays as it is."""
         try:
             for tid in sorted(int(t) for t in os.listdir("/proc/self/task")):
-                os.sched_setscheduler(tid, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(ROUTER_PRIORITY))
+                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(ROUTER_PRIORITY))
         except (PermissionError, AttributeError, OSError) as e:
             self.say(f"  (the router could not get a real-time scheduling class: {e}; on a busy machine the "
                      "realtime loop's samples may wait for it)")
