@@ -136,3 +136,29 @@ def test_the_routers_process_runs_realtime_and_its_children_do_not_inherit_it() 
         assert "could not get a real-time scheduling class" in r.stdout, r.stdout + r.stderr
         return
     assert r.stdout.strip() == "True True True True []", r.stdout + r.stderr
+
+
+def test_the_launcher_makes_the_loops_services_realtime_and_leaves_their_own_class() -> None:
+    """Realtime with its own router: each service of the loop, once set up, on SCHED_FIFO (the planner
+    lowest), so that other work on the machine holds no step; one that asked for more keeps it."""
+    from hilsim.run.launcher import LOOP_PRIORITY, _realtime_process
+
+    plain = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    if os.geteuid() != 0:  # not permitted: said by the result, nothing changed
+        assert not _realtime_process(plain.pid, LOOP_PRIORITY) and os.sched_getscheduler(plain.pid) == os.SCHED_OTHER
+        plain.kill()
+        plain.wait()
+        return
+    own = subprocess.Popen([sys.executable, "-c", "import os, time; os.sched_setscheduler(0, os.SCHED_FIFO, "
+                            "os.sched_param(20)); print('ok', flush=True); time.sleep(30)"], stdout=subprocess.PIPE,
+                           text=True)
+    try:
+        assert own.stdout is not None and own.stdout.readline().strip() == "ok"
+        assert _realtime_process(plain.pid, LOOP_PRIORITY) and _realtime_process(own.pid, LOOP_PRIORITY)
+        assert os.sched_getscheduler(plain.pid) == os.SCHED_FIFO
+        assert os.sched_getparam(plain.pid).sched_priority == LOOP_PRIORITY
+        assert os.sched_getparam(own.pid).sched_priority == 20  # its own, not lowered
+    finally:
+        for p in (plain, own):
+            p.kill()
+            p.wait()

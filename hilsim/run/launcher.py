@@ -80,6 +80,8 @@ __all__ = ["Child", "Launcher", "Outcome", "Restart", "cmd_router", "cmd_up", "d
 
 LOGGER_NICE = 10
 ROUTER_PRIORITY = 5  # realtime: SCHED_FIFO of the run's router (physics 10, the HIL bridges 20)
+LOOP_PRIORITY = 8  # realtime: SCHED_FIFO the launcher gives the loop's services that asked for none
+PLANNING_PRIORITY = 1  # …and the planner or navigator: below every other, its plans are bursts of CPU
 RESTART_READY_TIMEOUT = 120.0  # wall seconds a restarted service has to announce itself
 REMOTE_MISSES = 2  # --only: polls in a row that must miss a remote service's token before it has left
 REMOTE_GRACE_S = 10.0  # --only: how long a departed remote writer's samples are still its own
@@ -115,6 +117,19 @@ def _pdeathsig() -> None:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     except OSError:
         pass
+
+
+def _realtime_process(pid: int, priority: int) -> bool:
+    """Give every thread of a process that has an ordinary scheduling class SCHED_FIFO ``priority``
+    (threads it makes later inherit it; one that asked for its own class keeps it). False: not
+    permitted (root or CAP_SYS_NICE) or gone."""
+    try:
+        for tid in os.listdir(f"/proc/{pid}/task"):
+            if os.sched_getscheduler(int(tid)) == os.SCHED_OTHER:
+                os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(priority))
+    except OSError:
+        return False
+    return True
 
 
 def _renice(pid: int, nice: int) -> None:
@@ -316,6 +331,14 @@ class Launcher:
                 c.alive.discard(svc)
             if sample.kind == zenoh.SampleKind.PUT and not c.ready and c.alive >= set(fleet.members(self.sc, name)):
                 c.ready = True
+                if self.sc.clock.mode == "realtime" and name != "logger" and self._router is not None:
+                    # realtime, with the run's own router on SCHED_FIFO: the loop's services too, once set
+                    # up (physics and the HIL bridges ask for more themselves), so that other work on the
+                    # machine cannot hold a step; the planner or navigator lowest (its plans are bursts)
+                    units = name.split("+")
+                    planning = {"planner", "navigator"}.intersection(u.split("@")[0] for u in units)
+                    _realtime_process(c.proc.pid, PLANNING_PRIORITY if planning and len(units) == 1
+                                      else LOOP_PRIORITY)
                 if name == "logger":
                     # The recorder runs at a lower CPU priority once it is set up: it buffers what it
                     # receives, so on a small machine the loop's services get the cores first and it
