@@ -436,15 +436,16 @@ class MavlinkBridgeService(Service):
             self.hb_next = now + c.heartbeat_period
             self.link.heartbeat(mavlink.MAV_TYPE_ONBOARD_CONTROLLER)
         g = c.gps
-        if g.enabled:
+        # before the simulation starts nothing awaits a fix (and the emulated GPS has no truth to send):
+        # the first message is due startup_timeout after it starts, however long the other services took
+        if g.enabled and (self.clock_seen or self.last_gps >= 0):
             since = self.last_gps if self.last_gps >= 0 else self.t0
             limit = g.timeout if self.last_gps >= 0 else g.startup_timeout
             if not self.lost and now - since > limit:
                 self.lost, self.lost_since = True, since
                 what = (f"no GPS message ({', '.join(g.messages)}) for {now - since:.1f} s (timeout {limit:g} s)"
                         if self.last_gps >= 0 else f"no GPS message ({', '.join(g.messages)}) within "
-                        f"{limit:g} s of {'the simulation starting' if self.clock_seen else 'starting'} "
-                        f"(is the GPS sending to {c.describe()}?)")
+                        f"{limit:g} s of the simulation starting (is the GPS sending to {c.describe()}?)")
                 self.fault(f"{what}: NO_FIX published on gps/fix every {g.timeout:g} s until it returns")
                 self._publish_no_fix()
                 self._update_state()

@@ -101,7 +101,7 @@ import zenoh.ext as zenoh_ext
 from hilsim.core import batch, msgs, transport
 from hilsim.core.config import Scenario
 from hilsim.core.keys import Keys, UnknownKey, message_type
-from hilsim.core.recording import RECORDING_NAME, SUMMARY_NAME, disable_analytics, part_name
+from hilsim.core.recording import RECORDING_NAME, STOPPED_ENTRY, SUMMARY_NAME, disable_analytics, part_name
 from hilsim.core.restart import restarted
 from hilsim.core.ros2 import wire
 from hilsim.core.scenario import write_scenario
@@ -110,8 +110,9 @@ from hilsim.core.service import LEVEL_WARN, Service
 disable_analytics()  # before rerun is imported: its SDK reads the analytics config at start-up
 import rerun as rr  # noqa: E402
 
-from hilsim.record.bag import NO_ATTACHMENT, TIME_NOTE, BagError, BagWriter  # noqa: E402
-from hilsim.record.bag_read import BAG_DIR, bag_paths, recover_file, write_metadata  # noqa: E402
+from hilsim.record.bag import NO_ATTACHMENT, TIME_NOTE, BagError  # noqa: E402
+from hilsim.record.bag_read import BAG_DIR, bag_paths, recover_file  # noqa: E402
+from hilsim.record.limits import BagSeries, human_bytes, stop_reason  # noqa: E402
 from hilsim.record.rows import RowWriter  # noqa: E402
 from hilsim.record.viewer import default_blueprint  # noqa: E402
 from hilsim.sim.kinematics import RobotModel  # noqa: E402
@@ -146,7 +147,7 @@ class LoggerService(Service):
             self.rrd_path = self.run_dir / part_name(restarted())
         self.rec: rr.RecordingStream | None = None
         self.bag_dir = self.run_dir / BAG_DIR
-        self.bag: BagWriter | None = None  # None: logger.bag is false, or the bag failed (a fault)
+        self.bag: BagSeries | None = None  # None: logger.bag is false, or the bag failed (a fault)
         self.bagged: Counter[str] = Counter()  # messages per key written to the bag
         self.rows: RowWriter | None = None
         self.model: RobotModel | None = None
@@ -190,6 +191,10 @@ class LoggerService(Service):
         # keys with a late-joiner subscription beside `**` (latched writers, without batches): their
         # samples can come both ways and are taken once, as batches are
         self._twice: set[str] = set()
+        # logger.max_size, logger.min_free: why the recording stopped (None: it goes on), when, what came after
+        self.stopped: str | None = None
+        self.stopped_at: dict[str, Any] = {}
+        self.after_stop: Counter[str] = Counter()  # samples that arrived (or were queued) after the stop
 
     # ------------------------------------------------------------------ setup
     def _choose_run_dir(self) -> Path:
@@ -267,9 +272,10 @@ class LoggerService(Service):
             limit,
         )
 
-    def _open_bag(self) -> BagWriter:
-        """The bag's file of this process: ``bag_0.mcap``; a restarted recorder (hilsim up) first
-        makes its predecessors' files whole (a SIGKILL leaves no footer), then writes the next one."""
+    def _open_bag(self) -> BagSeries:
+        """The bag's files of this process: ``bag_0.mcap`` (and on, split by ``logger.max_bag_size`` and
+        ``max_bag_duration``); a restarted recorder (hilsim up) first makes its predecessors' files whole
+        (a SIGKILL leaves no footer), then writes the next one."""
         index = 0
         if self.bag_dir.is_dir():
             try:
@@ -286,7 +292,10 @@ class LoggerService(Service):
             index = len(files)
             while (self.bag_dir / f"bag_{index}.mcap").exists():
                 index += 1
-        return BagWriter(self.bag_dir, index, custom={"scenario": self.sc.name, "robot": self.sc.robot})
+        lc = self.sc.logger
+        return BagSeries(self.bag_dir, index, max_size=lc.max_bag_size, max_duration=lc.max_bag_duration,
+                         custom={"scenario": self.sc.name, "robot": self.sc.robot},
+                         metadata={"scenario": self.sc.name, "robot": self.sc.robot, "times": TIME_NOTE})
 
     def _load_model(self) -> None:
         urdf = self.sc.world.urdf
@@ -423,6 +432,10 @@ class LoggerService(Service):
             time.sleep(self.delay_s)
         k = self._key_names.setdefault(k, k)  # one string per key, not one per queued sample
         self._last_arrival = time.monotonic()
+        if self.stopped is not None:  # the recording stopped (logger.max_size, min_free): not taken in
+            with self.lock:
+                self.after_stop[k] += 1
+            return
         # The base's health thread iterates these counters under self.lock.
         with self.lock:
             prov = self.provenance
@@ -441,6 +454,9 @@ class LoggerService(Service):
                     return
                 # recorded like everything received, but a stranger's gaps are no loss of ours
                 self.unannounced[k] += 1
+            if self.stopped is not None:
+                self.after_stop[k] += 1
+                return
             if self._closed or (self.queue_limit is not None and len(self._queue) >= self.queue_limit):
                 self.dropped[k] += 1
                 return
@@ -517,12 +533,16 @@ class LoggerService(Service):
                 if rows.buffered and time.monotonic() - last_flush >= FLUSH_PERIOD_S:
                     self._flush()
                     last_flush = time.monotonic()
+                    if self._limit_reached():
+                        break
                 time.sleep(0.002)
                 continue
             self._handle(key, payload, att, t)
             if rows.buffered >= FLUSH_ROWS or time.monotonic() - last_flush >= FLUSH_PERIOD_S:
                 self._flush()
                 last_flush = time.monotonic()
+                if self._limit_reached():
+                    break
 
     def _handle(self, key: str, payload: Any, att: transport.Attachment | None = None, t_ns: int = 0) -> None:
         rows = self.rows
@@ -586,14 +606,69 @@ class LoggerService(Service):
         self._pending.clear()
         if self.bag is not None:
             try:
-                wrote = self.bag.flush()
+                wrote = self.bag.flush()  # and on in a new file, if this one is as large or long as allowed
             except Exception as e:  # a full disk, a bug: the .rrd goes on, the bag stops here (a fault)
                 self.fault(f"the bag {self.bag.path} stopped: {type(e).__name__}: {e}", exc=e)
                 self.bag.abandon()
                 self.bag = None
                 return
+            self._bag_append = self.bag.append
             with self.lock:
                 self.bagged.update(wrote)
+
+    # ------------------------------------------------------------------ limits (logger.max_size, min_free)
+    def recording_bytes(self) -> int:
+        """Bytes of this run's recording on disk: the ``.rrd`` and the bag's files of this process."""
+        try:
+            rrd = self.rrd_path.stat().st_size
+        except OSError:
+            rrd = 0
+        return rrd + (self.bag.size if self.bag is not None else 0)
+
+    def _limit_reached(self) -> bool:
+        """In the worker, after a flush: if the recording reached ``logger.max_size`` or the disk's free
+        space ``logger.min_free``, stop recording (:meth:`_stop_recording`) and return True (the worker ends)."""
+        lc = self.sc.logger
+        if not (lc.max_size or lc.min_free):
+            return False
+        why = stop_reason(self.run_dir, self.recording_bytes(), lc.max_size, lc.min_free)
+        if why is None:
+            return False
+        self._stop_recording(why)
+        return True
+
+    def _stop_recording(self, why: str) -> None:
+        """Stop recording, cleanly, while the run goes on: no sample is taken in from here (the
+        subscriptions go; samples still queued are counted as ``after_stop``, not received), what was
+        taken in is written, and both files are closed whole (the bag's summary, footer and
+        ``metadata.yaml``; the ``.rrd``'s footer). Said in one line (log and health) and in
+        ``record_summary.json``."""
+        with self.lock:  # _take checks it under the lock: nothing is queued after this
+            self.stopped = why
+            while self._queue:  # taken in, not written: no longer counted as received
+                k = self._queue.popleft()[0]
+                self.counts_in[k] -= 1
+                self.after_stop[k] += 1
+        with self._route_lock:
+            self._routes_closed = True
+            subs = [*self._subs, *(d for ds in self._key_subs.values() for d in ds)]
+            self._key_subs.clear()
+        for sub in subs:
+            try:
+                sub.undeclare()
+            except zenoh.ZError:
+                pass
+        self._subs.clear()
+        assert self.rec is not None
+        self._flush()
+        self.rec.flush()
+        self.rec.disconnect()
+        self._close_bag()
+        used = self.recording_bytes()
+        self.stopped_at = {"reason": why, "sim_time": round(self.sim_ns / 1e9, 3), "bytes": used,
+                           "wall_time": time.strftime("%Y-%m-%dT%H:%M:%S")}
+        self.warn(f"recording stopped at sim time {self.sim_ns / 1e9:.3f} s: {why}; the files hold the run up to "
+                  f"here ({human_bytes(used)}, closed whole), the run goes on")
 
     # ------------------------------------------------------------------ health
     def publish_health(self) -> None:
@@ -621,14 +696,17 @@ class LoggerService(Service):
             **({"duplicates": sum(self.duplicates.values()), "key_subscriptions": len(self._key_subs)}
                if self.batching else {}),
             "rrd": str(self.rrd_path),
-            **({"bagged": sum(self.bagged.values()), "bag": str(self.bag.path)} if self.bag is not None else {}),
+            **({"bagged": sum(self.bagged.values()), "bag": str(self.bag.path), "bag_files": len(self.bag.files)}
+               if self.bag is not None else {}),
+            **({"recording_stopped": f"at sim time {self.stopped_at.get('sim_time', '?')} s: {self.stopped}"}
+               if self.stopped_at else {}),
             **{f"lost:{k}": v for k, v in sorted(lost.items())},
         }
 
     # ------------------------------------------------------------------ stopping
     def loop(self) -> None:
         while not self.stop_event.wait(0.2):
-            if self._worker is not None and not self._worker.is_alive():
+            if self._worker is not None and not self._worker.is_alive() and self.stopped is None:
                 raise RuntimeError("the recording worker stopped unexpectedly")
         self._finish()
 
@@ -657,12 +735,13 @@ class LoggerService(Service):
             self._worker.join()
         if self.rec is None:
             return
-        while self._queue:  # anything that arrived while the worker was stopping
-            self._handle(*self._queue.popleft())
-        self._flush()
-        self.rec.flush()
-        self.rec.disconnect()
-        self._close_bag()
+        if self.stopped is None:
+            while self._queue:  # anything that arrived while the worker was stopping
+                self._handle(*self._queue.popleft())
+            self._flush()
+            self.rec.flush()
+            self.rec.disconnect()
+            self._close_bag()
         self._report()
 
     def _close_bag(self) -> None:
@@ -671,7 +750,6 @@ class LoggerService(Service):
             return
         try:
             self.bag.close()
-            write_metadata(self.bag_dir, {"scenario": self.sc.name, "robot": self.sc.robot, "times": TIME_NOTE})
         except (OSError, BagError) as e:
             self.fault(f"the bag {self.bag_dir} was not closed: {type(e).__name__}: {e}", exc=e)
 
@@ -696,6 +774,9 @@ class LoggerService(Service):
             dropped, before = Counter(self.dropped), Counter(self.before_first)
             unannounced = Counter(self.unannounced)
             duplicates = Counter(self.duplicates)
+            after_stop = Counter(self.after_stop)
+        with self._route_lock:
+            plain = set(self._plain) if self.batching else set()
         lost = self.lost()
         keys = sorted(set(received) | set(recorded) | set(lost))
         summary = {
@@ -709,9 +790,15 @@ class LoggerService(Service):
                 "before_first": before[k],
                 "unannounced": unannounced[k],
                 **({"duplicates": duplicates[k]} if self.batching or duplicates[k] else {}),
+                **({"after_stop": after_stop[k]} if self.stopped is not None else {}),
+                # batching: a key the recorder subscribed one by one for a writer no batch covers (a ROS 2
+                # node, a tool, another run's bridge): its before_first were published before that subscription
+                **({"key_subscribed": True} if k in plain else {}),
             }
             for k in keys
         }
+        if self.stopped is not None:  # not a key: what stopped the recording (hilsim.core.recording.read_counts)
+            summary[STOPPED_ENTRY] = {**self.stopped_at, "after_stop": sum(after_stop.values())}
         tmp = self.summary_path.with_suffix(".json.tmp")
         tmp.write_text(json.dumps(summary, indent=1, sort_keys=True) + "\n")
         tmp.replace(self.summary_path)
@@ -727,6 +814,14 @@ class LoggerService(Service):
             f"lost {total_lost} in {len(keys)} keys -> {self.rrd_path}"
             + (f"; bagged {sum(bagged.values())} -> {self.bag_dir}" if bag else "")
         )
+        early = {k: before[k] for k in sorted(plain) if before[k]}
+        if early:
+            lines.append(f"not recorded: {sum(early.values())} samples their writers published before the recorder's "
+                         "subscription reached them (logger.batch): "
+                         + ", ".join(f"{k} {n}" for k, n in early.items()))
+        if self.stopped is not None:
+            lines.append(f"recording stopped at sim time {self.stopped_at.get('sim_time')} s: {self.stopped}; "
+                         f"{sum(after_stop.values())} samples after it not recorded")
         if total_lost:
             n_drop = sum(dropped.values())
             lines.append(

@@ -370,7 +370,8 @@ def _logger_run(scenario: Any, session: Any, run_service: Any, run_dir: Path, ov
                 body: Any) -> Any:
     from hilsim.services.logger import LoggerService
 
-    svc = LoggerService(scenario("arm", {"logger.run_dir": str(run_dir), **overrides}))
+    # the unbatched path: the test's own publishers announce nothing, so only `**` takes them
+    svc = LoggerService(scenario("arm", {"logger.run_dir": str(run_dir), "logger.batch": 0, **overrides}))
     st = run_service(svc)
     with st:
         body(svc)
@@ -766,6 +767,10 @@ def test_export_of_the_rrd_gives_the_bags_values(arm_run: tuple[Path, str], tmp_
     assert lines[0] == "sim_time_ns,value" and len(lines) == 1 + counts["/arm/joint_states"]
     last_js = msgs.decode(msgs.JointState, orig[("/arm/joint_states", 1_000_000_000)])
     assert lines[-1] == f"1000000000,{last_js.position[0]!r}"
+    # every joints/* file in sim-time order, the time-0 row first (it had come after the 10 ms one)
+    for f in (tmp_path / "csv" / "joints").rglob("*.csv"):
+        times = [int(ln.split(",")[0]) for ln in f.read_text().splitlines()[1:] if ln.split(",")[0]]
+        assert times == sorted(times) and (times[0] == 0 or "planned" in f.parts), (f, times[:3])
 
 
 def _json_channels(path: Path) -> list[Any]:

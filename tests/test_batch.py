@@ -169,6 +169,7 @@ def test_batches_are_recorded_within_logger_record(scenario: Any, tmp_path: Path
 # ---------------------------------------------------------------------------------- real runs
 DURATION = "4"  # sim seconds: long enough for the mid-run actors below
 N_ROS = 20
+N_BURST = 100
 
 
 def _bag(run: Path) -> dict[str, list[tuple[bytes | None, int, bytes]]]:
@@ -260,6 +261,11 @@ def _act(ses: zenoh.Session, node: Ros2Node, subs: list[Any], keys: Keys, got: l
     for i in range(N_ROS):
         chatter(ros_msg("std_msgs/msg/String", data=f"hello {i}"))
         tf(ros_msg("tf2_msgs/msg/TFMessage", transforms=[]))
+    # a publisher that sends at once, before the recorder can have subscribed to its key
+    burst = node.publisher("/lab/burst", "std_msgs/msg/String")
+    for i in range(N_BURST):
+        burst(ros_msg("std_msgs/msg/String", data=f"burst {i}"))
+        time.sleep(0.001)
     ses.put(keys.batch("feedbeef", 99), b"HSB\x01 not a batch at all")
     assert wait_until(lambda: len(got) > 0, 5)
 
@@ -382,6 +388,24 @@ def test_a_writer_announced_only_by_its_token_is_recorded(runs: dict[str, dict[s
     assert c["received"] == c["recorded"] == N_ROS and c["rejected"] == 0 and c["lost"] == 0, c
     texts = [msgs.decode(msgs.String, d).data for _, _, d in on["bag"][chatter[0]]]
     assert texts == [f"hello {i}" for i in range(N_ROS)]
+
+
+@pytest.mark.e2e
+def test_a_writer_that_sends_at_once_is_recorded_from_the_recorders_subscription_on_and_the_rest_is_said(
+        runs: dict[str, dict[str, Any]]) -> None:
+    """A ROS 2 node's publisher that sends as soon as it is made: what it sent before the recorder's
+    subscription (made when its token is seen) reached it is not recorded, as with ros2 bag record's
+    discovery; everything from there is, in order, and the samples before are counted and said."""
+    on = runs["on"]
+    key = next(k for k in on["summary"] if k.startswith("0/lab/burst/"))
+    c = on["summary"][key]
+    assert c["key_subscribed"] and c["received"] == c["recorded"] == c["bagged"] and c["lost"] == 0, c
+    assert c["received"] + c["before_first"] == N_BURST, c  # every sample: recorded, or said not to be
+    texts = [msgs.decode(msgs.String, d).data for _, _, d in on["bag"][key]]
+    assert texts == [f"burst {i}" for i in range(c["before_first"], N_BURST)]
+    if c["before_first"]:
+        assert f"not recorded: {c['before_first']} samples their writers published before the recorder subscribed" \
+            in on["text"], on["text"]
 
 
 @pytest.mark.e2e

@@ -113,8 +113,11 @@ def test_bad_scenario_gives_one_line_naming_file_and_field(tmp_path: Path, edit:
 
 
 def test_missing_file_and_bad_yaml(tmp_path: Path) -> None:
-    with pytest.raises(ConfigError, match="no such scenario file"):
+    with pytest.raises(ConfigError, match="no such scenario file") as e:
         load_scenario(tmp_path / "nope.yaml")
+    # every scenario of config/ is offered, those that extend another too (arm-lean), overlays not
+    avail = str(e.value).split("available in config/: ")[1].rstrip(")").split(", ")
+    assert avail == ["arm", "arm-lean", "rover", "rover-outdoor"], avail
     (tmp_path / "x.yaml").write_text("name: [unclosed\n")
     with pytest.raises(ConfigError, match="not valid YAML"):
         load_scenario(tmp_path / "x.yaml")

@@ -352,3 +352,62 @@ def test_a_service_that_raises_ends_the_run_non_zero(tmp_path: Path) -> None:
     assert "fault: crashy: stopped by an error: RuntimeError: crashy broke" in out, out
     assert "error: service crashy" in out and "exited with code 1" in out, out
     assert p.returncode == 1 and out.rstrip().endswith("result: FAILED"), out
+
+
+class _Reply:
+    def __init__(self, key: str) -> None:
+        self.ok = type("Ok", (), {"key_expr": key})()
+
+
+class _Polled:
+    """What ``Launcher._poll_remote`` reads of a launcher (--only physics; the rest remote), with a
+    liveliness query answering the tokens of ``answer``."""
+
+    def __init__(self) -> None:
+        import threading
+        import types
+
+        from hilsim.core.scenario import load_scenario
+        from hilsim.run.launcher import Launcher
+
+        self.sc = load_scenario("arm")
+        self.follow_keys = Keys.of(self.sc)
+        self.lock = threading.Lock()
+        self.remote = {"sensors": True, "controller": True}
+        self.remote_left: dict[str, float] = {}
+        self.remote_missed: dict[str, int] = {}
+        self.said: list[str] = []
+        self.say = self.said.append
+        self.answer = ["physics", "sensors", "controller"]
+        me = self
+
+        class Live:
+            def get(self, key: str, timeout: float) -> list[_Reply]:
+                return [_Reply(me.follow_keys.alive(s)) for s in me.answer]
+
+        self.session = type("S", (), {"liveliness": lambda _self: Live()})()
+        self._on_remote = types.MethodType(Launcher._on_remote, self)
+        self.poll = types.MethodType(Launcher._poll_remote, self)
+
+
+def test_one_poll_that_misses_a_remote_token_is_no_departure() -> None:
+    """A multi-host run printed "remote controller left" and "is back, 2.0 s after it left" at its start,
+    when nothing had left: one liveliness query's reply missed the token. A departure now takes two polls
+    in a row that miss it (and an empty reply says nothing); a real one is still seen, and its return."""
+    la = _Polled()
+    la.answer = ["physics", "sensors"]  # the controller's token missing from one reply
+    la.poll()
+    la.answer = ["physics", "sensors", "controller"]
+    la.poll()
+    la.answer = []  # a query that timed out with no reply at all
+    la.poll()
+    la.poll()
+    assert la.said == [] and la.remote == {"sensors": True, "controller": True}, la.said
+    la.answer = ["physics", "sensors"]  # the controller really gone: two polls
+    la.poll()
+    assert la.said == []
+    la.poll()
+    assert la.said == ["  remote controller left (its host's launcher may restart it)"] and not la.remote["controller"]
+    la.answer = ["physics", "sensors", "controller"]
+    la.poll()
+    assert la.remote["controller"] and la.said[-1].startswith("  remote controller is back, "), la.said

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -109,3 +111,54 @@ def test_mixed_interfaces_hold_and_reach_a_target(tmp_path: Path) -> None:
     finally:
         obs.close()
         router.close()
+
+
+def test_the_routers_process_runs_realtime_and_its_children_do_not_inherit_it() -> None:
+    """Realtime: the launcher (the run's router) asks for SCHED_FIFO below physics, as the HIL bridges
+    do above it, so a busy machine does not hold the loop's samples in the router (a joint server was
+    faulted silent while its estimates waited there); threads it makes later (Zenoh starts its receive
+    runtime with the first link) are realtime too, and a service it starts is an ordinary process."""
+    code = (
+        "import os, subprocess, sys, threading, types\n"
+        "from hilsim.run.launcher import ROUTER_PRIORITY, Launcher, _pdeathsig\n"
+        "said = []\n"
+        "Launcher._raise_router_priority(types.SimpleNamespace(say=said.append))\n"
+        "later = []\n"
+        "t = threading.Thread(target=lambda: later.append(os.sched_getscheduler(0)))\n"
+        "t.start(); t.join()\n"
+        "mine = {os.sched_getscheduler(int(t)) for t in os.listdir('/proc/self/task')}\n"
+        "child = subprocess.run([sys.executable, '-c', 'import os; print(os.sched_getscheduler(0))'],\n"
+        "                       capture_output=True, text=True, preexec_fn=_pdeathsig).stdout.strip()\n"
+        "print(mine == {os.SCHED_FIFO}, later == [os.SCHED_FIFO], os.sched_getparam(0).sched_priority == \n"
+        "      ROUTER_PRIORITY, child == str(os.SCHED_OTHER), said)\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    if os.geteuid() != 0:
+        assert "could not get a real-time scheduling class" in r.stdout, r.stdout + r.stderr
+        return
+    assert r.stdout.strip() == "True True True True []", r.stdout + r.stderr
+
+
+def test_the_launcher_makes_the_loops_services_realtime_and_leaves_their_own_class() -> None:
+    """Realtime with its own router: each service of the loop, once set up, on SCHED_FIFO (the planner
+    lowest), so that other work on the machine holds no step; one that asked for more keeps it."""
+    from hilsim.run.launcher import LOOP_PRIORITY, _realtime_process
+
+    plain = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    if os.geteuid() != 0:  # not permitted: said by the result, nothing changed
+        assert not _realtime_process(plain.pid, LOOP_PRIORITY) and os.sched_getscheduler(plain.pid) == os.SCHED_OTHER
+        plain.kill()
+        plain.wait()
+        return
+    own = subprocess.Popen([sys.executable, "-c", "import os, time; os.sched_setscheduler(0, os.SCHED_FIFO, "
+                            "os.sched_param(20)); print('ok', flush=True); time.sleep(30)"], stdout=subprocess.PIPE,
+                           text=True)
+    try:
+        assert own.stdout is not None and own.stdout.readline().strip() == "ok"
+        assert _realtime_process(plain.pid, LOOP_PRIORITY) and _realtime_process(own.pid, LOOP_PRIORITY)
+        assert os.sched_getscheduler(plain.pid) == os.SCHED_FIFO
+        assert os.sched_getparam(plain.pid).sched_priority == LOOP_PRIORITY
+        assert os.sched_getparam(own.pid).sched_priority == 20  # its own, not lowered
+    finally:
+        for p in (plain, own):
+            p.kill()
+            p.wait()

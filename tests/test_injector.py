@@ -36,7 +36,10 @@ INSIDER_KINDS = "empty,random,truncated,bitflip,huge,nan,copy_no_attachment,copy
 
 def test_the_arm_reaches_its_targets_while_every_key_is_attacked(tmp_path: Path) -> None:
     run = tmp_path / "run"
-    up = subprocess.Popen([sys.executable, "-m", "hilsim.cli", "up", "arm", "--out", str(run)],
+    # the recorder on every key (logger.batch=0), so the insider's unannounced garbage is recorded as rejected
+    # (with batches a writer that announces nothing is not recorded at all: docs/recording.md, "Batches")
+    up = subprocess.Popen([sys.executable, "-m", "hilsim.cli", "up", "arm", "--out", str(run),
+                           "--set", "logger.batch=0"],
                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO,
                           start_new_session=True)
     inj: subprocess.Popen[str] | None = None

@@ -52,7 +52,7 @@ def test_logger_records_every_message(
     from hilsim.services.logger import LoggerService
 
     run_dir = tmp_path / "run"
-    sc = scenario("arm", {"logger.run_dir": str(run_dir)})
+    sc = scenario("arm", {"logger.run_dir": str(run_dir), "logger.batch": 0})
     keys = Keys.of(sc)
     svc = LoggerService(sc)
     st = run_service(svc)
@@ -243,7 +243,7 @@ def test_logger_counts_lost_samples_per_key(
 
     monkeypatch.setenv("HILSIM_LOGGER_DELAY_US", "50")
     run_dir = tmp_path / "run"
-    sc = scenario("arm", {"logger.run_dir": str(run_dir), "clock.mode": "realtime"})
+    sc = scenario("arm", {"logger.run_dir": str(run_dir), "logger.batch": 0, "clock.mode": "realtime"})
     keys = Keys.of(sc)
     svc = LoggerService(sc)
     assert svc.delay_s == pytest.approx(50e-6)
@@ -295,7 +295,7 @@ def test_a_strangers_gaps_are_not_the_recorders_losses(
     from hilsim.services.logger import LoggerService
 
     run_dir = tmp_path / "run"
-    sc = scenario("arm", {"logger.run_dir": str(run_dir)})
+    sc = scenario("arm", {"logger.run_dir": str(run_dir), "logger.batch": 0})
     keys = Keys.of(sc)
     svc = LoggerService(sc)
     clock = msgs.encode(msgs.Clock(clock=msgs.stamp(0)))

@@ -28,7 +28,7 @@ def test_slow_recorder_loses_samples_but_never_slows_realtime_physics(tmp_path: 
     env = {**os.environ, "HILSIM_LOGGER_DELAY_US": str(DELAY_US)}
     p = subprocess.Popen(
         [sys.executable, "-m", "hilsim.cli", "up", "arm", "--clock", "realtime", "--duration", str(DURATION_S),
-         "--router", ep, "--out", str(out)],
+         "--router", ep, "--out", str(out), "--set", "logger.batch=0"],  # the per-sample receive path, slowed
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO, env=env, start_new_session=True,
     )
     try:

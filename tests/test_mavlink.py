@@ -334,6 +334,24 @@ def test_a_silent_gps_is_no_fix_and_a_fault_and_its_return_is_said_once(bridge: 
         gps.close()
 
 
+def test_the_first_fix_is_due_from_the_simulations_start_however_late_that_is(bridge: Any) -> None:
+    """On a busy machine the other services can take longer to start than gps.startup_timeout: before the
+    simulation's first step nothing awaits a fix (the emulated GPS has no truth to send yet), and a GPS
+    that then stays silent is still a fault, startup_timeout after that step."""
+    svc, _, w = bridge({"bridge-mavlink.gps.startup_timeout": 0.5})
+    time.sleep(1.2)  # more than twice the timeout, no clock: the simulation has not started
+    assert w.said("no GPS message", 40) == 0 and svc.state != "fault", svc.state
+    pub = w.session.declare_publisher(KEYS.clock)
+    try:
+        t0 = time.monotonic()
+        pub.put(msgs.encode(msgs.Clock(clock=msgs.stamp(1_000_000))))
+        assert wait_until(lambda: w.said("no GPS message (GPS_RAW_INT) within 0.5 s of the simulation starting",
+                                         40) == 1, 5)
+        assert time.monotonic() - t0 >= 0.45 and svc.state == "fault"
+    finally:
+        pub.undeclare()
+
+
 def test_a_jump_is_flagged_no_fix_and_ends_when_the_track_returns_or_is_confirmed(bridge: Any) -> None:
     """Gate 20 m + 5 m/s: a one-fix outlier 500 m away is flagged and the track then resumes
     (said once); a lasting jump is flagged until 3 fixes agree, then accepted (said once)."""

@@ -125,6 +125,9 @@ def test_goal_rover_xy_drives_to_the_goal(router: str, tmp_path: Path) -> None:
             p.kill()
     assert goal.returncode == 0, goal.stdout + goal.stderr
     assert "accepted" in goal.stdout and "succeeded" in goal.stdout, goal.stdout
+    assert "(code" not in goal.stdout and "position error" in goal.stdout, goal.stdout  # not "succeeded (code 1)"
+    # hilsim up's line per goal: the rover's errors in m and rad, not as joints
+    assert "cli-" in out and "position error" in out and "joint error" not in out, out
     assert bad.returncode == 1 and "rejected: GOAL_IN_COLLISION" in bad.stdout, bad.stdout + bad.stderr
     assert p.returncode == 0, out
     truth = {msgs.ns_of(o.header.stamp): o for o in cap.decoded("truth/odom", msgs.Odometry)}

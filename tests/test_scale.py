@@ -111,9 +111,17 @@ def test_two_arms_reach_their_own_targets_in_the_truth_and_do_not_interfere(tmp_
     assert np.abs(final["arm0"] - np.array(OVER)).max() > 0.5
     assert np.abs(final["arm1"] - np.array(LEFT)).max() > 0.5
     counts = json.loads((tmp_path / "run" / "record_summary.json").read_text())
+
+    def recorded(key: str) -> int:
+        return counts.get(key, {}).get("recorded", 0)
+
     for r in ("arm0", "arm1"):
-        for topic in ("truth/joint_states", "joint_states", "joint_commands", "task/result"):
-            assert counts.get(Keys("hilsim", r).topic(topic), {}).get("recorded", 0) > 0, (r, topic, sorted(counts))
+        assert recorded(Keys("hilsim", r).topic("task/result")) > 0, (r, sorted(counts))
+        for topic in ("truth/joint_states", "joint_states", "joint_commands"):
+            # with batches (the default) and arrays the recorder takes every robot's joints in the fleet
+            # sample and writes them robot by robot; a robot's own key is built only for another reader
+            fleet = Keys("hilsim", "arm").topic(f"fleet/{topic}")
+            assert recorded(Keys("hilsim", r).topic(topic)) > 0 or recorded(fleet) > 0, (r, topic, sorted(counts))
     assert Keys().clock in counts
 
 
@@ -131,7 +139,9 @@ def test_bench_scale_reports_each_robot_count_against_one_robot_measured_in_the_
         assert r["cpu_per_sim_s"] > 0 and r["recorder"]["cpu_s"] > 0
         # the extra subscriber got every robot's joint_states (1 kHz) for the whole run
         assert r["subscriber_samples"] >= 0.9 * 300 * r["robots"], r["subscriber_samples"]
-    assert two["recorder"]["recorded"] > 1.6 * one["recorder"]["recorded"]  # it recorded both arms
+    # it recorded both arms: at least the second one's joint_states the extra subscriber pulled (with batches
+    # and arrays every arm's joints are in one fleet sample per step, so the rest does not double)
+    assert two["recorder"]["recorded"] - one["recorder"]["recorded"] >= 0.9 * 300, (one["recorder"], two["recorder"])
     # the ratios are the measured figures' (not copied, not fixed)
     assert one["rtf_vs_1"] == 1.0
     assert math.isclose(two["rtf_vs_1"], two["rtf"] / one["rtf"])

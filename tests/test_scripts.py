@@ -30,15 +30,56 @@ def test_the_venv_is_installed_once_and_again_when_pyproject_changes(tmp_path: P
         assert r.returncode == 0, r.stderr
         return calls.read_text().splitlines() if calls.exists() else []
 
-    assert ensure(".") == ["-m pip install -q -e ."]
+    assert ensure(".") == ["-m pip install -e ."]
     assert len(ensure(".")) == 1  # the same pyproject.toml: no pip at all
-    assert ensure(".[test]")[-1] == "-m pip install -q -e .[test]"  # more asked for
+    assert ensure(".[test]")[-1] == "-m pip install -e .[test]"  # more asked for
     assert len(ensure(".")) == 2 and len(ensure(".[test]")) == 2  # the test extras cover `.`
     (tmp_path / "pyproject.toml").write_text("[project]\nname = 'x'\ndependencies = ['y']\n")
     assert len(ensure(".")) == 3 and len(ensure(".")) == 3
     for script in ("arm.sh", "test.sh"):
         text = (REPO / "scripts" / script).read_text()
         assert "ensure_venv" in text and "pip install -q -e" not in text, script  # hilsim: only through it
+
+
+def _venv_with_pip(tmp_path: Path, pip: str) -> Path:
+    """A copy of scripts/venv.sh beside a .venv whose python is a stand-in running ``pip`` (shell)."""
+    (tmp_path / "scripts").mkdir(parents=True)
+    shutil.copy(REPO / "scripts" / "venv.sh", tmp_path / "scripts" / "venv.sh")
+    (tmp_path / "pyproject.toml").write_text("[project]\nname = 'x'\n")
+    py = tmp_path / ".venv" / "bin" / "python"
+    py.parent.mkdir(parents=True)
+    py.write_text("#!/bin/sh\n" + pip)
+    py.chmod(0o755)
+    return tmp_path
+
+
+def test_the_first_install_says_how_long_and_shows_its_progress(tmp_path: Path) -> None:
+    """The set-up's long step (a few minutes the first time) gives an estimate up front, then a line per
+    package pip collects with the seconds so far, announces the silent install step and says when it is
+    done; pip's noise stays in its log. A failing pip shows its error and leaves the venv to be retried."""
+    d = _venv_with_pip(tmp_path / "ok", "echo \"WARNING: Location 'file:///x/' is ignored: it is neither a file nor a "
+                       "directory.\"\nfor p in numpy scipy mujoco; do echo \"Collecting $p\"; echo '  Using cached "
+                       "x.whl'; done\necho 'Installing collected packages: numpy, scipy, mujoco'\nsleep 1\n"
+                       "echo 'Successfully installed numpy scipy mujoco'\n")
+    r = subprocess.run(["bash", "-c", "set -euo pipefail; source scripts/venv.sh; ensure_venv ."], cwd=d,
+                       capture_output=True, text=True, timeout=30)
+    assert r.returncode == 0, r.stderr
+    lines = r.stderr.splitlines()
+    assert "the first time about 3 minutes" in lines[0], lines
+    assert [ln.split("] ", 1)[1] for ln in lines[1:4]] == ["  1: Collecting numpy", "  2: Collecting scipy",
+                                                          "  3: Collecting mujoco"], lines
+    assert "installing the 3 packages into .venv" in lines[4] and lines[5].endswith("] done"), lines
+    assert lines[6].startswith("hilsim installed into .venv in "), lines
+    assert "WARNING" not in r.stderr and "Using cached" not in r.stderr  # in .venv/pip-install.log
+    assert (d / ".venv" / ".hilsim-installed").exists()
+
+    bad = _venv_with_pip(tmp_path / "bad", "echo 'Collecting y'\necho 'ERROR: No matching distribution found for y'\n"
+                         "exit 1\n")
+    r = subprocess.run(["bash", "-c", "set -euo pipefail; source scripts/venv.sh; ensure_venv ."], cwd=bad,
+                       capture_output=True, text=True, timeout=30)
+    assert r.returncode == 1 and "failed (exit code 1)" in r.stderr, r.stderr
+    assert "ERROR: No matching distribution found for y" in r.stderr
+    assert not (bad / ".venv" / ".hilsim-installed").exists()  # tried again next time
 
 
 def test_every_directory_of_the_packages_is_a_listed_package() -> None:

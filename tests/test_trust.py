@@ -231,12 +231,13 @@ def test_two_runs_each_admit_only_their_own_processes_and_never_cross_talk(tmp_p
     which found the credentials itself), and records only its own samples: the recorder received exactly
     what its physics says it published."""
     a_dir, b_dir = tmp_path / "a", tmp_path / "b"
-    a = Run("arm", "--interactive", "--out", str(a_dir))
+    # lockstep: the recorder takes every sample physics published (an interactive run is realtime by default)
+    a = Run("arm", "--interactive", "--clock", "lockstep", "--out", str(a_dir))
     b: Run | None = None
     sessions: list[zenoh.Session] = []
     try:
         ep_a = a.wait_line("zenoh router:", 60).split()[2]
-        b = Run("arm", "--interactive", "--out", str(b_dir), "--set", "zenoh.guests=read")
+        b = Run("arm", "--interactive", "--clock", "lockstep", "--out", str(b_dir), "--set", "zenoh.guests=read")
         ep_b = b.wait_line("zenoh router:", 60).split()[2]
         a.wait_line("ready:", 120)
         b.wait_line("ready:", 120)

@@ -33,6 +33,24 @@ def known_services(info: ValidationInfo) -> list[str] | None:
     return ctx.get("services") if isinstance(ctx, dict) else None
 
 
+_UNITS = {"": 1, "b": 1, "kb": 1000, "mb": 1000**2, "gb": 1000**3, "tb": 1000**4,
+          "kib": 1024, "mib": 1024**2, "gib": 1024**3, "tib": 1024**4}
+
+
+def parse_bytes(text: str) -> int:
+    """``'500MB'`` -> 500000000, ``'2 GiB'`` -> 2147483648, ``'1024'`` -> 1024 (a size in a scenario)."""
+    t = text.strip().lower().replace(" ", "")
+    num = t.rstrip("abcdefghijklmnopqrstuvwxyz")
+    unit = t[len(num):]
+    try:
+        value = float(num)
+    except ValueError:
+        value = -1.0
+    if unit not in _UNITS or value < 0 or not math.isfinite(value):
+        raise ValueError(f"expected a size in bytes, e.g. 500000000, '500MB' or '2GiB', got {text!r}")
+    return int(value * _UNITS[unit])
+
+
 class ConfigError(Exception):
     """A scenario that cannot be used; the message is one line for the user."""
 
@@ -221,11 +239,26 @@ class LoggerConfig(_Model):
                               description="key expressions under <domain id>/, e.g. arm/** (hilsim.core.keys)")
     bag: bool = Field(True, description="also write <run dir>/bag/, a rosbag2 bag (MCAP) of every sample's raw CDR "
                       "(docs/recording.md)")
-    batch: int = Field(0, ge=0, le=65535, description="samples per batch the run's services send the recorder on one "
-                       "key each instead of every sample on its own key (0: off, the recorder subscribes to every key; "
-                       "docs/recording.md)")
+    batch: int = Field(256, ge=0, le=65535, description="samples per batch the run's services send the recorder on "
+                       "one key each instead of every sample on its own key; writers outside them (ROS 2 nodes, "
+                       "tools, bridges of other runs) are subscribed key by key from their publisher tokens (0: off, "
+                       "the recorder subscribes to every key; docs/recording.md)")
     batch_max_age_ms: float = Field(50.0, gt=0, le=10_000, description="a batch not full is sent when its first "
                                     "sample is this old (wall ms), so a slow key's samples do not wait")
+    max_bag_size: int = Field(0, ge=0, description="split the bag: a new file once the current one holds this many "
+                              "bytes (as rosbag2's --max-bag-size; 0: no split by size; also '500MB', '2GiB')")
+    max_bag_duration: float = Field(0.0, ge=0, description="split the bag: a new file once the current one spans "
+                                    "this many seconds of receive time (as rosbag2's --max-bag-duration; 0: none)")
+    max_size: int = Field(0, ge=0, description="cap on the run's recording (recording.rrd and bag/ together, "
+                          "bytes; '2GB' too): the recorder stops recording there and the run goes on (0: no cap)")
+    min_free: int = Field(500 * 1000**2, ge=0, description="the recorder stops recording (the run goes on) before "
+                          "the free space of the run directory's file system falls below this many bytes ('1GB' "
+                          "too; 0: only a full disk stops it)")
+
+    @field_validator("max_bag_size", "max_size", "min_free", mode="before")
+    @classmethod
+    def _bytes(cls, v: Any) -> Any:
+        return parse_bytes(v) if isinstance(v, str) else v
 
 
 class Ros2Config(_Model):

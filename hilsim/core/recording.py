@@ -39,6 +39,18 @@ from typing import Any
 
 RECORDING_NAME = "recording.rrd"
 SUMMARY_NAME = "record_summary.json"
+# an entry of record_summary.json that is not a key: why and when the recorder stopped recording
+# (logger.max_size, logger.min_free), present only then; read_counts() leaves it out of the counts
+STOPPED_ENTRY = "_recording_stopped"
+
+
+def read_counts(path: Path) -> tuple[dict[str, dict[str, int]], dict[str, Any] | None]:
+    """``record_summary.json`` (a run directory or the file): the counts per key, and what stopped the
+    recording early (its reason, sim time, bytes), or None if it went on to the run's end."""
+    p = path / SUMMARY_NAME if path.is_dir() else path
+    data = json.loads(p.read_text())
+    stopped = data.pop(STOPPED_ENTRY, None)
+    return data, stopped
 
 
 class RecordingError(RuntimeError):

@@ -341,12 +341,19 @@ def check_joint_servers(sc: Scenario, path: Path | str) -> None:
                               f"{sc.clock.mode!r}; pass --clock realtime)")
 
 
-def _is_scenario(p: Path) -> bool:
+def _is_scenario(p: Path, depth: int = 0) -> bool:
+    """Whether a config file is a scenario: it names a world, or extends one that does (arm-lean.yaml)."""
     try:
         d = yaml.safe_load(p.read_text())
     except (OSError, yaml.YAMLError):
         return False
-    return isinstance(d, dict) and "world" in d
+    if not isinstance(d, dict):
+        return False
+    if "world" in d:
+        return True
+    bases = d.get("extends")
+    bases = [bases] if isinstance(bases, str) else bases if isinstance(bases, list) else []
+    return depth < 8 and any(isinstance(b, str) and _is_scenario(p.parent / b, depth + 1) for b in bases)
 
 
 def _apply_env(data: dict[str, Any]) -> None:

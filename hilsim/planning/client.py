@@ -209,14 +209,15 @@ def cmd_goal(args: argparse.Namespace) -> int:
             print(f"no result within {args.timeout:g} s")
             return 1
         err = ", ".join(f"{e:.4f}" for e in res.execution_error)
+        # a failure names its code (MoveIt-like, hilsim.core.msgs.action); success is code 1, said by the word
+        how = "succeeded" if res.success else f"failed (code {res.error_code})"
         if rover:
             pos, yaw_err = (*res.execution_error, float("nan"), float("nan"))[:2]
-            print(f"{'succeeded' if res.success else 'failed'} (code {res.error_code}): {res.message}; "
-                  f"planner {res.planner}, planning {res.planning_time:.3f} s, "
+            print(f"{how}: {res.message}; planner {res.planner}, planning {res.planning_time:.3f} s, "
                   f"position error {pos:.3f} m, yaw error {yaw_err:.3f} rad (odometry)")
             return 0 if res.success else 1
         print(
-            f"{'succeeded' if res.success else 'failed'} (code {res.error_code}): {res.message}; "
+            f"{how}: {res.message}; "
             f"planner {res.planner}, "
             f"planning {res.planning_time:.3f} s, {len(res.trajectory.points)} trajectory points, "
             f"joint error [{err}] rad" + (f"\nchoice: {res.choice}" if res.choice else "")

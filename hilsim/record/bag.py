@@ -335,6 +335,16 @@ class BagWriter:
     def pending(self) -> int:
         return len(self._batch)
 
+    @property
+    def size(self) -> int:
+        """Bytes written to the file so far."""
+        return self._pos
+
+    @property
+    def messages(self) -> int:
+        """Messages written to the file so far (as of the last flush)."""
+        return self._stats.messages
+
     def flush(self) -> Counter[str]:
         """Write every queued message (chunks of at most ``chunk_bytes``) and flush the file to the
         OS; returns how many messages per key this flush wrote. The per-message work is C loops

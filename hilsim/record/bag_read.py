@@ -318,38 +318,77 @@ def _qos_list(c: Channel) -> list[dict[str, Any]]:
     return got if isinstance(got, list) else []
 
 
-def metadata_dict(bag: Bag, custom: dict[str, str] | None = None) -> dict[str, Any]:
+@dataclass
+class FileSummary:
+    """What ``metadata.yaml`` says of one file: its channels and their types, messages per channel and
+    the span of its receive times (CDR channels only)."""
+
+    name: str
+    channels: dict[int, Channel]
+    types: dict[int, str]
+    counts: Counter[int]
+    start: int
+    stop: int
+
+    @property
+    def cdr(self) -> bool:
+        """Whether rosbag2 can list it: it has channels, every one CDR (not ``hilsim export``'s JSON rows)."""
+        return bool(self.channels) and all(c.message_encoding == "cdr" for c in self.channels.values())
+
+    @classmethod
+    def of(cls, f: BagFile) -> FileSummary:
+        cdr = np.array([cid for cid, c in f.channels.items() if c.message_encoding == "cdr"], np.uint16)
+        logs = [a for a in (c[3][np.isin(c[0], cdr)] for c in f.chunks) if len(a)]
+        start = int(min(int(a.min()) for a in logs)) if logs else 0
+        stop = int(max(int(a.max()) for a in logs)) if logs else 0
+        return cls(f.path.name, dict(f.channels), {cid: f.type_of(cid) for cid in f.channels}, f.counts(), start, stop)
+
+
+def file_summary(path: Path) -> FileSummary:
+    """A file's :class:`FileSummary`, from its MCAP summary section if it is complete (a seek to its
+    footer: a split bag's earlier files are not read again at each split), else read as far as it is whole."""
+    try:
+        with open(path, "rb") as fh:
+            s = make_reader(fh).get_summary()
+    except Exception:  # no footer (a killed writer): read it
+        s = None
+    if s is None or s.statistics is None:
+        return FileSummary.of(read_file(path))
+    st = s.statistics
+    types = {cid: (s.schemas[c.schema_id].name if c.schema_id in s.schemas else "unknown")
+             for cid, c in s.channels.items()}
+    counts: Counter[int] = Counter({cid: n for cid, n in st.channel_message_counts.items() if n})
+    n = st.message_count
+    return FileSummary(path.name, dict(s.channels), types, counts, st.message_start_time if n else 0,
+                       st.message_end_time if n else 0)
+
+
+def metadata_dict(bag: Bag | list[FileSummary], custom: dict[str, str] | None = None) -> dict[str, Any]:
     """``metadata.yaml``'s content for a bag (rosbag2 version 9): times are log times (receive).
     Only files of CDR channels are listed (rosbag2 and rosbags know no other): the JSON rows of
-    ``hilsim export`` (a file of their own) are for MCAP readers (Foxglove) alone."""
+    ``hilsim export`` (a file of their own) are for MCAP readers (Foxglove) alone. A bag split into
+    several files (``logger.max_bag_size``, a restarted recorder) lists them all, in order."""
+    summaries = [FileSummary.of(f) for f in bag.files] if isinstance(bag, Bag) else bag
     topics: dict[tuple[str, str], dict[str, Any]] = {}
     files = []
     t0s, t1s = [], []
     total = 0
-    listed = [f for f in bag.files if f.channels and all(c.message_encoding == "cdr" for c in f.channels.values())]
+    listed = [f for f in summaries if f.cdr]
     for f in listed:
-        counts = f.counts()
-        cdr = np.array([cid for cid, c in f.channels.items() if c.message_encoding == "cdr"], np.uint16)
-        logs = [c[3][np.isin(c[0], cdr)] for c in f.chunks]
-        logs = [a for a in logs if len(a)]
-        n = sum(len(a) for a in logs)
+        n = sum(f.counts.values())
         total += n
-        start = int(min(int(a.min()) for a in logs)) if logs else 0
-        stop = int(max(int(a.max()) for a in logs)) if logs else 0
-        if logs:
-            t0s.append(start)
-            t1s.append(stop)
-        files.append({"path": f.path.name, "starting_time": {"nanoseconds_since_epoch": start},
-                      "duration": {"nanoseconds": stop - start}, "message_count": n})
+        if n:
+            t0s.append(f.start)
+            t1s.append(f.stop)
+        files.append({"path": f.name, "starting_time": {"nanoseconds_since_epoch": f.start},
+                      "duration": {"nanoseconds": f.stop - f.start}, "message_count": n})
         for cid, c in sorted(f.channels.items()):
-            if c.message_encoding != "cdr":
-                continue
-            t = (c.topic, f.type_of(cid))
+            t = (c.topic, f.types[cid])
             entry = topics.setdefault(t, {"topic_metadata": {
                 "name": c.topic, "type": t[1], "serialization_format": c.message_encoding,
                 "offered_qos_profiles": _qos_list(c),
                 "type_description_hash": c.metadata.get("topic_type_hash", "")}, "message_count": 0})
-            entry["message_count"] += counts.get(cid, 0)
+            entry["message_count"] += f.counts.get(cid, 0)
     start = min(t0s) if t0s else 0
     return {"rosbag2_bagfile_information": {
         "version": ROSBAG2_VERSION,
@@ -360,7 +399,7 @@ def metadata_dict(bag: Bag, custom: dict[str, str] | None = None) -> dict[str, A
         "topics_with_message_count": [topics[k] for k in sorted(topics)],
         "compression_format": "",  # MCAP compresses its chunks itself: no rosbag2 file or message compression
         "compression_mode": "",
-        "relative_file_paths": [f.path.name for f in listed],
+        "relative_file_paths": [f.name for f in listed],
         "files": files,
         "custom_data": custom or {},
         "ros_distro": "jazzy",  # the type descriptions and hashes are Jazzy's (REP 2016)
@@ -368,9 +407,9 @@ def metadata_dict(bag: Bag, custom: dict[str, str] | None = None) -> dict[str, A
 
 
 def write_metadata(path: str | Path, custom: dict[str, str] | None = None) -> Path:
-    """(Re)write ``<bag>/metadata.yaml`` from the bag's files (atomically); returns its path."""
-    d, _ = bag_paths(path)
-    bag = open_bag(d)
+    """(Re)write ``<bag>/metadata.yaml`` from the bag's files (atomically); returns its path. A complete
+    file is summarised from its MCAP summary, one without a footer read as far as it is whole."""
+    d, files = bag_paths(path)
     if not custom:
         old = d / METADATA_NAME
         if old.is_file():
@@ -380,7 +419,8 @@ def write_metadata(path: str | Path, custom: dict[str, str] | None = None) -> Pa
                 custom = None
     out = d / METADATA_NAME
     tmp = out.with_suffix(".yaml.tmp")
-    tmp.write_text(yaml.safe_dump(metadata_dict(bag, custom), sort_keys=False, default_flow_style=False))
+    tmp.write_text(yaml.safe_dump(metadata_dict([file_summary(f) for f in files], custom), sort_keys=False,
+                                  default_flow_style=False))
     tmp.replace(out)
     return out
 

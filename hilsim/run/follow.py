@@ -76,6 +76,7 @@ class Follower:
         self.outcome = Outcome()
         self.untrusted = 0  # samples on the keys it follows from writers other than the services
         self.paused_for = ""  # lockstep: the services physics waits for to come back (its health)
+        self.recording_stopped = ""  # the recorder stopped recording (logger.max_size, min_free): its health
         # lockstep: services silent for clock.ack_timeout that are to be restarted (taken by the launcher)
         self.silent: set[str] = set()
         self._silent_seen: set[str] = set()  # as physics' last health said
@@ -146,7 +147,7 @@ class Follower:
                 self.outcome.result_robots.append(robot)
                 err = max((abs(e) for e in res.execution_error), default=float("nan"))
                 status = "reached" if res.success else f"FAILED ({res.message})"
-                if key.endswith("/navigator/result"):  # a rover goal: [m, rad]
+                if name.endswith("/navigator/result"):  # a rover goal: [m, rad] (the key ends with its type and hash)
                     pos, yaw = (*res.execution_error, float("nan"), float("nan"))[:2]
                     what = f"position error {pos:.3f} m, yaw error {yaw:.3f} rad (odometry)"
                 else:
@@ -204,6 +205,9 @@ class Follower:
                         self.silent, self._silent_seen = set(silent), silent
                 if st.name == "physics":
                     self._paused(vals)
+                if st.name == "logger" and vals.get("recording_stopped") and not self.recording_stopped:
+                    self.recording_stopped = vals["recording_stopped"]
+                    self.say(f"  logger: recording stopped {self.recording_stopped}; the run goes on")
         self.changed.set()
 
     def _paused(self, vals: dict[str, str]) -> None:

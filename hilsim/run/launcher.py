@@ -79,7 +79,11 @@ __all__ = ["Child", "Launcher", "Outcome", "Restart", "cmd_router", "cmd_up", "d
            "open_default_router", "stop_order", "summarise", "world_scenario"]
 
 LOGGER_NICE = 10
+ROUTER_PRIORITY = 5  # realtime: SCHED_FIFO of the run's router (physics 10, the HIL bridges 20)
+LOOP_PRIORITY = 8  # realtime: SCHED_FIFO the launcher gives the loop's services that asked for none
+PLANNING_PRIORITY = 1  # …and the planner or navigator: below every other, its plans are bursts of CPU
 RESTART_READY_TIMEOUT = 120.0  # wall seconds a restarted service has to announce itself
+REMOTE_MISSES = 2  # --only: polls in a row that must miss a remote service's token before it has left
 REMOTE_GRACE_S = 10.0  # --only: how long a departed remote writer's samples are still its own
 
 
@@ -100,20 +104,42 @@ def stop_order(sc: Scenario) -> list[str]:
 
 
 def _pdeathsig() -> None:
-    """In the child: get SIGTERM when the launcher dies, and leave the terminal's signals to it."""
+    """In the child: get SIGTERM when the launcher dies, and leave the terminal's signals to it; an
+    ordinary scheduling class whatever the launcher's (a realtime run's router: each service asks
+    for its own)."""
     os.setpgrp()
     try:
         libc = ctypes.CDLL("libc.so.6", use_errno=True)
         libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except OSError:
         pass
+    try:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    except OSError:
+        pass
 
 
-def _recorder_child() -> None:
-    """The logger runs at a lower CPU priority: it buffers what it receives, so on a small
-    machine the loop's services get the cores first and the logger catches up when idle."""
-    _pdeathsig()
-    os.nice(LOGGER_NICE)
+def _realtime_process(pid: int, priority: int) -> bool:
+    """Give every thread of a process that has an ordinary scheduling class SCHED_FIFO ``priority``
+    (threads it makes later inherit it; one that asked for its own class keeps it). False: not
+    permitted (root or CAP_SYS_NICE) or gone."""
+    try:
+        for tid in os.listdir(f"/proc/{pid}/task"):
+            if os.sched_getscheduler(int(tid)) == os.SCHED_OTHER:
+                os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(priority))
+    except OSError:
+        return False
+    return True
+
+
+def _renice(pid: int, nice: int) -> None:
+    """Give every thread of a process the niceness ``nice`` (Linux keeps it per thread; threads made
+    later inherit their maker's). Gone or not permitted: left as it is."""
+    try:
+        for tid in os.listdir(f"/proc/{pid}/task"):
+            os.setpriority(os.PRIO_PROCESS, int(tid), nice)
+    except OSError:
+        pass
 
 
 @dataclass
@@ -138,6 +164,7 @@ class Launcher:
         self.local = local_units(sc, only)
         self.remote: dict[str, bool] = {}  # remote service -> alive now
         self.remote_left: dict[str, float] = {}  # remote service -> monotonic time it left
+        self.remote_missed: dict[str, int] = {}  # remote service -> polls in a row that did not find it
         self.run_dir = run_dir
         self.keys = Keys.of(sc)
         # the keys followed: the robot's, or with robots > 1 every robot's (<prefix>/*/…)
@@ -184,6 +211,8 @@ class Launcher:
             self.sc.zenoh.auth = rr.client_config
             guests = f"; guests read with {rr.guest_config}" if rr.guest_config else ""
             self.say(f"zenoh router: {self.router_ep} (user and password in {rr.client_config}{guests})")
+            if self.sc.clock.mode == "realtime":
+                self._raise_router_priority()
         self.sc.zenoh.connect = [self.router_ep]
         self.sc.logger.run_dir = self.run_dir.resolve()
         cfg = self.run_dir / "scenario.yaml"
@@ -202,6 +231,22 @@ class Launcher:
         self.order = [n for n in stop_order(self.sc) if n in self.local]
         for name in reversed(self.order):
             self.children[name] = Child(name, self._spawn(name, 0), self.run_dir / f"{name}.log")
+
+    def _raise_router_priority(self) -> None:
+        """Realtime: every sample of the loop crosses the run's router, in this process. Physics steps
+        with SCHED_FIFO, and so do the HIL bridges (config/hil/can.yaml), but on a machine busy with
+        other work the router's threads waited for a CPU for a quarter of a second at a time, and
+        physics faulted a joint server as silent whose estimates were on their way (issue 36). So the
+        router gets SCHED_FIFO too, below physics, and so do the threads Zenoh starts later (its receive
+        and send runtimes start with their first link: with SCHED_RESET_ON_FORK they came up ordinary);
+        the processes this one starts are set back to an ordinary class (:func:`_pdeathsig`). Without the
+        privilege (root or CAP_SYS_NICE) it stays as it is."""
+        try:
+            for tid in sorted(int(t) for t in os.listdir("/proc/self/task")):
+                os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(ROUTER_PRIORITY))
+        except (PermissionError, AttributeError, OSError) as e:
+            self.say(f"  (the router could not get a real-time scheduling class: {e}; on a busy machine the "
+                     "realtime loop's samples may wait for it)")
 
     def _spawn(self, name: str, attempt: int) -> subprocess.Popen[bytes]:
         """Start ``hilsim run NAME``; a restart (``attempt`` > 0) appends to the same log."""
@@ -222,7 +267,7 @@ class Launcher:
                 stderr=logf,
                 stdin=subprocess.DEVNULL,
                 env=env,
-                preexec_fn=_recorder_child if name == "logger" else _pdeathsig,
+                preexec_fn=_pdeathsig,
             )
         if name == "logger":
             # the logger's stdout is its per-key summary, shown to the user at the end
@@ -286,6 +331,21 @@ class Launcher:
                 c.alive.discard(svc)
             if sample.kind == zenoh.SampleKind.PUT and not c.ready and c.alive >= set(fleet.members(self.sc, name)):
                 c.ready = True
+                if self.sc.clock.mode == "realtime" and name != "logger" and self._router is not None:
+                    # realtime, with the run's own router on SCHED_FIFO: the loop's services too, once set
+                    # up (physics and the HIL bridges ask for more themselves), so that other work on the
+                    # machine cannot hold a step; the planner or navigator lowest (its plans are bursts)
+                    units = name.split("+")
+                    planning = {"planner", "navigator"}.intersection(u.split("@")[0] for u in units)
+                    _realtime_process(c.proc.pid, PLANNING_PRIORITY if planning and len(units) == 1
+                                      else LOOP_PRIORITY)
+                if name == "logger":
+                    # The recorder runs at a lower CPU priority once it is set up: it buffers what it
+                    # receives, so on a small machine the loop's services get the cores first and it
+                    # catches up when idle. Not before: niced from its start, on a machine busy with
+                    # other work it took minutes to import and set up, and the whole run (and a HIL
+                    # device's start-up timeouts) waited for it.
+                    _renice(c.proc.pid, LOGGER_NICE)
                 if c.restarts:
                     back = time.monotonic() - c.died_at
                     r = next((r for r in reversed(self.outcome.restarts) if r.name == name), None)
@@ -306,16 +366,28 @@ class Launcher:
 
     def _poll_remote(self) -> None:
         """Ask who is alive: a remote service's departure must not hang on one liveliness event
-        (seen lost through the router under load), so the run still ends, bounded."""
+        (seen lost through the router under load), so the run still ends, bounded. A service counts
+        as gone only when ``REMOTE_MISSES`` polls in a row did not find it: one query's reply can miss
+        a token that is there (seen at a run's start: "left", then "back" 2 s later, though nothing
+        had left); a reply without any token at all (this host's services answer too) says nothing."""
         try:
             replies = self.session.liveliness().get(self.follow_keys.all_alive, timeout=1.0)
             alive = {fleet.service_id(self.sc, str(r.ok.key_expr), "alive") for r in replies if r.ok is not None}
         except zenoh.ZError:
             return
+        if not alive:
+            return
         with self.lock:
             for svc, up in list(self.remote.items()):
-                if up != (svc in alive) and (up or svc in self.remote_left):  # left, or back
-                    self._on_remote(svc, not up)
+                if svc in alive:
+                    self.remote_missed.pop(svc, None)
+                    if not up and svc in self.remote_left:  # back
+                        self._on_remote(svc, True)
+                elif up:
+                    self.remote_missed[svc] = self.remote_missed.get(svc, 0) + 1
+                    if self.remote_missed[svc] >= REMOTE_MISSES:  # left, its departure event lost
+                        self.remote_missed.pop(svc)
+                        self._on_remote(svc, False)
 
     def check_children(self) -> bool:
         """True if a service died and is not restarted (recorded in the outcome); a service
@@ -434,6 +506,8 @@ class Launcher:
                         self.say(f"  killing {name} (pid {c.proc.pid}): silent, it cannot stop by itself")
                         c.proc.kill()
                     else:
+                        if name == "logger":  # the loop has stopped: the recorder drains at full priority
+                            _renice(c.proc.pid, 0)  # (raising it back needs root or CAP_SYS_NICE; else as it was)
                         c.proc.send_signal(signal.SIGINT)
                         c.proc.send_signal(signal.SIGCONT)  # a stopped (suspended) service must handle it too
                     try:
@@ -549,17 +623,19 @@ def _interactive_hint(la: Launcher, example: list[float] | None) -> str:
     return f"interactive: Ctrl-C to stop; try {try_}"
 
 
-def cmd_up(args: argparse.Namespace) -> int:
-    """``hilsim up``: its exit code is the summary's (:mod:`hilsim.run.summary`): 0 every target
-    reached, 1 failed, 3 stopped by ``--duration`` before its task ended, 128 + N interrupted by
-    signal N (Ctrl-C: 130, SIGTERM: 143); a second stop signal kills the services at once."""
-    from hilsim.core.config import ConfigError
+def up_overrides(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, str]]:
+    """The scenario fields ``hilsim up``'s options set (``--set`` and the rest), and where each came from.
+    ``--interactive`` runs at wall-clock pace (realtime): a person sends goals at their pace, and sim time
+    must not race ahead of them (nor a lockstep run's recording fill the disk faster than the run goes);
+    ``--clock lockstep`` (or ``--set clock.mode=lockstep``) asks for lockstep all the same."""
     from hilsim.core.scenario import parse_overrides
 
     overrides = parse_overrides(args.set)
     origins: dict[str, str] = {}  # where an override came from, for its errors
     if args.clock:
         overrides["clock.mode"], origins["clock.mode"] = args.clock, f"--clock {args.clock}"
+    elif getattr(args, "interactive", False) and "clock.mode" not in overrides:
+        overrides["clock.mode"], origins["clock.mode"] = "realtime", "--interactive (realtime unless --clock lockstep)"
     if args.duration is not None:
         overrides["duration"], origins["duration"] = args.duration, f"--duration {args.duration:g}"
     if args.seed is not None:
@@ -569,6 +645,16 @@ def cmd_up(args: argparse.Namespace) -> int:
     if args.compose:
         overrides["compose"] = [[n.strip() for n in g.split(",") if n.strip()] for g in args.compose]
         origins["compose"] = " ".join(f"--compose {g}" for g in args.compose)
+    return overrides, origins
+
+
+def cmd_up(args: argparse.Namespace) -> int:
+    """``hilsim up``: its exit code is the summary's (:mod:`hilsim.run.summary`): 0 every target
+    reached, 1 failed, 3 stopped by ``--duration`` before its task ended, 128 + N interrupted by
+    signal N (Ctrl-C: 130, SIGTERM: 143); a second stop signal kills the services at once."""
+    from hilsim.core.config import ConfigError
+
+    overrides, origins = up_overrides(args)
     interactive = getattr(args, "interactive", False)
     if interactive and args.duration is not None:
         raise ConfigError("--interactive: the run stays up until Ctrl-C; drop --duration")

@@ -25,7 +25,6 @@ Reads and writes no Zenoh key: only the outcome and the run directory.
 
 from __future__ import annotations
 
-import json
 import signal
 from collections.abc import Callable
 from pathlib import Path
@@ -33,6 +32,7 @@ from typing import Protocol
 
 from hilsim.core.config import Scenario
 from hilsim.core.keys import UnknownKey, topic_name
+from hilsim.core.recording import read_counts
 from hilsim.run.follow import Outcome
 
 EXIT_OK, EXIT_FAILED, EXIT_STOPPED = 0, 1, 3  # and 128 + N: interrupted by signal N (SIGINT: 130)
@@ -119,7 +119,7 @@ def summarise(la: FinishedRun) -> int:
             ok = _recover_recordings(la.run_dir) and ok
         summary = la.run_dir / "record_summary.json"
         if summary.exists():
-            counts = json.loads(summary.read_text())
+            counts, stopped = read_counts(summary)
             rec = sum(v.get("recorded", 0) for v in counts.values())
             recv = sum(v.get("received", 0) for v in counts.values())
             mismatch = sorted(k for k, v in counts.items() if v.get("received") != v.get("recorded"))
@@ -147,6 +147,17 @@ def summarise(la: FinishedRun) -> int:
             if mismatch:
                 line += f"; MISMATCH (received but not recorded) on {mismatch}"
             print(line)
+            # batches: a writer outside them (a ROS 2 node) is subscribed once its publisher token is seen; what
+            # it put before that subscription reached it is not in the recording (said, not a failure)
+            early = {k: v.get("before_first", 0) for k, v in counts.items() if v.get("key_subscribed")}
+            early = {k: n for k, n in early.items() if n}
+            if early:
+                keys = ", ".join(f"{short(k)} {n}" for k, n in sorted(early.items(), key=lambda kv: -kv[1])[:8])
+                print(f"  not recorded: {sum(early.values())} samples their writers published before the recorder "
+                      f"subscribed to them (logger.batch: docs/recording.md, \"Batches\"): {keys}")
+            if stopped is not None:  # logger.max_size or min_free: the files hold the run up to there, whole
+                print(f"  recording stopped at sim time {stopped.get('sim_time')} s: {stopped.get('reason')}; "
+                      f"{stopped.get('after_stop', 0)} samples after it not recorded (the run went on)")
             if any("bagged" in v for v in counts.values()):  # logger.bag: count what the bag's files hold
                 # a restarted recorder's counts are its last process's: the bag is shown, not judged
                 ok = _check_bag(la.run_dir, counts, short, judge=not logger_restarted) and ok
@@ -159,7 +170,7 @@ def summarise(la: FinishedRun) -> int:
                     if k.startswith("published:"):
                         published[k[10:]] = published.get(k[10:], 0) + _num(v)
             unseen = {}
-            for k, v in counts.items():
+            for k, v in counts.items() if stopped is None else ():  # stopped: the rest was not recorded, on purpose
                 seen = v["received"] + v.get("lost", 0) + v.get("before_first", 0)
                 if published.get(k, 0) > seen:
                     unseen[k] = published[k] - seen

@@ -15,7 +15,6 @@ Two figures:
 
 from __future__ import annotations
 
-import json
 import tempfile
 import time
 from pathlib import Path
@@ -23,7 +22,7 @@ from typing import Any
 
 from hilsim.core import msgs, transport
 from hilsim.core.keys import Keys
-from hilsim.core.recording import SUMMARY_NAME
+from hilsim.core.recording import SUMMARY_NAME, read_counts
 from hilsim.core.scenario import load_scenario
 
 FLUSH_EVERY = 4000  # samples between the worker's batches here (about 0.5 s of the arm at 1x)
@@ -106,6 +105,6 @@ def worker_cost(steps: int = 5000, repeat: int = 3) -> dict[str, float]:
 
 def process_us_per_sample(run_dir: Path, logger_cpu_s: float) -> float:
     """The logger process's CPU per recorded sample of a run (its record_summary.json)."""
-    counts = json.loads((run_dir / SUMMARY_NAME).read_text())
+    counts, _ = read_counts(run_dir / SUMMARY_NAME)
     n = sum(v.get("recorded", 0) for v in counts.values())
     return 1e6 * logger_cpu_s / max(n, 1)

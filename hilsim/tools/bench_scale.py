@@ -41,6 +41,7 @@ from pathlib import Path
 from tempfile import TemporaryDirectory
 from typing import Any
 
+from hilsim.core.recording import read_counts
 from hilsim.core.scenario import load_scenario
 from hilsim.tools import progress
 from hilsim.tools.bench import _scenario, cpu_s
@@ -165,7 +166,7 @@ def run_one(robots: int, subscribers: int, sim_seconds: float, tmp: Path, compos
     if not la.outcome.physics_done:
         raise RuntimeError(f"the run did not reach its duration; see {run_dir}")
     ph = la.outcome.health.get("physics", {})
-    counts = json.loads((run_dir / "record_summary.json").read_text())
+    counts, _ = read_counts(run_dir)
     recorded = sum(v.get("recorded", 0) for v in counts.values())
     lost = sum(v.get("lost", 0) for v in counts.values())
     rec_cpu = cpu.get("logger", 0.0)

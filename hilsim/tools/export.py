@@ -8,7 +8,8 @@ far as its messages are whole.
 
 - ``--to csv``: one file per entity path and component, ``<out>/<entity path>/<Archetype>.<field>.csv``
   (e.g. ``joints/joint_1/position/truth/Scalars.scalars.csv``), columns ``sim_time_ns`` (empty for
-  static rows) and ``value`` (a number where the row holds one number, else the row as JSON).
+  static rows) and ``value`` (a number where the row holds one number, else the row as JSON), rows in
+  sim-time order (static ones first; the ``.rrd``'s chunks are not in that order).
 - ``--to mcap``: a rosbag2 directory (``metadata.yaml``, ``bag_0.mcap``; :mod:`hilsim.record.bag`).
   Re-encoded as ROS 2 messages (CDR) where the rows hold a message's values: ``/clock``
   (rosgraph_msgs/Clock, stamp = the row's sim time), joint states (``joints/<joint>/<q>/<source>``
@@ -104,7 +105,9 @@ def _json_safe(v: Any) -> Any:
 def export_csv(rows: dict[str, list[Row]], out: Path) -> int:
     """One CSV per entity path and component; returns the number of files."""
     n = 0
-    for entity, rs in sorted(rows.items()):
+    for entity, unordered in sorted(rows.items()):
+        # in sim-time order, static rows first: the .rrd's chunks are not (stable: ties stay in file order)
+        rs = sorted(unordered, key=lambda row: -1 if row[0] is None else row[0])
         comps = sorted({c for _, r in rs for c in r})
         for comp in comps:
             d = out / entity.strip("/")
