@@ -131,7 +131,7 @@ def check_common(seen: dict[str, Any], robot: str, what: str) -> None:
 
 
 def test_real_nodes_read_the_arm_in_lockstep_and_a_kilted_node_drives_it(netns: str, tmp_path: Path) -> None:
-    run, lines = start(netns, tmp_path, "arm", "--interactive", "--set",
+    run, lines = start(netns, tmp_path, "arm", "--interactive", "--clock", "lockstep", "--set",
                        "bridge-ros2-dds.to_dds=[joint_states,truth/joint_states,imu,/clock,robot_description,tf]")
     try:
         kilted = node(netns, "kilted", "--robot", "arm", "--drive", "trajectory", "--target", *map(str, TARGET))
