@@ -112,14 +112,17 @@ def test_the_summary_takes_sim_time_from_physics_final_health(tmp_path: Path, ca
 
 
 def test_a_forged_writer_is_believed_only_where_the_credentials_let_it_in() -> None:
-    """The limit the router's credentials are there for (docs/security.md): a writer's gid and sequence
-    number are public, and a sample sent with them is indistinguishable from the writer's own; the
-    writer's real sample with that number is then refused as a duplicate."""
+    """The limit the router's access control is there for (docs/security.md): a writer's gid and sequence
+    number are public, and a sample sent with them is indistinguishable from the writer's own, so it is
+    believed. It cannot keep the writer's own sample out: that one, the same number with another payload,
+    is delivered too, and counted as suspect (hilsim.core.provenance)."""
     prov, key, gid = Provenance(), "0/clock/rosgraph_msgs::msg::dds_::Clock_/RIHS01_x", transport.new_gid()
     prov.announce(key, gid)
-    assert prov.check(key, transport.Attachment(1, 0, gid)) == (None, 0)
-    assert prov.check(key, transport.Attachment(2, 0, gid)) == (None, 0)  # forged: believed
-    why, _ = prov.check(key, transport.Attachment(2, 0, gid))  # the real one
+    assert prov.check(key, transport.Attachment(1, 0, gid), b"real 1") == (None, 0)
+    assert prov.check(key, transport.Attachment(2, 0, gid), b"forged 2") == (None, 0)  # forged: believed
+    assert prov.check(key, transport.Attachment(2, 0, gid), b"real 2") == (None, 0)  # the real one: delivered
+    assert prov.suspect[key] == 1
+    why, _ = prov.check(key, transport.Attachment(2, 0, gid), b"real 2")  # a replay of it is a duplicate
     assert why is not None and "duplicate" in why
 
 
