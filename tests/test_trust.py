@@ -122,7 +122,7 @@ def test_a_forged_writer_is_believed_only_where_the_credentials_let_it_in() -> N
     assert prov.check(key, transport.Attachment(2, 0, gid), b"forged 2") == (None, 0)  # forged: believed
     assert prov.check(key, transport.Attachment(2, 0, gid), b"real 2") == (None, 0)  # the real one: delivered
     assert prov.suspect[key] == 1
-    why, _ = prov.check(key, transport.Attachment(2, 0, gid), b"real 2")  # a replay of it is a duplicate
+    why, _ = prov.check(key, transport.Attachment(2, 0, gid), b"forged 2")  # a replay of the first: a duplicate
     assert why is not None and "duplicate" in why
 
 
