@@ -161,6 +161,7 @@ class LoggerService(Service):
         self._streams: dict[tuple[str, bytes], Sequence] = {}
         self.gaps: Counter[str] = Counter()  # lost in transport: sequence numbers never received
         self.suspect: Counter[str] = Counter()  # samples that do not fit their writer's sequence (recorded)
+        self._published: dict[str, dict[str, int]] = {}  # health key -> its final health's published:<key>
         self.dropped: Counter[str] = Counter()  # arrived at a full queue (or as the subscriber closed)
         self.before_first: Counter[str] = Counter()  # published before a writer's first received sample
         self.unannounced: Counter[str] = Counter()  # from writers that did not announce themselves for the key
@@ -530,6 +531,8 @@ class LoggerService(Service):
             rows.rejected(key, len(payload), e)
             self._pending[key] += 1
             return
+        if isinstance(msg, msgs.DiagnosticArray) and "/health/" in key:
+            self._note_published(key, msg)
         try:
             rows.message(key, msg)
             rows.learn(key, payload, msg)
@@ -538,6 +541,33 @@ class LoggerService(Service):
             rows.error(key, e, msg)
         self.sim_ns = rows.clock_ns
         self._pending[key] += 1
+
+    def _note_published(self, key: str, msg: msgs.DiagnosticArray) -> None:
+        """A service's final health (``final: 1``, only it may write its health): what it published per key,
+        against which a gap in its sequence is judged at the end (:meth:`_judged_lost`)."""
+        for st in msg.status:
+            values = {kv.key: kv.value for kv in st.values}
+            if values.get("final") != "1":
+                continue
+            with self.lock:
+                self._published[key] = {k[10:]: int(v) for k, v in values.items()
+                                        if k.startswith("published:") and v.isdigit()}
+
+    def _judged_lost(self, lost: Counter[str], received: Counter[str]) -> Counter[str]:
+        """The losses per key, no more than the key's services say they published and did not reach the
+        recorder: a gap left by a forged number (a writer's gid used by another process, and no sample of
+        its own after it) is no loss when every sample the writers published arrived."""
+        published: Counter[str] = Counter()
+        with self.lock:
+            for counts in self._published.values():
+                published.update(counts)
+            own = Counter({k: received[k] - self.unannounced[k] - self.suspect[k] for k in received})
+            before = Counter(self.before_first)
+        out = Counter(lost)
+        for k, n in lost.items():
+            if n and k in published:
+                out[k] = min(n, max(0, published[k] - own[k] - before[k]))
+        return +out
 
     def _reject(self, key: str, e: Exception) -> None:
         with self.lock:
@@ -678,8 +708,11 @@ class LoggerService(Service):
             unannounced = Counter(self.unannounced)
             duplicates = Counter(self.duplicates)
             suspect = Counter(self.suspect)
-        lost = self.lost()
+        gaps = self.lost()
+        lost = self._judged_lost(gaps, received)
         contested = self.contested()
+        for k in gaps:  # gaps its writers' own counts say are not losses: said apart, as contested ones
+            contested[k] += gaps[k] - lost[k]
         keys = sorted(set(received) | set(recorded) | set(lost))
         summary = {
             k: {
@@ -693,7 +726,8 @@ class LoggerService(Service):
                 "unannounced": unannounced[k],
                 **({"duplicates": duplicates[k]} if self.batching or duplicates[k] else {}),
                 # samples that do not fit their writer's sequence, and gaps not counted as lost for it
-                **({"suspect": suspect[k], "contested": contested[k]} if suspect[k] else {}),
+                **({"suspect": suspect[k]} if suspect[k] else {}),
+                **({"contested": contested[k]} if contested[k] else {}),
             }
             for k in keys
         }
