@@ -76,8 +76,8 @@ LOST, BEFORE, UNCOUNTED = 0, 1, 2  # what a gap is: samples lost, sent before th
 class Sequence:
     """One writer's sample sequence on one key (module docstring): :meth:`take` judges each sample."""
 
-    __slots__ = ("before", "contested", "digests", "first", "holes", "last", "lost", "other", "seqs", "suspect",
-                 "t_last")
+    __slots__ = ("before", "conflicts", "contested", "digests", "first", "holes", "last", "lost", "other", "seqs",
+                 "suspect", "t_last")
 
     def __init__(self) -> None:
         self.first = self.last = -1
@@ -93,6 +93,7 @@ class Sequence:
         # when it last moved, samples, gaps]. Taken over as the baseline when that has gone quiet (a forged
         # first sample far ahead of the writer's own, which then come here)
         self.other: list[float] | None = None
+        self.conflicts: dict[int, set[int]] = {}  # number -> digests of further samples with it (the window's)
 
     def take(self, seq: int, digest: int, now: float, *, one_way: bool = True, counted: bool = True,
              ) -> tuple[int, str]:
@@ -101,8 +102,11 @@ class Sequence:
         ``counted``: gaps before this sample are losses (its writer is announced)."""
         i = seq % WINDOW
         if self.seqs[i] == seq:
-            if self.digests[i] == digest:
+            if self.digests[i] == digest or digest in self.conflicts.get(seq, ()):
                 return DUPLICATE, f"duplicate of sample {seq} from this writer"
+            self.conflicts.setdefault(seq, set()).add(digest)  # a replay of this one is a duplicate too
+            if len(self.conflicts) > WINDOW:
+                del self.conflicts[next(iter(self.conflicts))]
             return self._suspect(f"a second sample {seq} from this writer, unlike the first: one is not its own")
         self.seqs[i], self.digests[i] = seq, digest
         last = self.last
