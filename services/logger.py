@@ -162,6 +162,7 @@ class LoggerService(Service):
         self.gaps: Counter[str] = Counter()  # lost in transport: sequence numbers never received
         self.suspect: Counter[str] = Counter()  # samples that do not fit their writer's sequence (recorded)
         self._published: dict[str, dict[str, int]] = {}  # health key -> its final health's published:<key>
+        self._say_suspect = ""  # a warning to publish once self.lock is released
         self.dropped: Counter[str] = Counter()  # arrived at a full queue (or as the subscriber closed)
         self.before_first: Counter[str] = Counter()  # published before a writer's first received sample
         self.unannounced: Counter[str] = Counter()  # from writers that did not announce themselves for the key
@@ -445,6 +446,9 @@ class LoggerService(Service):
                 return
             self.counts_in[k] += 1
             self._queue.append((k, payload, att, time.time_ns()))
+        if self._say_suspect:
+            said, self._say_suspect = self._say_suspect, ""
+            self.warn(said)
 
     def _sequence(self, key: str, att: transport.Attachment, payload: Any, *, counted: bool = True) -> bool:
         """Count the samples of this sample's writer that never arrived, and those that do not fit its
@@ -465,8 +469,8 @@ class LoggerService(Service):
         self.before_first[key] += (0 if st.contested else st.before) - before0
         if verdict != TAKEN and counted:
             self.suspect[key] += 1
-            if self.suspect[key] == 1:
-                self.warn(f"suspect sample on {key}: {why} (recorded; further ones are counted)")
+            if self.suspect[key] == 1:  # said once self.lock is released: the recorder receives its own log
+                self._say_suspect = f"suspect sample on {key}: {why} (recorded; further ones are counted)"
         return True
 
     def contested(self) -> Counter[str]:

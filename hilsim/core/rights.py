@@ -109,7 +109,9 @@ def _action_keys(sc: Scenario, action_type: str) -> tuple[list[str], list[str]]:
 def _writable(rights: Rights, keys: list[str]) -> None:
     for k in keys:
         rights.put |= {k, _adv(k)}
-        rights.serve.add(_adv(k))  # an advanced publisher's cache answers late subscribers
+        # an advanced (transient-local) publisher's cache answers late subscribers: its queryable under @adv,
+        # its replies on the key itself
+        rights.serve |= {k, _adv(k)}
         rights.tokens.add(_adv(k))
 
 
