@@ -332,6 +332,7 @@ def build_parser() -> argparse.ArgumentParser:
     ui.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080)")
     ui.add_argument("--connect", help="join this Zenoh router instead of opening one (runs started from the "
                     "panel use it too)")
+    ui.add_argument("--run", metavar="DIR", help="join the run of yours that is up in DIR (its router)")
     ui.add_argument("--prefix", default=None, help="key prefix (default: HILSIM_PREFIX, else hilsim)")
     ui.set_defaults(func=_lazy("hilsim.ui.server", "cmd_ui"))
     return p

@@ -269,18 +269,34 @@ def test_two_runs_each_admit_only_their_own_processes_and_never_cross_talk(tmp_p
             s = zenoh.open(zenoh.Config.from_file(str(d / "zenoh-client.json5")))
             sessions.append(s)
             assert len(_physics_nodes(s)) == 1
-        # B's guest reads, but what it writes reaches nobody; the run's user's does (the control)
+        # B's guest reads, but what it writes reaches nobody; the tools' does, on a key a person commands (the
+        # control), and not on the clock, which is physics' (docs/security.md)
         member, guest = sessions[-1], zenoh.open(zenoh.Config.from_file(str(b_dir / "zenoh-guest.json5")))
         sessions.append(guest)
         got: list[str] = []
         clock_seen = threading.Event()
-        member.declare_subscriber("0/guest_test/**", lambda s: got.append(s.payload.to_string()))
+        cmd_vel = Keys().topic("cmd_vel")
+        member.declare_subscriber(cmd_vel, lambda s: got.append(s.payload.to_string()))
+        member.declare_subscriber(Keys().clock, lambda s: got.append(s.payload.to_string()) if s.attachment is None
+                                  else None)
         guest.declare_subscriber(Keys().clock, lambda _: clock_seen.set())
         time.sleep(0.5)
-        guest.put("0/guest_test/x", "guest")
-        member.put("0/guest_test/x", "member")
+        guest.put(cmd_vel, "guest")
+        member.put(cmd_vel, "member")
+        member.put(Keys().clock, "tools on the clock")
         time.sleep(0.5)
         assert got == ["member"] and clock_seen.wait(5)
+        # every process its own identity, written 0600 in a directory only this user may enter
+        for d in (a_dir, b_dir):
+            ids = d / transport.IDENTITIES_DIR
+            assert stat.S_IMODE(ids.stat().st_mode) == 0o700
+            assert {f.name for f in ids.iterdir()} >= {"physics.json5", "controller.json5", "launcher.json5"}
+            assert all(_private(f) for f in ids.iterdir())
+        # the tools without --connect or --run, two runs of this user up: they ask which, never guess
+        both = subprocess.run([*HILSIM, "topic", "list"], capture_output=True, text=True, timeout=60, cwd=REPO,
+                              stdin=subprocess.DEVNULL)
+        assert both.returncode == 2 and "2 runs of yours are up" in both.stderr, both
+        assert str(a_dir.resolve()) in both.stderr and str(b_dir.resolve()) in both.stderr, both.stderr
         # physics' final health in each run, with its counts of what it published
         finals: dict[str, dict[str, str]] = {}
 

@@ -56,7 +56,8 @@ class Panel:
             self.endpoint = connect
         else:
             joined = self._own_or_join_router(attach)
-        self.session = joined or transport.open_tool_session(self.endpoint)
+        # joining a run: the first line names it (directory, scenario, endpoint); nothing there is an error
+        self.session = joined or transport.open_tool_session(self.endpoint, tool="hilsim ui" if connect else None)
         self.monitor = Monitor(self.session, self.prefix)
         self.options = scenario_options()
         self.planners = planner_names()
@@ -84,8 +85,9 @@ class Panel:
             session = transport.open_tool_session(ep)
             if _has_router(session, ROUTER_WAIT_S):
                 self.endpoint = ep
-                print(f"hilsim panel: a Zenoh router already listens on {ep} (a hilsim up running?): "
-                      "joined it, its simulation is shown", flush=True)
+                run = transport.run_at([ep])
+                which = run.describe() if run is not None else f"{ep} (a hilsim up running?)"
+                print(f"hilsim ui: joined {which}: its simulation is shown", flush=True)
                 return session
             session.close()
         self.endpoint, self.router = open_default_router()  # says which port it took instead
