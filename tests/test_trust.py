@@ -225,7 +225,8 @@ def _private(path: Path) -> bool:
     return path.is_file() and stat.S_IMODE(path.stat().st_mode) == 0o600
 
 
-def test_two_runs_each_admit_only_their_own_processes_and_never_cross_talk(tmp_path: Path) -> None:
+def test_two_runs_each_admit_only_their_own_processes_and_never_cross_talk(tmp_path: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
     """Two ``hilsim up`` at once, with the same keys: each has its own router (the second on a free port,
     saying so) and its own user and password, written 0600 (also as a ROS 2 node's
     ``ZENOH_SESSION_CONFIG_URI``) and found by this user's tools through a 0600 pointer file. A Zenoh
@@ -234,6 +235,9 @@ def test_two_runs_each_admit_only_their_own_processes_and_never_cross_talk(tmp_p
     which found the credentials itself), and records only its own samples: the recorder received exactly
     what its physics says it published."""
     a_dir, b_dir = tmp_path / "a", tmp_path / "b"
+    # this test's pointers apart from those of other runs of this user on the machine (its processes inherit it)
+    (tmp_path / "xdg").mkdir(mode=0o700)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / "xdg"))
     a = Run("arm", "--interactive", "--out", str(a_dir))
     b: Run | None = None
     sessions: list[zenoh.Session] = []
@@ -276,9 +280,11 @@ def test_two_runs_each_admit_only_their_own_processes_and_never_cross_talk(tmp_p
         got: list[str] = []
         clock_seen = threading.Event()
         cmd_vel = Keys().topic("cmd_vel")
-        member.declare_subscriber(cmd_vel, lambda s: got.append(s.payload.to_string()))
-        member.declare_subscriber(Keys().clock, lambda s: got.append(s.payload.to_string()) if s.attachment is None
-                                  else None)
+        watch = zenoh.open(zenoh.Config.from_file(str(b_dir / "zenoh-client.json5")))  # not the writers' own session
+        sessions.append(watch)
+        watch.declare_subscriber(cmd_vel, lambda s: got.append(s.payload.to_string()))
+        watch.declare_subscriber(Keys().clock, lambda s: got.append(s.payload.to_string()) if s.attachment is None
+                                 else None)
         guest.declare_subscriber(Keys().clock, lambda _: clock_seen.set())
         time.sleep(0.5)
         guest.put(cmd_vel, "guest")
