@@ -29,7 +29,7 @@ LAYERS: list[list[str]] = [
     ["hilsim.core"],
 ]
 # inside the core, bottom to top: a module imports only modules listed before it
-CORE_ORDER = ["msgs", "ros2", "geometry", "recording", "inproc", "fleet", "keys", "config", "registry",
+CORE_ORDER = ["msgs", "ros2", "geometry", "recording", "inproc", "fleet", "keys", "config", "rights", "registry",
               "scenario", "restart", "transport", "provenance", "batch", "service"]
 
 
