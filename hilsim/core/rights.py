@@ -69,6 +69,14 @@ class Rights:
         """Whether a put on the concrete ``key`` is granted (a grant includes it, as the router decides)."""
         return _granted(self.put, key)
 
+    def may_ask(self, key: str) -> bool:
+        """Whether a query on ``key`` is granted."""
+        return _granted(self.ask, key)
+
+    def may_serve(self, key: str) -> bool:
+        """Whether a queryable on ``key`` (and its replies) is granted."""
+        return _granted(self.serve, key)
+
 
 def _granted(exprs: set[str], key: str) -> bool:
     import zenoh
