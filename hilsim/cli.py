@@ -218,6 +218,9 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--json", action="store_true")
     bl.add_argument("--sim-seconds", type=float, default=5.0)
     bl.add_argument("--realtime-seconds", type=float, default=60.0)
+    bl.add_argument("--identities", type=int, default=0, metavar="N",
+                    help="only this: N pairs of runs through the run's router, one identity for every process vs "
+                         "one per process (docs/performance.md, \"Identities\")")
     bl.set_defaults(func=_lazy("hilsim.tools.bench", "cmd_loop"))
     bsc = bsub.add_parser("scale", help="many robots: real-time factor, step latency, recorder load vs one robot")
     bsc.add_argument("--json", action="store_true")

@@ -565,7 +565,7 @@ class LoggerService(Service):
         with self.lock:
             for counts in self._published.values():
                 published.update(counts)
-            own = Counter({k: received[k] - self.unannounced[k] - self.suspect[k] for k in received})
+            own = Counter({k: received[k] - self.suspect[k] for k in received})
             before = Counter(self.before_first)
         out = Counter(lost)
         for k, n in lost.items():

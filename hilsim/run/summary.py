@@ -170,8 +170,8 @@ def summarise(la: FinishedRun) -> int:
                     if k.startswith("published:"):
                         published[k[10:]] = published.get(k[10:], 0) + _num(v)
             unseen = {}
-            for k, v in counts.items():  # what its writers sent: not a stranger's nor a suspect sample
-                own = v["received"] - v.get("unannounced", 0) - v.get("suspect", 0)
+            for k, v in counts.items():  # what its writers sent: not a suspect sample (a writer's early samples
+                own = v["received"] - v.get("suspect", 0)  # come before its token: unannounced, but its own)
                 seen = own + v.get("lost", 0) + v.get("before_first", 0)
                 if published.get(k, 0) > seen:
                     unseen[k] = published[k] - seen
