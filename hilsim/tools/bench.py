@@ -41,6 +41,7 @@ import argparse
 import json
 import logging
 import os
+import statistics
 import time
 from pathlib import Path
 from tempfile import TemporaryDirectory
@@ -220,7 +221,7 @@ def bench_identities(sim_seconds: float, tmp: Path, repeat: int, say: Any) -> di
         ratios.append(b / a)
         say(f"    pair {i + 1}: one identity {a:.3f}x, one per process {b:.3f}x real time (ratio {b / a:.3f})")
     return {"one_identity_rtf": one, "per_process_rtf": each, "ratios": ratios,
-            "median_ratio": float(sorted(ratios)[len(ratios) // 2])}
+            "median_ratio": float(statistics.median(ratios))}
 
 
 def bench_realtime(seconds: float, tmp: Path) -> dict[str, float]:
