@@ -21,7 +21,8 @@ Writes: only its own health and log keys (``<prefix>/<robot>/health/logger``,
   unannounced}}`` (``bagged``: messages of the key written to the bag, counted as the batches
   reached the file; ``unannounced``: samples from a writer that did not announce itself for the key,
   recorded all the same; their sequence numbers are not ours to count losses by; with batches also
-  ``duplicates``) written at exit.
+  ``duplicates``; where some arrived ``suspect`` and ``contested``; ``lost`` never more than the key's
+  services say they published and did not reach it: their final health) written at exit.
 
 This module is the service's wiring: subscriptions, the queue, the worker thread, loss
 accounting, health and lifecycle. What is written for each kind of message (and the entity
@@ -58,7 +59,10 @@ the publisher's cache then gives it; such keys are taken once per writer and seq
 Each sample unpacked from a batch goes through
 :meth:`_take` like one received on its key; since one can come both ways (a key written by a batching
 service and another writer, or a batching token seen after the node's publisher tokens), samples are
-taken once per (key, writer gid, sequence number) (:meth:`_sequence_once`; ``duplicates``). A frame
+taken once per (key, writer gid, sequence number, payload) (:meth:`_sequence`, each writer's
+:class:`hilsim.core.provenance.Sequence`; ``duplicates``). A sample that does not fit its writer's
+sequence (a forged number, a replay) is recorded and counted as ``suspect``, its writer's gaps then
+``contested``, not ``lost`` (docs/keys.md, "Suspect samples"). A frame
 that does not decode is recorded as a rejected sample of its key. Trade-offs: a writer without a
 publisher token on a key only batching services announce is not seen (consumers reject it anyway);
 a service killed with SIGKILL loses its unsent batch (at most ``batch_max_age_ms`` of samples), which

@@ -12,7 +12,9 @@ hilsim's own liveliness (a service is alive, a lockstep participant's role) stay
 ``<prefix>/<robot>/…``: it is not data, and ROS 2 tools do not look there; the ROS 2 graph
 (nodes, publishers, subscriptions) is announced as rmw_zenoh does, under ``@ros2_lv/<domain>/…``.
 
-``docs/keys.md`` documents the same table for people; ``TOPICS`` below is the table for code,
+``docs/keys.md`` documents the same table for people; ``TOPIC_TABLE`` below is the table for code (each
+topic's message type and writers: :mod:`hilsim.core.rights` turns the writers into the router's access
+control, so the table decides who may write what), ``TOPICS`` its types,
 extended by other packages through the ``hilsim.topics`` entry-point group (:func:`plugin_topics`).
 No other module builds a key string by hand: services ask a :class:`Keys` instance, and
 :func:`message_type` / :func:`topic_name` read a key back.

@@ -9,11 +9,13 @@ To join another network, set ``zenoh.connect`` in the scenario or ``HILSIM_ZENOH
 With ``zenoh.tls`` (or ``HILSIM_TLS_*``) every process is a TLS client of the router with its own
 certificate, and the router's config file says who may do what (docs/security.md).
 
-Without TLS, ``hilsim up``'s router authenticates (Zenoh's ``transport.auth.usrpwd``) with a user and
-password made for the run and lets only that user write (access control by username): every
-process of the run gets them from ``zenoh.auth`` (a Zenoh client config file, ``<run
-dir>/zenoh-client.json5``) and is then a client of the router (no listener of its own), and the tools
-of the same user find them through a pointer file per port (:func:`pointer_path`), as Jupyter's token is.
+Without TLS, ``hilsim up``'s router authenticates (Zenoh's ``transport.auth.usrpwd``) every process of
+the run with a user and password of its own and lets each write only what the key table gives it
+(access control by username, :mod:`hilsim.core.rights`): a service gets its identity from ``zenoh.auth``
+(a Zenoh client config file, ``<run dir>/identities/<process>.json5``, through ``HILSIM_ZENOH_AUTH``) and is
+then a client of the router (no listener of its own); the tools of the same user find theirs
+(``<run dir>/zenoh-client.json5``) through a pointer file per port (:func:`pointer_path`), as Jupyter's
+token is, and name the run they joined (:func:`tool_target`).
 """
 
 from __future__ import annotations

@@ -5,8 +5,9 @@ holds the command; following what the services report is :mod:`hilsim.run.follow
 printed at the end :mod:`hilsim.run.summary`, the embedded router :mod:`hilsim.run.router`.
 
 The launcher opens an embedded Zenoh router on a free loopback port (or joins ``--router``) that
-admits only the run's processes (a user and password made for the run, :func:`open_run_router`;
-docs/security.md), writes the resolved scenario to ``runs/<timestamp>/scenario.yaml``, starts one
+admits only the run's processes, each with an identity of its own that may write only what the key
+table gives it (:func:`open_run_router`, :mod:`hilsim.core.rights`; docs/security.md; the launcher's own
+session only reads), writes the resolved scenario to ``runs/<timestamp>/scenario.yaml``, starts one
 ``hilsim run SERVICE`` process per service of the scenario and per external joint server it
 names (in the reverse of the order the service classes declare for stopping), waits for each
 liveliness token, then follows the task result, every service's health and its faults. It stops

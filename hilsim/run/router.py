@@ -1,7 +1,9 @@
 """The Zenoh router of a run: ``hilsim up``'s embedded one, and ``hilsim router`` (a standalone one).
 
-``hilsim up`` opens its router in its own process (:func:`open_default_router`) on the well-known
-loopback port when it is free, so ``hilsim topic`` finds it; every service of the run connects to it.
+``hilsim up`` opens its router in its own process (:func:`open_run_router`) on the well-known
+loopback port when it is free; every process of the run connects to it with an identity of its own,
+whose rights the access control derives from the key table (:mod:`hilsim.core.rights`), and this user's
+tools find theirs through a pointer file.
 ``hilsim router`` is one for several hosts (docs/deployment.md), optionally from a Zenoh config file
 (listen endpoints, TLS, access control: docs/security.md).
 
