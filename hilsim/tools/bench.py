@@ -212,16 +212,24 @@ def bench_identities(sim_seconds: float, tmp: Path, repeat: int, say: Any) -> di
     """What an identity per process costs (docs/security.md): the pipelined arm through the run's own
     router with one identity that may do everything (as before) and with one per process, alternated
     ``repeat`` times in one sitting (a shared machine's load drifts: each pair's ratio, and their median)."""
-    one, each, ratios = [], [], []
+    one, each, ratios, router_one, router_each = [], [], [], [], []
+    steps = sim_seconds * 1000
     for i in range(repeat):
-        a = bench_pipelined(sim_seconds, tmp / f"id{i}", run_router=True, per_service=False)
-        b = bench_pipelined(sim_seconds, tmp / f"id{i}", run_router=True, per_service=True)
+        ca: dict[str, float] = {}
+        cb: dict[str, float] = {}
+        a = bench_pipelined(sim_seconds, tmp / f"id{i}", ca, run_router=True, per_service=False)
+        b = bench_pipelined(sim_seconds, tmp / f"id{i}", cb, run_router=True, per_service=True)
         one.append(a)
         each.append(b)
         ratios.append(b / a)
-        say(f"    pair {i + 1}: one identity {a:.3f}x, one per process {b:.3f}x real time (ratio {b / a:.3f})")
+        # the router checks every sample against its access control: its CPU per step (in this process)
+        router_one.append(1e6 * ca["router+launcher"] / steps)
+        router_each.append(1e6 * cb["router+launcher"] / steps)
+        say(f"    pair {i + 1}: one identity {a:.3f}x, one per process {b:.3f}x real time (ratio {b / a:.3f}); "
+            f"router+launcher {router_one[-1]:.0f} vs {router_each[-1]:.0f} µs of CPU per step")
     return {"one_identity_rtf": one, "per_process_rtf": each, "ratios": ratios,
-            "median_ratio": float(statistics.median(ratios))}
+            "median_ratio": float(statistics.median(ratios)), "router_us_one_identity": router_one,
+            "router_us_per_process": router_each}
 
 
 def bench_realtime(seconds: float, tmp: Path) -> dict[str, float]:
