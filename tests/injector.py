@@ -98,13 +98,18 @@ def main() -> int:
     old: dict[str, list[tuple[float, bytes, bytes]]] = {}  # key -> (when, payload, attachment) seen before
     lock = threading.Lock()
 
+    forged: set[tuple[bytes, int, int]] = set()  # (gid, seq, payload hash) of what it sent with a real gid
+
     def on_sample(s: zenoh.Sample) -> None:
         att = transport.read_attachment(s)
         if att is None or att.gid == gid:
             return  # keep real samples only, not our own
         k = str(s.key_expr)
+        payload = s.payload.to_bytes()
         with lock:
-            latest[k] = (s.payload.to_bytes(), att)
+            if (att.gid, att.seq, hash(payload)) in forged:
+                return  # its own forgery coming back: copying it would send old content under a new number
+            latest[k] = (payload, att)
             kept = old.setdefault(k, [])
             if len(kept) < 64 and (not kept or time.monotonic() - kept[-1][0] > 0.05):
                 kept.append((time.monotonic(), latest[k][0], s.attachment.to_bytes()))
@@ -166,7 +171,10 @@ def main() -> int:
                 continue
             # nothing to nudge (a trajectory): the sample itself, only its number forged
             data = msgs.encode(m) if nudge(m) else good
-            att = transport.attachment_bytes(real.seq + (1 if kind == "forged_writer" else AHEAD), real.gid)
+            seq = real.seq + (1 if kind == "forged_writer" else AHEAD)
+            att = transport.attachment_bytes(seq, real.gid)
+            with lock:
+                forged.add((real.gid, seq, hash(data)))
         elif kind == "replay":
             with lock:
                 aged = [x for x in old.get(key, []) if time.monotonic() - x[0] > REPLAY_AGE_S]

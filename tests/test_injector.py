@@ -8,7 +8,9 @@ writer's gid with its next sequence number and with one 10,000 ahead) and replay
 their recorded ids, and malformed goals and gains. The router refuses every write on a key the tools may
 not write (nothing of it reaches anyone: the recorder received exactly what the services say they
 published there); on the keys they may write (the trajectory), the controller rejects or counts what is
-suspect and still takes the planner's own trajectories. The task is done (judged by the physics truth),
+suspect and still takes the planner's own trajectories. (A forged sample carries a real sample's content,
+the writer's latest: content of its own to elsewhere the tools may send anyway, as themselves, and it
+would move the arm there; docs/security.md, "What is not protected".) The task is done (judged by the physics truth),
 the summary is true, and ``hilsim play`` of a bag into that run is refused for a key a service writes."""
 
 from __future__ import annotations
