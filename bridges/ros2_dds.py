@@ -290,7 +290,7 @@ class Ros2DdsBridgeService(Service):
             with self.lock:
                 self.loop_dropped += 1  # what this bridge took from DDS itself
             return
-        why, gap = self.provenance.check(k, att)
+        why, gap = self.provenance.check(k, att, data)  # the payload: a duplicate is the same sample
         if why is not None:
             with self.lock:
                 self.reject(k, why)

@@ -78,8 +78,10 @@ def _lazy_ints(text: str) -> list[int]:
 def _endpoint_args(p: argparse.ArgumentParser) -> None:
     """--connect / --prefix of the tools that join a running simulation (hilsim.core.transport.tool_*)."""
     p.add_argument("--connect", help="Zenoh endpoint(s), comma-separated "
-                   "(default: HILSIM_ZENOH_CONNECT, else tcp/127.0.0.1:7447)")
+                   "(default: HILSIM_ZENOH_CONNECT, else the one run of yours that is up, else tcp/127.0.0.1:7447)")
     p.add_argument("--prefix", default=None, help="key prefix (default: HILSIM_PREFIX, else hilsim)")
+    p.add_argument("--run", metavar="DIR", help="join the run of yours that is up in DIR (its router and "
+                   "credentials; default: the one run of yours that is up, asked if there are several)")
 
 
 def _up(args: argparse.Namespace) -> int:
@@ -165,7 +167,8 @@ def build_parser() -> argparse.ArgumentParser:
                       "the first sample (default 0.5)")
     play.add_argument("--domain", type=int, default=None, help="ROS 2 domain to play into (default: the recorded one)")
     play.add_argument("--connect", help="Zenoh endpoint(s), comma-separated (default: HILSIM_ZENOH_CONNECT, "
-                      "else tcp/127.0.0.1:7447)")
+                      "else the one run of yours that is up, else tcp/127.0.0.1:7447)")
+    play.add_argument("--run", metavar="DIR", help="play into the run of yours that is up in DIR")
     play.set_defaults(func=_lazy("hilsim.tools.play", "cmd_play"))
 
     bag = sub.add_parser("bag", help="a recorded bag (rosbag2, MCAP): what it holds, or make it whole")
@@ -247,6 +250,9 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--json", action="store_true")
     bl.add_argument("--sim-seconds", type=float, default=5.0)
     bl.add_argument("--realtime-seconds", type=float, default=60.0)
+    bl.add_argument("--identities", type=int, default=0, metavar="N",
+                    help="only this: N pairs of runs through the run's router, one identity for every process vs "
+                         "one per process (docs/performance.md, \"Identities\")")
     bl.set_defaults(func=_lazy("hilsim.tools.bench", "cmd_loop"))
     bsc = bsub.add_parser("scale", help="many robots: real-time factor, step latency, recorder load vs one robot")
     bsc.add_argument("--json", action="store_true")
@@ -383,6 +389,7 @@ def build_parser() -> argparse.ArgumentParser:
     ui.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080)")
     ui.add_argument("--connect", help="join this Zenoh router instead of opening one (runs started from the "
                     "panel use it too)")
+    ui.add_argument("--run", metavar="DIR", help="join the run of yours that is up in DIR (its router)")
     ui.add_argument("--prefix", default=None, help="key prefix (default: HILSIM_PREFIX, else hilsim)")
     ui.set_defaults(func=_lazy("hilsim.ui.server", "cmd_ui"))
     return p
@@ -395,6 +402,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    except ConnectionError as e:  # a tool that reaches nothing (hilsim.core.transport.open_tool_session)
+        print(f"error: {str(e).splitlines()[0]}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         return 130
 

@@ -21,7 +21,8 @@ Writes: only its own health and log keys (``<prefix>/<robot>/health/logger``,
   unannounced}}`` (``bagged``: messages of the key written to the bag, counted as the batches
   reached the file; ``unannounced``: samples from a writer that did not announce itself for the key,
   recorded all the same; their sequence numbers are not ours to count losses by; with batches also
-  ``duplicates``) written at exit.
+  ``duplicates``; where some arrived ``suspect`` and ``contested``; ``lost`` never more than the key's
+  services say they published and did not reach it: their final health) written at exit.
 
 This module is the service's wiring: subscriptions, the queue, the worker thread, loss
 accounting, health and lifecycle. What is written for each kind of message (and the entity
@@ -58,7 +59,10 @@ the publisher's cache then gives it; such keys are taken once per writer and seq
 Each sample unpacked from a batch goes through
 :meth:`_take` like one received on its key; since one can come both ways (a key written by a batching
 service and another writer, or a batching token seen after the node's publisher tokens), samples are
-taken once per (key, writer gid, sequence number) (:meth:`_sequence_once`; ``duplicates``). A frame
+taken once per (key, writer gid, sequence number, payload) (:meth:`_sequence`, each writer's
+:class:`hilsim.core.provenance.Sequence`; ``duplicates``). A sample that does not fit its writer's
+sequence (a forged number, a replay) is recorded and counted as ``suspect``, its writer's gaps then
+``contested``, not ``lost`` (docs/keys.md, "Suspect samples"). A frame
 that does not decode is recorded as a rejected sample of its key. Trade-offs: a writer without a
 publisher token on a key only batching services announce is not seen (consumers reject it anyway);
 a service killed with SIGKILL loses its unsent batch (at most ``batch_max_age_ms`` of samples), which
@@ -101,6 +105,7 @@ import zenoh.ext as zenoh_ext
 from hilsim.core import batch, msgs, transport
 from hilsim.core.config import Scenario
 from hilsim.core.keys import Keys, UnknownKey, message_type
+from hilsim.core.provenance import DUPLICATE, TAKEN, Sequence, digest_of
 from hilsim.core.recording import RECORDING_NAME, STOPPED_ENTRY, SUMMARY_NAME, disable_analytics, part_name
 from hilsim.core.restart import restarted
 from hilsim.core.ros2 import wire
@@ -128,7 +133,6 @@ REALTIME_QUEUE_LIMIT = 50_000
 QUIET_S = 0.25
 DRAIN_LIMIT_S = 5.0
 DELAY_ENV = "HILSIM_LOGGER_DELAY_US"  # fault injection: slow the receive callback (µs per sample)
-MAX_HOLES = 10_000  # batching: holes kept per writer in its sequence numbers, to fill from the other way
 
 
 class LoggerService(Service):
@@ -158,9 +162,12 @@ class LoggerService(Service):
         self._key_names: dict[str, str] = {}
         self.recorded: Counter[str] = Counter()
         self._pending: Counter[str] = Counter()  # samples whose rows are buffered, not yet sent, per key
-        # loss accounting (under self.lock): newest sequence number per (key, writer id)
-        self._last_seq: dict[tuple[str, bytes], int] = {}
+        # loss accounting (under self.lock): each writer's sequence (hilsim.core.provenance.Sequence)
+        self._streams: dict[tuple[str, bytes], Sequence] = {}
         self.gaps: Counter[str] = Counter()  # lost in transport: sequence numbers never received
+        self.suspect: Counter[str] = Counter()  # samples that do not fit their writer's sequence (recorded)
+        self._published: dict[str, dict[str, int]] = {}  # health key -> its final health's published:<key>
+        self._say_suspect = ""  # a warning to publish once self.lock is released
         self.dropped: Counter[str] = Counter()  # arrived at a full queue (or as the subscriber closed)
         self.before_first: Counter[str] = Counter()  # published before a writer's first received sample
         self.unannounced: Counter[str] = Counter()  # from writers that did not announce themselves for the key
@@ -179,7 +186,6 @@ class LoggerService(Service):
         # logger.batch: the services send batches; keys are subscribed one by one for the other writers
         self.batching = scenario.logger.batch > 0
         self.duplicates: Counter[str] = Counter()  # samples that came both ways (batching, latched), taken once
-        self._holes: dict[tuple[str, bytes], list[list[int]]] = {}  # batching: (key, gid) -> [lo, hi, pre]
         self._route_lock = threading.Lock()
         self._batching_nodes: set[tuple[str, str]] = set()  # (zid, node id) of the batching services
         self._plain: dict[str, dict[bytes, tuple[str, str]]] = {}  # key -> its non-batching writers' nodes
@@ -440,16 +446,14 @@ class LoggerService(Service):
         with self.lock:
             prov = self.provenance
             if att is not None and (k not in prov.restricted or att.gid in prov.writers.get(k, ())):
-                if not self.batching and k not in self._twice:
-                    self._sequence(k, att)
-                elif not self._sequence_once(k, att):
+                if not self._sequence(k, att, payload):
                     # it came both ways (in a batch, or from a latched writer's cache, and on its key): once
                     self.duplicates[k] += 1
                     return
             elif k in prov.restricted:
                 # Batching: a writer whose token is not known yet (a race at its start) can send a sample
                 # both ways too; taken once all the same, its gaps not counted (not announced yet)
-                if att is not None and self.batching and not self._sequence_once(k, att, counted=False):
+                if att is not None and self.batching and not self._sequence(k, att, payload, counted=False):
                     self.duplicates[k] += 1
                     return
                 # recorded like everything received, but a stranger's gaps are no loss of ours
@@ -462,56 +466,41 @@ class LoggerService(Service):
                 return
             self.counts_in[k] += 1
             self._queue.append((k, payload, att, time.time_ns()))
+        if self._say_suspect:
+            said, self._say_suspect = self._say_suspect, ""
+            self.warn(said)
 
-    def _sequence(self, key: str, att: transport.Attachment) -> None:
-        """Count the samples of this sample's writer that never arrived (under self.lock)."""
+    def _sequence(self, key: str, att: transport.Attachment, payload: Any, *, counted: bool = True) -> bool:
+        """Count the samples of this sample's writer that never arrived, and those that do not fit its
+        sequence (suspect: recorded all the same), under self.lock (hilsim.core.provenance.Sequence).
+        False for a sample taken already: one that came both ways (batches, a latched writer's cache;
+        same number, same payload). Taken one way only, such a repeat is a replay: recorded, suspect."""
         w = (key, att.gid)
-        last = self._last_seq.get(w)
-        if last is None:
-            self.before_first[key] += max(att.seq - 1, 0)
-            self._last_seq[w] = att.seq
-        elif att.seq > last:
-            self.gaps[key] += att.seq - last - 1
-            self._last_seq[w] = att.seq
-        elif self.gaps[key] > 0:
-            # older than the newest of its writer (Zenoh keeps one writer's order, so not
-            # expected): it fills a gap counted before
-            self.gaps[key] -= 1
+        st = self._streams.get(w)
+        if st is None:
+            st = self._streams[w] = Sequence()
+        lost0, before0 = st.counted_lost, 0 if st.contested else st.before
+        two_ways = self.batching or key in self._twice
+        verdict, why = st.take(att.seq, digest_of(payload if isinstance(payload, bytes) else None),
+                               time.monotonic(), one_way=not two_ways, counted=counted)
+        if verdict == DUPLICATE and two_ways:
+            return False
+        self.gaps[key] += st.counted_lost - lost0
+        self.before_first[key] += (0 if st.contested else st.before) - before0
+        if verdict != TAKEN and counted:
+            self.suspect[key] += 1
+            if self.suspect[key] == 1:  # said once self.lock is released: the recorder receives its own log
+                self._say_suspect = f"suspect sample on {key}: {why} (recorded; further ones are counted)"
+        return True
 
-    def _sequence_once(self, key: str, att: transport.Attachment, *, counted: bool = True) -> bool:
-        """As :meth:`_sequence`, for samples that may come twice (in a batch and on their key, in any
-        order): False for one already taken. Kept per writer: the newest sequence number and the
-        holes below it, as [lo, hi, pre] (pre 1: before the first sample taken, not a loss; 2: while
-        the writer was not announced, ``counted`` False: neither)."""
-        w = (key, att.gid)
-        seq = att.seq
-        last = self._last_seq.get(w)
-        if last is None:
-            if counted:
-                self.before_first[key] += max(seq - 1, 0)
-            self._last_seq[w] = seq
-            self._holes[w] = [[1, seq - 1, 1 if counted else 2]] if seq > 1 else []
-            return True
-        if seq > last:
-            if seq > last + 1:
-                if counted:
-                    self.gaps[key] += seq - last - 1
-                holes = self._holes.setdefault(w, [])
-                holes.append([last + 1, seq - 1, 0 if counted else 2])
-                if len(holes) > MAX_HOLES:  # a long lossy realtime run: the oldest stay lost for good
-                    del holes[0]
-            self._last_seq[w] = seq
-            return True
-        holes = self._holes.setdefault(w, [])  # a key taken by _sequence before it could come twice
-        for i, (lo, hi, pre) in enumerate(holes):
-            if lo <= seq <= hi:  # fills a hole: one less lost (or published before the first)
-                holes[i:i + 1] = [h for h in ([lo, seq - 1, pre], [seq + 1, hi, pre]) if h[0] <= h[1]]
-                if pre == 1:
-                    self.before_first[key] -= 1
-                elif pre == 0:
-                    self.gaps[key] -= 1
-                return True
-        return False
+    def contested(self) -> Counter[str]:
+        """Gaps of writers with suspect samples, per key: not counted as lost (hilsim.core.provenance)."""
+        out: Counter[str] = Counter()
+        with self.lock:
+            for (k, _), st in self._streams.items():
+                if st.contested_lost:
+                    out[k] += st.contested_lost
+        return out
 
     def lost(self) -> Counter[str]:
         """Samples lost per key: gaps in the sequence numbers plus drops at the full queue."""
@@ -570,6 +559,8 @@ class LoggerService(Service):
             rows.rejected(key, len(payload), e)
             self._pending[key] += 1
             return
+        if isinstance(msg, msgs.DiagnosticArray) and "/health/" in key:
+            self._note_published(key, msg)
         try:
             rows.message(key, msg)
             rows.learn(key, payload, msg)
@@ -578,6 +569,33 @@ class LoggerService(Service):
             rows.error(key, e, msg)
         self.sim_ns = rows.clock_ns
         self._pending[key] += 1
+
+    def _note_published(self, key: str, msg: msgs.DiagnosticArray) -> None:
+        """A service's final health (``final: 1``, only it may write its health): what it published per key,
+        against which a gap in its sequence is judged at the end (:meth:`_judged_lost`)."""
+        for st in msg.status:
+            values = {kv.key: kv.value for kv in st.values}
+            if values.get("final") != "1":
+                continue
+            with self.lock:
+                self._published[key] = {k[10:]: int(v) for k, v in values.items()
+                                        if k.startswith("published:") and v.isdigit()}
+
+    def _judged_lost(self, lost: Counter[str], received: Counter[str]) -> Counter[str]:
+        """The losses per key, no more than the key's services say they published and did not reach the
+        recorder: a gap left by a forged number (a writer's gid used by another process, and no sample of
+        its own after it) is no loss when every sample the writers published arrived."""
+        published: Counter[str] = Counter()
+        with self.lock:
+            for counts in self._published.values():
+                published.update(counts)
+            own = Counter({k: received[k] - self.suspect[k] for k in received})
+            before = Counter(self.before_first)
+        out = Counter(lost)
+        for k, n in lost.items():
+            if n and k in published:
+                out[k] = min(n, max(0, published[k] - own[k] - before[k]))
+        return +out
 
     def _reject(self, key: str, e: Exception) -> None:
         with self.lock:
@@ -693,6 +711,7 @@ class LoggerService(Service):
             "recorded": sum(self.recorded.values()),
             "lost": sum(lost.values()),
             "dropped": sum(self.dropped.values()),
+            "suspect": sum(self.suspect.values()),
             **({"duplicates": sum(self.duplicates.values()), "key_subscriptions": len(self._key_subs)}
                if self.batching else {}),
             "rrd": str(self.rrd_path),
@@ -775,9 +794,14 @@ class LoggerService(Service):
             unannounced = Counter(self.unannounced)
             duplicates = Counter(self.duplicates)
             after_stop = Counter(self.after_stop)
+            suspect = Counter(self.suspect)
         with self._route_lock:
             plain = set(self._plain) if self.batching else set()
-        lost = self.lost()
+        gaps = self.lost()
+        lost = self._judged_lost(gaps, received)
+        contested = self.contested()
+        for k in gaps:  # gaps its writers' own counts say are not losses: said apart, as contested ones
+            contested[k] += gaps[k] - lost[k]
         keys = sorted(set(received) | set(recorded) | set(lost))
         summary = {
             k: {
@@ -794,6 +818,9 @@ class LoggerService(Service):
                 # batching: a key the recorder subscribed one by one for a writer no batch covers (a ROS 2
                 # node, a tool, another run's bridge): its before_first were published before that subscription
                 **({"key_subscribed": True} if k in plain else {}),
+                # samples that do not fit their writer's sequence, and gaps not counted as lost for it
+                **({"suspect": suspect[k]} if suspect[k] else {}),
+                **({"contested": contested[k]} if contested[k] else {}),
             }
             for k in keys
         }

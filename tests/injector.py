@@ -4,13 +4,19 @@ It listens to every key of the simulation and, for each key it has seen, publish
 mutated copies of real samples: empty, random bytes, truncated, bit-flipped, 1 MiB, a well-formed
 message with a NaN in it, well-formed copies of real samples from an unannounced writer (with
 no attachment, and with an attachment of its own), and forged ones: a real sample with one value
-changed, sent with its writer's gid (public: the graph token's hash, and in every sample) and the
-writer's next sequence number, as that writer would. ``--kinds`` picks some of them.
+changed (or, with no value to change, the sample itself: a trajectory), sent with its writer's gid
+(public: the graph token's hash, and in every sample) and the writer's next sequence number, as that
+writer would (``forged_writer``), or a number far ahead
+(``forged_ahead``: +10,000, which once made every later sample of the writer "out of order"); and
+replays: a real sample seen seconds before, sent again exactly as it came (payload and attachment:
+its writer's gid and number, as a bag replayed with its recorded ids would). ``query_garbage`` sends
+malformed requests to the queryables a person may ask (goals, cancels, gains). ``--kinds`` picks some.
 
 It is a client of the router (as every process with credentials is): with ``--auth FILE`` (a Zenoh
-config with the run's user and password, e.g. ``<run dir>/zenoh-client.json5``) as an insider;
+config with credentials of the run, e.g. the tools' ``<run dir>/zenoh-client.json5``) as an insider;
 without it, against ``hilsim up``'s router, it cannot connect. It prints, as JSON, how many of each
-kind it sent when stopped (SIGINT/SIGTERM) or after ``--seconds``, or ``{"connected": false, …}``.
+kind it sent when stopped (SIGINT/SIGTERM) or after ``--seconds`` (``"keys"``: on how many keys), or
+``{"connected": false, …}``.
 
     python tests/injector.py --connect tcp/127.0.0.1:7447 [--auth FILE] [--domain 0] [--rate 300]
         [--seconds 30] [--kinds forged_writer,random]
@@ -32,10 +38,12 @@ import zenoh
 
 from hilsim.core import msgs, transport
 from hilsim.core.config import ZenohConfig
-from hilsim.core.keys import UnknownKey, message_type
+from hilsim.core.keys import Keys, UnknownKey, message_type
 
 KINDS = ("empty", "random", "truncated", "bitflip", "huge", "nan", "copy_no_attachment", "copy_foreign_writer",
-         "forged_writer")
+         "forged_writer", "forged_ahead", "replay", "query_garbage")
+REPLAY_AGE_S = 2.0  # a replayed sample is at least this old
+AHEAD = 10_000
 
 
 def poison(msg: object) -> bool:
@@ -87,18 +95,31 @@ def main() -> int:
         print(json.dumps({"connected": False, "error": str(e).splitlines()[0]}), flush=True)
         return 0
     latest: dict[str, tuple[bytes, transport.Attachment]] = {}
+    old: dict[str, list[tuple[float, bytes, bytes]]] = {}  # key -> (when, payload, attachment) seen before
     lock = threading.Lock()
+
+    forged: set[tuple[bytes, int, int]] = set()  # (gid, seq, payload hash) of what it sent with a real gid
 
     def on_sample(s: zenoh.Sample) -> None:
         att = transport.read_attachment(s)
         if att is None or att.gid == gid:
             return  # keep real samples only, not our own
+        k = str(s.key_expr)
+        payload = s.payload.to_bytes()
         with lock:
-            latest[str(s.key_expr)] = (s.payload.to_bytes(), att)
+            if (att.gid, att.seq, hash(payload)) in forged:
+                return  # its own forgery coming back: copying it would send old content under a new number
+            latest[k] = (payload, att)
+            kept = old.setdefault(k, [])
+            if len(kept) < 64 and (not kept or time.monotonic() - kept[-1][0] > 0.05):
+                kept.append((time.monotonic(), latest[k][0], s.attachment.to_bytes()))
 
     sub = session.declare_subscriber(f"{args.domain}/**", on_sample)  # every data key of the ROS 2 domain
     pubs: dict[str, zenoh.Publisher] = {}
     sent: Counter[str] = Counter()
+    keys_hit: set[str] = set()
+    served = [Keys(domain=args.domain).service(n) for n in ("planner/goal", "planner/cancel",
+                                                            "controller/set_parameters")]
     seqs: Counter[str] = Counter()
     stop = threading.Event()
     signal.signal(signal.SIGINT, lambda *_: stop.set())
@@ -140,17 +161,35 @@ def main() -> int:
             if not poison(m):
                 continue
             data = msgs.encode(m)
-        elif kind == "forged_writer":
-            # its writer's own gid and next sequence number, one value changed: what only the
-            # credentials keep out (docs/security.md)
+        elif kind in ("forged_writer", "forged_ahead"):
+            # its writer's own gid and next sequence number (or one far ahead), one value changed: on a key
+            # the identity may not write, the router keeps it out; on one it may, the receivers deliver the
+            # writer's own samples all the same (hilsim.core.provenance)
             try:
                 m = msgs.decode(cls, good)
             except msgs.BadMessage:
                 continue
-            if not nudge(m):
+            # nothing to nudge (a trajectory): the sample itself, only its number forged
+            data = msgs.encode(m) if nudge(m) else good
+            seq = real.seq + (1 if kind == "forged_writer" else AHEAD)
+            att = transport.attachment_bytes(seq, real.gid)
+            with lock:
+                forged.add((real.gid, seq, hash(data)))
+        elif kind == "replay":
+            with lock:
+                aged = [x for x in old.get(key, []) if time.monotonic() - x[0] > REPLAY_AGE_S]
+            if not aged:
+                stop.wait(0.01)  # nothing old enough yet
                 continue
-            data = msgs.encode(m)
-            att = transport.attachment_bytes(real.seq + 1, real.gid)
+            _, data, att = rng.choice(aged)  # exactly as it came: its writer's gid and number
+        elif kind == "query_garbage":
+            q = rng.choice(served)
+            for _ in session.get(q, payload=rng.randbytes(rng.randint(0, 64)), timeout=0.5):
+                pass
+            sent[kind] += 1
+            keys_hit.add(q)
+            stop.wait(period)
+            continue
         else:
             data = good  # a real sample, replayed by a stranger
             if kind == "copy_foreign_writer":
@@ -164,12 +203,13 @@ def main() -> int:
         else:
             pub.put(data, attachment=att)
         sent[kind] += 1
+        keys_hit.add(key)
         stop.wait(period)
     sub.undeclare()
     for p in pubs.values():
         p.undeclare()
     session.close()
-    print(json.dumps(dict(sent)), flush=True)
+    print(json.dumps({**sent, "keys": len(keys_hit)}), flush=True)
     return 0
 
 

@@ -29,8 +29,9 @@ LAYERS: list[list[str]] = [
     ["hilsim.core"],
 ]
 # inside the core, bottom to top: a module imports only modules listed before it
-CORE_ORDER = ["simclock", "msgs", "ros2", "geometry", "recording", "inproc", "fleet", "keys", "config", "registry",
-              "scenario", "restart", "transport", "provenance", "batch", "signals", "publisher", "ros2_node", "service"]
+CORE_ORDER = ["simclock", "msgs", "ros2", "geometry", "recording", "inproc", "fleet", "keys", "config", "rights",
+              "registry", "scenario", "restart", "transport", "provenance", "batch", "signals", "publisher",
+              "ros2_node", "service"]
 
 
 def module_name(path: Path) -> str:

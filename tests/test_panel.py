@@ -444,7 +444,9 @@ def test_hilsim_ui_finds_a_run_of_a_terminal_and_its_sliders_follow_the_joints(t
             ui = Lines(subprocess.Popen([*here, "ui", "--port", "8080"], cwd=REPO, text=True, stdout=subprocess.PIPE,
                                         stderr=subprocess.STDOUT, start_new_session=True))
             assert "(zenoh tcp/127.0.0.1:7447)" in ui.wait("hilsim panel: http", 60)
-            assert any("joined it" in ln for ln in ui.lines), ui.lines
+            # it names the run it joined (directory, scenario, endpoint)
+            assert any(ln.startswith("hilsim ui: joined run ") and "(scenario arm) at tcp/127.0.0.1:7447" in ln
+                       for ln in ui.lines), ui.lines
             browser_in_ns = tmp_path / "chromium"  # the browser in the namespace too (Playwright drives it by pipes)
             browser_in_ns.write_text(f'#!/bin/sh\nexec ip netns exec {ns} {exe} "$@"\n')
             browser_in_ns.chmod(0o755)

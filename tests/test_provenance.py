@@ -5,6 +5,7 @@ from __future__ import annotations
 import threading
 from typing import Any
 
+import pytest
 import zenoh
 from util import wait_until
 
@@ -32,14 +33,87 @@ def test_an_open_key_accepts_anything_and_counts_gaps() -> None:
     assert p.check(KEY, att(1, B)) == (None, 0)  # writers are counted apart
 
 
-def test_duplicates_and_reordered_samples_are_rejected() -> None:
+def test_only_a_true_duplicate_is_rejected_and_nothing_is_dropped_for_its_order() -> None:
+    """The same number with the same payload again is a duplicate (rejected); a number behind the writer's
+    newest is delivered, counted as suspect, and its writer's gaps are withdrawn from its losses."""
     p = Provenance()
-    p.check(KEY, att(3))
-    why, _ = p.check(KEY, att(3))
+    p.check(KEY, att(3), b"three")
+    why, _ = p.check(KEY, att(3), b"three")
     assert why is not None and "duplicate" in why
-    why, _ = p.check(KEY, att(2))
-    assert why is not None and "out of order" in why
-    assert p.check(KEY, att(4)) == (None, 0)  # and the stream goes on
+    assert p.check(KEY, att(6), b"six") == (None, 2)  # 4 and 5 missing
+    assert p.check(KEY, att(2), b"two") == (None, -2)  # delivered; suspect: the gaps are no longer said lost
+    assert p.suspect[KEY] == 1 and p.contested(KEY) == 2
+    assert p.check(KEY, att(7), b"seven") == (None, 0)  # and the stream goes on
+    why, _ = p.check("0/*/joint_commands/x/RIHS01_y", att(1), b"x")  # a key expression, not a key
+    assert why is not None and "wildcards" in why
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+@pytest.mark.parametrize("attack", ["next_number_first", "far_ahead", "plausible_jump", "replay_recent",
+                                    "replay_old", "first_sample", "burst_ahead"])
+def test_no_forged_or_replayed_sample_drops_a_genuine_one_or_makes_a_loss(attack: str) -> None:
+    """A writer's real gid in forged samples, every way we know (docs/keys.md, "Suspect samples"): the
+    writer's own samples are all delivered, a loss is never counted where none happened (the real one, 2
+    samples, is counted unless the writer is contested, then withdrawn and said apart), and whatever did
+    not fit the writer's sequence is counted as suspect. (The check before this one dropped every later
+    genuine sample after one forged number far ahead: "out of order: sample 2656 after 12171".)"""
+    clock = Clock()
+    p = Provenance(clock=clock)
+    p.announce(KEY, A)
+    gaps = 0
+    rejected = []
+
+    def forge(seq: int, payload: bytes = b"forged") -> None:
+        nonlocal gaps
+        _, gap = p.check(KEY, att(seq), payload)
+        gaps += gap
+
+    def real(seqs: range, lost: set[int] = frozenset()) -> None:
+        nonlocal gaps
+        for s in seqs:
+            clock.t += 0.001
+            if s not in lost:
+                why, gap = p.check(KEY, att(s), f"real {s}".encode())
+                gaps += gap
+                rejected.append(why)
+
+    if attack == "first_sample":
+        forge(50_000)  # before any of the writer's own
+        real(range(1, 101), lost={40, 41})
+    else:
+        real(range(1, 51))
+        if attack == "next_number_first":
+            forge(51)  # the writer's next number, before the writer sends it
+        elif attack == "far_ahead":
+            forge(12_171)
+        elif attack == "plausible_jump":
+            forge(60)  # a jump the writer could have made: its 51..59 then fill it
+        elif attack == "replay_recent":
+            forge(30, b"real 30")  # a copy of a real sample: a duplicate
+        elif attack == "replay_old":
+            real(range(51, 2001))
+            forge(10, b"real 10")  # older than the window: not provably a duplicate
+        elif attack == "burst_ahead":
+            for s in range(51, 5051):  # racing ahead of the writer, one number at a time
+                forge(s)
+        start = 2001 if attack == "replay_old" else 51
+        real(range(start, start + 100), lost={start + 40, start + 41})
+    assert rejected == [None] * len(rejected), [r for r in rejected if r]  # every genuine sample delivered
+    contested = p.contested(KEY)
+    if attack == "replay_recent":
+        assert p.suspect[KEY] == 0 and gaps == 2  # rejected as a duplicate, nothing else changed
+    else:
+        assert p.suspect[KEY] >= 1, attack
+        assert gaps in (0, 2) and gaps + contested >= 2, (attack, gaps, contested)  # never more than the real loss
+        if gaps == 0:
+            assert contested >= 2
 
 
 def test_a_restricted_key_takes_only_announced_writers() -> None:
@@ -91,7 +165,8 @@ def test_writer_tokens_round_trip() -> None:
 def test_a_running_service_rejects_impostors_and_counts_gaps(scenario: Any, session: zenoh.Session,
                                                              run_service: Any) -> None:
     """Over Zenoh: the controller takes joint_states only from the announced writer, counts a gap,
-    rejects a duplicate, and says why for each rejected sample."""
+    rejects a duplicate, says why for each rejected sample, and delivers a sample out of its writer's order
+    (counted as suspect in health, the gaps then withdrawn: the writer is contested)."""
     sc = scenario()
     keys = Keys.of(sc)
     key = keys.topic("joint_states")
@@ -120,15 +195,19 @@ def test_a_running_service_rejects_impostors_and_counts_gaps(scenario: Any, sess
             got.clear()
             send(k, seq, gid)
             assert got.wait(5)
+        assert svc.seq_gaps[key] == 2
         send(3, 9, stranger)  # an impostor, well-formed
         send(3, 9, None)  # a sample without attachment
-        send(3, 5, gid)  # a duplicate of the announced writer's last sample
-        send(3, 4, gid)  # and one out of order
-        assert wait_until(lambda: svc.rejected[key] == 4, 5), dict(svc.rejected)
+        send(2, 5, gid)  # a duplicate of the announced writer's last sample
+        assert wait_until(lambda: svc.rejected[key] == 3, 5), dict(svc.rejected)
         assert cmds == [0, 1_000_000, 2_000_000]  # the controller answered only the real samples
-        assert svc.seq_gaps[key] == 2
+        got.clear()
+        send(3, 4, gid)  # one out of order: delivered, suspect
+        assert got.wait(5) and cmds == [0, 1_000_000, 2_000_000, 3_000_000]
+        assert wait_until(lambda: svc.provenance.suspect[key] == 1, 5)
+        assert svc.seq_gaps[key] == 0 and svc.provenance.contested(key) == 1  # 3 still missing, not said lost
         h = {kv.key: kv.value for kv in svc.health().status[0].values}
-        assert h["seq_gaps"] == "2" and h[f"rejected:{key}"] == "4"
+        assert h["seq_gaps"] == "0" and h[f"rejected:{key}"] == "3" and h[f"suspect:{key}"] == "1"
     token.undeclare()
     sub.undeclare()
 

@@ -2,10 +2,22 @@
 
 from __future__ import annotations
 
+import io
+import json
+import subprocess
+import sys
+import threading
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
 import pytest
 
-from hilsim.core import transport
+from hilsim.cli import main as cli
+from hilsim.core import msgs, transport
+from hilsim.core.config import ConfigError
 from hilsim.core.keys import Keys
+from hilsim.record.bag import BagWriter
+from hilsim.record.bag_read import write_metadata
 
 
 def test_tool_endpoints_and_prefix(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -31,3 +43,115 @@ def test_wait_for_service_sees_liveliness(router: str) -> None:
             assert transport.wait_for_service(tool, keys, "controller", 5.0)
         finally:
             token.undeclare()
+
+
+# ---------------------------------------------------------------- which run a tool joins (docs/tools.md)
+@pytest.fixture
+def runs_up(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Callable[[str], Path]]:
+    """Runs of this user that are up, as the tools see them: a pointer file each (0600), written by a
+    launcher that still runs (a process with ``hilsim`` in its command line), naming its directory,
+    scenario, router endpoint and the tools' credentials."""
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / "xdg"))
+    (tmp_path / "xdg").mkdir()
+    for name in ("HILSIM_ZENOH_CONNECT", "HILSIM_ZENOH_AUTH", "HILSIM_TLS_ROOT_CA"):
+        monkeypatch.delenv(name, raising=False)
+    launcher = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)", "hilsim-up"])
+
+    def up(name: str) -> Path:
+        run = tmp_path / name
+        run.mkdir()
+        ep = f"tcp/127.0.0.1:{transport.free_port()}"
+        client = run / transport.CLIENT_CONFIG
+        transport.write_private(client, transport.client_config_text(ep, transport.Credentials("tools", "pw")))
+        ptr = transport.pointer_path(transport.loopback_port(ep) or 0)
+        ptr.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        transport.write_private(ptr, json.dumps({"endpoint": ep, "run_dir": str(run.resolve()), "scenario": "arm",
+                                                 "client_config": str(client.resolve()), "pid": launcher.pid}))
+        return run
+
+    try:
+        yield up
+    finally:
+        launcher.kill()
+        launcher.wait()
+
+
+def test_a_tool_names_the_run_it_joins_and_never_guesses_between_two(runs_up: Callable[[str], Path],
+                                                                     monkeypatch: pytest.MonkeyPatch,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """One run of yours up: every tool joins it, wherever its port, and says which (directory, scenario,
+    endpoint). Two: without --run or --connect a tool lists them and asks on a terminal, and otherwise
+    stops in one line; --run DIR picks one, and a --run that is not up is refused."""
+    a = runs_up("a")
+    t = transport.tool_target(tool="hilsim topic list")
+    assert t.run is not None and t.run.run_dir == a.resolve()
+    assert t.zenoh.auth == (a / transport.CLIENT_CONFIG).resolve()
+    said = t.describe()
+    assert said.startswith("joined run ") and str(a) in said and "(scenario arm) at tcp/" in said, said
+    b = runs_up("b")
+    with pytest.raises(ConfigError, match=r"hilsim topic list: 2 runs of yours are up \(run .*; run .*\): say which "
+                                          r"with --run DIR or --connect ENDPOINT"):
+        transport.tool_target(tool="hilsim topic list")
+    assert cli(["topic", "list"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "2 runs of yours are up" in err and str(a) in err and str(b) in err, err
+    assert transport.tool_target(run=b).run.run_dir == b.resolve()  # type: ignore[union-attr]
+    ep_a = transport.tool_target(run=a).zenoh.connect
+    assert transport.tool_target(",".join(ep_a)).run.run_dir == a.resolve()  # type: ignore[union-attr]
+    with pytest.raises(ConfigError, match=r"--run .*c: no run of yours is up there"):
+        transport.tool_target(run=a.parent / "c")
+    # on a terminal: asked
+    monkeypatch.setattr(sys, "stdin", _Tty("2\n"))
+    monkeypatch.setattr(sys, "stderr", _Tty(""))
+    assert transport.tool_target(tool="hilsim goal").run.run_dir == b.resolve()  # type: ignore[union-attr]
+    assert "1. run " in sys.stderr.getvalue() and "which one (1-2)?" in sys.stderr.getvalue()
+
+
+class _Tty(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def _tiny_bag(path: Path, n: int = 200) -> Path:
+    """A bag of ``n`` clock samples, 1 ms apart, and as many joint-state samples."""
+    w = BagWriter(path)
+    keys = Keys()
+    js = msgs.encode(msgs.JointState(header=msgs.header(0), name=["j"], position=[0.0], velocity=[0.0], effort=[0.0]))
+    for k in range(n):
+        w.append((keys.clock, msgs.encode(msgs.Clock(clock=msgs.stamp(k * 1_000_000))), (k + 1, 0, b"g" * 16), k))
+        w.append((keys.topic("joint_states"), js, (k + 1, 0, b"h" * 16), k))
+    w.flush()
+    w.close()
+    write_metadata(path)
+    return path
+
+
+def test_a_tool_against_an_empty_port_fails(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                            capsys: pytest.CaptureFixture[str]) -> None:
+    """Nothing listening there: play and topic stop with an error, never report an empty success."""
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    empty = f"tcp/127.0.0.1:{transport.free_port()}"
+    assert cli(["play", str(_tiny_bag(tmp_path / "bag")), "--connect", empty, "--rate", "0"]) == 1
+    err = capsys.readouterr().err
+    assert f"hilsim play: joined {empty} (no run of yours is known there)" in err, err
+    assert f"nothing answers at {empty}" in err and "played " not in err, err
+    assert cli(["topic", "list", "--connect", empty]) == 1
+    assert "nothing answers" in capsys.readouterr().err
+
+
+def test_play_says_who_hears_it_and_counts_what_it_played(router: str, tmp_path: Path) -> None:
+    """A key nobody subscribes to is said; stopped early, the summary counts the messages played and the sim
+    time they span, not the bag's."""
+    from hilsim.record.bag_read import open_bag
+    from hilsim.tools.play import Selector, play, schedule
+
+    items = schedule(open_bag(_tiny_bag(tmp_path / "bag")), Selector(None), None, skip_clock=False)
+    stop = threading.Event()
+    with transport.open_tool_session(router) as s:
+        sub = s.declare_subscriber(Keys().clock, lambda _: None)
+        threading.Timer(0.6, stop.set).start()  # 0.1 s to announce, then 0.5 s of the 0.2 s bag at 0.25x
+        res = play(s, items, domain=0, rate=0.25, delay=0.1, quiet=True, stop=stop)
+        sub.undeclare()
+    assert res["deaf"] == [Keys().topic("joint_states")]  # the clock has a subscriber, the joint states none
+    assert 0 < res["messages"] < len(items) and res["keys"] == 2, res
+    assert 0.05 < res["sim_s"] < 0.15, res  # what was played, not the bag's 0.199 s

@@ -112,14 +112,17 @@ def test_the_summary_takes_sim_time_from_physics_final_health(tmp_path: Path, ca
 
 
 def test_a_forged_writer_is_believed_only_where_the_credentials_let_it_in() -> None:
-    """The limit the router's credentials are there for (docs/security.md): a writer's gid and sequence
-    number are public, and a sample sent with them is indistinguishable from the writer's own; the
-    writer's real sample with that number is then refused as a duplicate."""
+    """The limit the router's access control is there for (docs/security.md): a writer's gid and sequence
+    number are public, and a sample sent with them is indistinguishable from the writer's own, so it is
+    believed. It cannot keep the writer's own sample out: that one, the same number with another payload,
+    is delivered too, and counted as suspect (hilsim.core.provenance)."""
     prov, key, gid = Provenance(), "0/clock/rosgraph_msgs::msg::dds_::Clock_/RIHS01_x", transport.new_gid()
     prov.announce(key, gid)
-    assert prov.check(key, transport.Attachment(1, 0, gid)) == (None, 0)
-    assert prov.check(key, transport.Attachment(2, 0, gid)) == (None, 0)  # forged: believed
-    why, _ = prov.check(key, transport.Attachment(2, 0, gid))  # the real one
+    assert prov.check(key, transport.Attachment(1, 0, gid), b"real 1") == (None, 0)
+    assert prov.check(key, transport.Attachment(2, 0, gid), b"forged 2") == (None, 0)  # forged: believed
+    assert prov.check(key, transport.Attachment(2, 0, gid), b"real 2") == (None, 0)  # the real one: delivered
+    assert prov.suspect[key] == 1
+    why, _ = prov.check(key, transport.Attachment(2, 0, gid), b"forged 2")  # a replay of the first: a duplicate
     assert why is not None and "duplicate" in why
 
 
@@ -222,7 +225,8 @@ def _private(path: Path) -> bool:
     return path.is_file() and stat.S_IMODE(path.stat().st_mode) == 0o600
 
 
-def test_two_runs_each_admit_only_their_own_processes_and_never_cross_talk(tmp_path: Path) -> None:
+def test_two_runs_each_admit_only_their_own_processes_and_never_cross_talk(tmp_path: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
     """Two ``hilsim up`` at once, with the same keys: each has its own router (the second on a free port,
     saying so) and its own user and password, written 0600 (also as a ROS 2 node's
     ``ZENOH_SESSION_CONFIG_URI``) and found by this user's tools through a 0600 pointer file. A Zenoh
@@ -231,6 +235,9 @@ def test_two_runs_each_admit_only_their_own_processes_and_never_cross_talk(tmp_p
     which found the credentials itself), and records only its own samples: the recorder received exactly
     what its physics says it published."""
     a_dir, b_dir = tmp_path / "a", tmp_path / "b"
+    # this test's pointers apart from those of other runs of this user on the machine (its processes inherit it)
+    (tmp_path / "xdg").mkdir(mode=0o700)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / "xdg"))
     # lockstep: the recorder takes every sample physics published (an interactive run is realtime by default)
     a = Run("arm", "--interactive", "--clock", "lockstep", "--out", str(a_dir))
     b: Run | None = None
@@ -267,18 +274,36 @@ def test_two_runs_each_admit_only_their_own_processes_and_never_cross_talk(tmp_p
             s = zenoh.open(zenoh.Config.from_file(str(d / "zenoh-client.json5")))
             sessions.append(s)
             assert len(_physics_nodes(s)) == 1
-        # B's guest reads, but what it writes reaches nobody; the run's user's does (the control)
+        # B's guest reads, but what it writes reaches nobody; the tools' does, on a key a person commands (the
+        # control), and not on the clock, which is physics' (docs/security.md)
         member, guest = sessions[-1], zenoh.open(zenoh.Config.from_file(str(b_dir / "zenoh-guest.json5")))
         sessions.append(guest)
         got: list[str] = []
         clock_seen = threading.Event()
-        member.declare_subscriber("0/guest_test/**", lambda s: got.append(s.payload.to_string()))
+        cmd_vel = Keys().topic("cmd_vel")
+        watch = zenoh.open(zenoh.Config.from_file(str(b_dir / "zenoh-client.json5")))  # not the writers' own session
+        sessions.append(watch)
+        watch.declare_subscriber(cmd_vel, lambda s: got.append(s.payload.to_string()))
+        watch.declare_subscriber(Keys().clock, lambda s: got.append(s.payload.to_string()) if s.attachment is None
+                                 else None)
         guest.declare_subscriber(Keys().clock, lambda _: clock_seen.set())
         time.sleep(0.5)
-        guest.put("0/guest_test/x", "guest")
-        member.put("0/guest_test/x", "member")
+        guest.put(cmd_vel, "guest")
+        member.put(cmd_vel, "member")
+        member.put(Keys().clock, "tools on the clock")
         time.sleep(0.5)
         assert got == ["member"] and clock_seen.wait(5)
+        # every process its own identity, written 0600 in a directory only this user may enter
+        for d in (a_dir, b_dir):
+            ids = d / transport.IDENTITIES_DIR
+            assert stat.S_IMODE(ids.stat().st_mode) == 0o700
+            assert {f.name for f in ids.iterdir()} >= {"physics.json5", "controller.json5", "launcher.json5"}
+            assert all(_private(f) for f in ids.iterdir())
+        # the tools without --connect or --run, two runs of this user up: they ask which, never guess
+        both = subprocess.run([*HILSIM, "topic", "list"], capture_output=True, text=True, timeout=60, cwd=REPO,
+                              stdin=subprocess.DEVNULL)
+        assert both.returncode == 2 and "2 runs of yours are up" in both.stderr, both
+        assert str(a_dir.resolve()) in both.stderr and str(b_dir.resolve()) in both.stderr, both.stderr
         # physics' final health in each run, with its counts of what it published
         finals: dict[str, dict[str, str]] = {}
 

@@ -12,7 +12,9 @@ hilsim's own liveliness (a service is alive, a lockstep participant's role) stay
 ``<prefix>/<robot>/…``: it is not data, and ROS 2 tools do not look there; the ROS 2 graph
 (nodes, publishers, subscriptions) is announced as rmw_zenoh does, under ``@ros2_lv/<domain>/…``.
 
-``docs/keys.md`` documents the same table for people; ``TOPICS`` below is the table for code,
+``docs/keys.md`` documents the same table for people; ``TOPIC_TABLE`` below is the table for code (each
+topic's message type and writers: :mod:`hilsim.core.rights` turns the writers into the router's access
+control, so the table decides who may write what), ``TOPICS`` its types,
 extended by other packages through the ``hilsim.topics`` entry-point group (:func:`plugin_topics`).
 No other module builds a key string by hand: services ask a :class:`Keys` instance, and
 :func:`message_type` / :func:`topic_name` read a key back.
@@ -22,7 +24,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cache
-from typing import Any
+from typing import Any, NamedTuple
 
 from hilsim.core import msgs
 from hilsim.core.ros2 import types as ros2types
@@ -30,63 +32,99 @@ from hilsim.core.ros2 import wire as ros2wire
 
 DEFAULT_PREFIX = "hilsim"
 
-# topic -> message type. Topics are relative to <prefix>/<robot>/ unless listed in GLOBAL_TOPICS.
-TOPICS: dict[str, type] = {
-    "joint_states": msgs.JointState,
+# Who writes a key (docs/keys.md's "written by"): a service of the scenario by name (every robot's,
+# for a per-robot service), USER (the run's tools and the ROS 2 nodes given their credentials:
+# what a person is meant to command), or OWN (each service its own key: ``health/<service>``). This
+# table, not a second list, decides who may write what: hilsim.core.rights turns it into the router's
+# access control (docs/security.md); a key no service of a run writes is the user's in that run.
+USER = "user"
+OWN = "own"
+
+
+class Topic(NamedTuple):
+    """A row of the key table: the message type a topic carries and who writes it."""
+
+    cls: type
+    writers: tuple[str, ...]
+
+
+def _row(cls: type, *writers: str) -> Topic:
+    return Topic(cls, writers)
+
+
+# topic -> (message type, writers). Topics are relative to <prefix>/<robot>/ unless listed in GLOBAL_TOPICS.
+TOPIC_TABLE: dict[str, Topic] = {
+    "joint_states": _row(msgs.JointState, "sensors"),
     # joint_states of the planner's decision steps only (planner.rate_hz), named as topic_tools'
     # throttle names its output: the planner decides at 100 Hz and need not take 1 kHz
-    "joint_states_throttle": msgs.JointState,
-    "joint_commands": msgs.JointState,
-    "joint_trajectory": msgs.JointTrajectory,
-    "controller/reference": msgs.JointState,
-    "imu": msgs.Imu,
-    "gps/fix": msgs.NavSatFix,
-    "scan": msgs.LaserScan,
-    "cmd_vel": msgs.Twist,
-    "odom": msgs.Odometry,
-    "robot_description": msgs.String,  # the URDF, transient-local (a late joiner gets it)
-    "truth/joint_states": msgs.JointState,
-    "truth/imu": msgs.Imu,
-    "truth/odom": msgs.Odometry,
-    "truth/contacts": msgs.Contacts,
-    "planner/path": msgs.JointTrajectory,
-    "planner/feedback": msgs.MoveFeedback,
-    "planner/result": msgs.MoveResult,
-    "task/result": msgs.MoveResult,
-    "map": msgs.OccupancyGrid,
-    "plan": msgs.Path,
-    "navigator/feedback": msgs.MoveFeedback,
-    "navigator/result": msgs.MoveResult,
+    "joint_states_throttle": _row(msgs.JointState, "sensors"),
+    # the drive emulator in simulation mode commands its joints in the controller's place
+    "joint_commands": _row(msgs.JointState, "controller", "drive-emulator"),
+    "joint_trajectory": _row(msgs.JointTrajectory, "planner", "bridge-ros2-dds", USER),
+    "controller/reference": _row(msgs.JointState, "controller"),
+    "imu": _row(msgs.Imu, "sensors"),
+    "gps/fix": _row(msgs.NavSatFix, "sensors", "bridge-mavlink"),  # a real GPS in the loop, in its place
+    "scan": _row(msgs.LaserScan, "sensors"),
+    "cmd_vel": _row(msgs.Twist, "navigator", "bridge-ros2-dds", USER),
+    "odom": _row(msgs.Odometry, "controller"),
+    "robot_description": _row(msgs.String, "physics"),  # the URDF, transient-local (a late joiner gets it)
+    "truth/joint_states": _row(msgs.JointState, "physics"),
+    "truth/imu": _row(msgs.Imu, "physics"),
+    "truth/odom": _row(msgs.Odometry, "physics"),
+    "truth/contacts": _row(msgs.Contacts, "physics"),
+    "planner/path": _row(msgs.JointTrajectory, "planner"),
+    "planner/feedback": _row(msgs.MoveFeedback, "planner"),
+    "planner/result": _row(msgs.MoveResult, "planner"),
+    "task/result": _row(msgs.MoveResult, "planner", "navigator"),
+    "map": _row(msgs.OccupancyGrid, "navigator"),
+    "plan": _row(msgs.Path, "navigator"),
+    "navigator/feedback": _row(msgs.MoveFeedback, "navigator"),
+    "navigator/result": _row(msgs.MoveResult, "navigator"),
     # robots > 1 with fleet.arrays (hilsim.core.fleet): one sample per step for every robot, under the
     # scenario's own namespace (/arm/fleet/…), its joints named <robot>/<joint> (arm0/joint_1, …)
-    "fleet/truth/joint_states": msgs.JointState,
-    "fleet/joint_states": msgs.JointState,
-    "fleet/joint_states_throttle": msgs.JointState,
-    "fleet/joint_commands": msgs.JointState,
-    "fleet/controller/reference": msgs.JointState,
+    "fleet/truth/joint_states": _row(msgs.JointState, "physics"),
+    "fleet/joint_states": _row(msgs.JointState, "sensors"),
+    "fleet/joint_states_throttle": _row(msgs.JointState, "sensors"),
+    "fleet/joint_commands": _row(msgs.JointState, "controller"),
+    "fleet/controller/reference": _row(msgs.JointState, "controller"),
 }
-# Keys whose last segment is a service name.
+TOPICS: dict[str, type] = {t: row.cls for t, row in TOPIC_TABLE.items()}
+# Keys whose last segment is a service name: each written by that service only.
 PER_SERVICE_TOPICS: dict[str, type] = {
     "health": msgs.DiagnosticArray,
     "sync": msgs.Clock,
     "log": msgs.Log,
 }
 # Keys <prefix>/<robot>/hw/<server>/<topic>: what an external joint server (a bridge, the motor
-# model) publishes. One key per server, so each has exactly one writer.
+# model) publishes. One key per server, so each has exactly one writer: the server itself (setpoints:
+# a bridge's setpoints as they went on the bus, for hilsim identify)
 SERVER_TOPICS: dict[str, type] = {"joint_states": msgs.JointState, "setpoints": msgs.JointState}
 # /tf and /tf_static are global, as tf2 and rviz2 expect (a fleet prefixes its frames with the robot name)
-GLOBAL_TOPICS: dict[str, type] = {"clock": msgs.Clock, "tf": msgs.TFMessage, "tf_static": msgs.TFMessage}
+GLOBAL_TABLE: dict[str, Topic] = {"clock": _row(msgs.Clock, "physics"), "tf": _row(msgs.TFMessage, "physics"),
+                                  "tf_static": _row(msgs.TFMessage, "physics")}
+GLOBAL_TOPICS: dict[str, type] = {t: row.cls for t, row in GLOBAL_TABLE.items()}
 
-# Queryables (request/reply): topic -> (request type, reply type).
-SERVICES: dict[str, tuple[type, type]] = {
-    "planner/goal": (msgs.MoveGoal, msgs.GoalResponse),
-    "planner/cancel": (msgs.CancelRequest, msgs.GoalResponse),
-    "navigator/goal": (msgs.MoveGoal, msgs.GoalResponse),
-    "navigator/cancel": (msgs.CancelRequest, msgs.GoalResponse),
-    "controller/set_parameters": (msgs.SetParameters, msgs.SetParametersResult),
+
+class Served(NamedTuple):
+    """A row of the queryables' table: request and reply types, who serves it, who may ask."""
+
+    request: type
+    reply: type
+    server: str
+    askers: tuple[str, ...]
+
+
+# Queryables (request/reply): topic -> (request type, reply type, server, who may ask).
+SERVED_TABLE: dict[str, Served] = {
+    "planner/goal": Served(msgs.MoveGoal, msgs.GoalResponse, "planner", (USER,)),
+    "planner/cancel": Served(msgs.CancelRequest, msgs.GoalResponse, "planner", (USER,)),
+    "navigator/goal": Served(msgs.MoveGoal, msgs.GoalResponse, "navigator", (USER,)),
+    "navigator/cancel": Served(msgs.CancelRequest, msgs.GoalResponse, "navigator", (USER,)),
+    "controller/set_parameters": Served(msgs.SetParameters, msgs.SetParametersResult, "controller", (USER,)),
     # lockstep: the planner asks whether the controller holds the trajectory that starts at a stamp
-    "controller/has_trajectory": (msgs.Time, msgs.GoalResponse),
+    "controller/has_trajectory": Served(msgs.Time, msgs.GoalResponse, "controller", ("planner",)),
 }
+SERVICES: dict[str, tuple[type, type]] = {n: (row.request, row.reply) for n, row in SERVED_TABLE.items()}
 
 
 def plugin_topics() -> dict[str, type]:
@@ -366,13 +404,22 @@ class ActionKeys:
 # message_type() (the recorder, `hilsim topic echo`) reads them: the controller's FollowJointTrajectory
 # (controller.params.action_ns) and the planner's move action. A key is read by its type chunk, so
 # renamed actions are read all the same.
-ACTION_TOPICS: dict[str, type] = {
-    "follow_joint_trajectory/_action/feedback": msgs.FollowJointTrajectoryFeedbackMessage,
-    "follow_joint_trajectory/_action/status": msgs.GoalStatusArray,
-    "move/_action/feedback": msgs.MoveFeedbackMessage,
-    "move/_action/status": msgs.GoalStatusArray,
+ACTION_TABLE: dict[str, Topic] = {
+    "follow_joint_trajectory/_action/feedback": _row(msgs.FollowJointTrajectoryFeedbackMessage, "controller"),
+    "follow_joint_trajectory/_action/status": _row(msgs.GoalStatusArray, "controller"),
+    "move/_action/feedback": _row(msgs.MoveFeedbackMessage, "planner"),
+    "move/_action/status": _row(msgs.GoalStatusArray, "planner"),
 }
+ACTION_TOPICS: dict[str, type] = {t: row.cls for t, row in ACTION_TABLE.items()}
+TOPIC_TABLE.update(ACTION_TABLE)
 TOPICS.update(ACTION_TOPICS)
+# The ROS 2 actions hilsim's services serve (hilsim.services.ros2_action): action type -> server. Its
+# three services are asked by USER; its feedback and status written by the server. Keyed by type, not
+# name: a renamed action (controller.params.action_ns) is the same server's.
+ACTION_SERVERS: dict[str, str] = {
+    "control_msgs/action/FollowJointTrajectory": "controller",
+    "hilsim_msgs/action/Move": "planner",
+}
 
 
 def topic_name(key: str) -> str:

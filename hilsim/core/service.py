@@ -115,6 +115,7 @@ class Service(Ros2Node):
         self.batcher: batch.Batcher | None = None  # the recorder takes batches (logger.batch)
         self.seq_gaps: Counter[str] = Counter()  # samples missing from a writer's sequence, per key
         self.provenance = Provenance()
+        self.provenance.on_suspect = self._on_suspect
         self.errors = 0
         self.overruns = 0
         self.last_error = ""
@@ -214,9 +215,9 @@ class Service(Ros2Node):
         realtime = self.sc.clock.mode == "realtime" and stream
         max_age_ns = round(self.sc.clock.max_age * 1e9) if realtime else 0
 
-        def admit(k: str, att: transport.Attachment | None) -> bool:
+        def admit(k: str, att: transport.Attachment | None, payload: bytes | None = None) -> bool:
             self.counts_in[k] += 1
-            why, gap = self.provenance.check(k, att)
+            why, gap = self.provenance.check(k, att, payload)
             if why is not None:
                 return self.reject(k, why)
             if gap:
@@ -231,10 +232,11 @@ class Service(Ros2Node):
         def on_sample(sample: zenoh.Sample) -> None:
             k = str(sample.key_expr)
             att = transport.read_attachment(sample)
-            if not admit(k, att):
+            payload = sample.payload.to_bytes()
+            if not admit(k, att, payload):
                 return
             try:
-                msg = msgs.decode(cls, sample.payload.to_bytes(), n_joints=n_joints)
+                msg = msgs.decode(cls, payload, n_joints=n_joints)
             except msgs.BadMessage as e:
                 self.reject(k, str(e))
                 return
@@ -306,6 +308,12 @@ class Service(Ros2Node):
 
         self._declared.append(self.session.declare_queryable(key, on_query))
 
+    def _on_suspect(self, key: str, why: str) -> None:
+        """A sample that does not fit its writer's sequence (hilsim.core.provenance): delivered, counted in
+        health (``suspect:<key>``); the first of each key said in the log."""
+        if self.provenance.suspect[key] == 1:
+            self.warn(f"suspect sample on {key}: {why} (delivered; further ones are counted)")
+
     def reject(self, key: str, reason: str) -> bool:
         """A sample that cannot be used: counted per key, logged with the key; returns False."""
         self.rejected[key] += 1
@@ -369,6 +377,7 @@ class Service(Ros2Node):
             "overruns": self.overruns,
             "stale_dropped": sum(self.stale.values()),
             "seq_gaps": sum(self.seq_gaps.values()),
+            "suspect": sum(self.provenance.suspect.values()),
             "last_error": self.last_error,
             **({"final": "1"} if self.final else {}),
         }
@@ -376,6 +385,7 @@ class Service(Ros2Node):
         values.update({f"rejected:{k}": v for k, v in self.rejected.items()})
         values.update({f"stale:{k}": v for k, v in self.stale.items()})
         values.update({f"seq_gaps:{k}": v for k, v in self.seq_gaps.items()})
+        values.update({f"suspect:{k}": v for k, v in self.provenance.suspect.items()})
         # per key, how many samples this service has sent: what a recorder can be checked against
         values.update({f"published:{k}": v for k, v in self.counts_out.items()})
         values.update({f"replied:{k}": v for k, v in self.counts_replied.items()})

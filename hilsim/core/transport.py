@@ -9,11 +9,13 @@ To join another network, set ``zenoh.connect`` in the scenario or ``HILSIM_ZENOH
 With ``zenoh.tls`` (or ``HILSIM_TLS_*``) every process is a TLS client of the router with its own
 certificate, and the router's config file says who may do what (docs/security.md).
 
-Without TLS, ``hilsim up``'s router authenticates (Zenoh's ``transport.auth.usrpwd``) with a user and
-password made for the run and lets only that user write (access control by username): every
-process of the run gets them from ``zenoh.auth`` (a Zenoh client config file, ``<run
-dir>/zenoh-client.json5``) and is then a client of the router (no listener of its own), and the tools
-of the same user find them through a pointer file per port (:func:`pointer_path`), as Jupyter's token is.
+Without TLS, ``hilsim up``'s router authenticates (Zenoh's ``transport.auth.usrpwd``) every process of
+the run with a user and password of its own and lets each write only what the key table gives it
+(access control by username, :mod:`hilsim.core.rights`): a service gets its identity from ``zenoh.auth``
+(a Zenoh client config file, ``<run dir>/identities/<process>.json5``, through ``HILSIM_ZENOH_AUTH``) and is
+then a client of the router (no listener of its own); the tools of the same user find theirs
+(``<run dir>/zenoh-client.json5``) through a pointer file per port (:func:`pointer_path`), as Jupyter's
+token is, and name the run they joined (:func:`tool_target`).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import logging
 import os
 import socket
 import stat
+import sys
 import threading
 import time
 from pathlib import Path
@@ -86,13 +89,13 @@ def free_port() -> int:
 
 
 def open_router(endpoint: str, users: RouterUsers | None = None) -> zenoh.Session:
-    """A router session listening on ``endpoint`` (e.g. ``tcp/127.0.0.1:7447``); with ``users``,
-    only they may connect, and do what :func:`access_rules` gives them."""
+    """A router session listening on ``endpoint`` (e.g. ``tcp/127.0.0.1:7447``); with ``users``, only
+    those of its dictionary may connect, and do what its access control (``users.acl``) lets them."""
     zc = ZenohConfig(connect=[], listen=[endpoint])
     conf = zenoh_config(zc, mode="router")
     if users is not None:
         conf.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(users.dictionary)))
-        conf.insert_json5("access_control", json.dumps(access_rules(users)))
+        conf.insert_json5("access_control", json.dumps(users.acl))
     try:
         return zenoh.open(conf)
     except zenoh.ZError as e:
@@ -101,14 +104,14 @@ def open_router(endpoint: str, users: RouterUsers | None = None) -> zenoh.Sessio
 
 # ---------------------------------------------------------------- user and password (usrpwd)
 # What `hilsim up` writes to its run directory (mode 0600 but the guests' file): the router's
-# dictionary, a client config file for the run's user (also what a ROS 2 node on rmw_zenoh takes
-# as ZENOH_SESSION_CONFIG_URI), and with zenoh.guests: read one for the read-only guest user.
+# dictionary, a client config file for the tools' identity (also what a ROS 2 node on rmw_zenoh takes
+# as ZENOH_SESSION_CONFIG_URI), one per process of the run in identities/ (hilsim.core.rights), and
+# with zenoh.guests: read one for the read-only guest user.
 USERS_FILE = "zenoh-users.txt"
 CLIENT_CONFIG = "zenoh-client.json5"
 GUEST_CONFIG = "zenoh-guest.json5"
+IDENTITIES_DIR = "identities"
 AUTH_ENV = "HILSIM_ZENOH_AUTH"  # a tool's credentials file, when not found through the pointer
-ALL_MESSAGES = ["put", "delete", "declare_subscriber", "query", "reply", "declare_queryable", "liveliness_token",
-                "liveliness_query", "declare_liveliness_subscriber"]
 
 
 class Credentials(NamedTuple):
@@ -118,30 +121,7 @@ class Credentials(NamedTuple):
 
 class RouterUsers(NamedTuple):
     dictionary: Path  # user:password per line (Zenoh's dictionary_file)
-    run_user: str  # may do everything
-    guest_user: str | None  # may read (subscribe, watch liveliness), nothing else
-
-
-def access_rules(users: RouterUsers) -> dict[str, Any]:
-    """Zenoh access control by username: the run's user everything, the guest (if any) reading only,
-    anybody else nothing (no other user can authenticate anyway)."""
-    # `**` matches no chunk that starts with '@': the ROS 2 graph, and the advanced publishers' caches and
-    # detection (transient-local: /tf_static, robot_description), named
-    every = ["**", "@ros2_lv/**", "**/@adv/**", "@adv/**"]
-    rules: list[dict[str, Any]] = [{"id": "everything", "messages": ALL_MESSAGES, "flows": ["ingress", "egress"],
-                                    "permission": "allow", "key_exprs": every}]
-    subjects: list[dict[str, Any]] = [{"id": "run", "usernames": [users.run_user]}]
-    policies: list[dict[str, Any]] = [{"id": "the run's processes", "rules": ["everything"], "subjects": ["run"]}]
-    if users.guest_user is not None:
-        rules += [{"id": "observe", "messages": ["declare_subscriber", "declare_liveliness_subscriber",
-                                                "liveliness_query"], "flows": ["ingress"], "permission": "allow",
-                   "key_exprs": every},
-                  {"id": "deliver", "messages": ["put", "delete", "reply", "liveliness_token"], "flows": ["egress"],
-                   "permission": "allow", "key_exprs": every}]
-        subjects.append({"id": "guest", "usernames": [users.guest_user]})
-        policies.append({"id": "guests read", "rules": ["observe", "deliver"], "subjects": ["guest"]})
-    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
-            "policies": policies}
+    acl: dict[str, Any]  # Zenoh's access_control section (hilsim.core.rights.access_control)
 
 
 def read_credentials(path: Path) -> Credentials:
@@ -212,8 +192,9 @@ def loopback_port(endpoint: str) -> int | None:
     return int(port)
 
 
-def write_pointer(endpoint: str, run_dir: Path, client_config: Path) -> Path | None:
-    """Say (mode 0600) that the router on ``endpoint`` is this process's run's, with its credentials."""
+def write_pointer(endpoint: str, run_dir: Path, client_config: Path, scenario: str = "") -> Path | None:
+    """Say (mode 0600) that the router on ``endpoint`` is this process's run's (its directory and
+    scenario), with the tools' credentials."""
     port = loopback_port(endpoint)
     if port is None:
         return None
@@ -226,7 +207,7 @@ def write_pointer(endpoint: str, run_dir: Path, client_config: Path) -> Path | N
             old.unlink(missing_ok=True)
         except (OSError, ValueError, KeyError, TypeError):
             pass
-    write_private(path, json.dumps({"endpoint": endpoint, "run_dir": str(run_dir.resolve()),
+    write_private(path, json.dumps({"endpoint": endpoint, "run_dir": str(run_dir.resolve()), "scenario": scenario,
                                     "client_config": str(client_config.resolve()), "pid": os.getpid()}) + "\n")
     return path
 
@@ -242,28 +223,70 @@ def remove_pointer(path: Path | None) -> None:
         pass
 
 
-def find_credentials(endpoints: list[str]) -> Path | None:
-    """The client config of the run whose router listens on one of ``endpoints`` (loopback), from its
-    pointer file: only one this user owns and no one else may read, of a launcher still running."""
+class RunPointer(NamedTuple):
+    """A run of this user that is up: what its pointer file says (:func:`write_pointer`)."""
+
+    endpoint: str
+    run_dir: Path
+    scenario: str
+    client_config: Path  # the tools' credentials
+    pid: int  # its launcher
+
+    def describe(self) -> str:
+        """The run as a tool names it: directory, scenario, router endpoint."""
+        return f"run {_shown(self.run_dir)} (scenario {self.scenario or '?'}) at {self.endpoint}"
+
+
+def _shown(path: Path) -> str:
+    try:
+        return str(path.relative_to(Path.cwd()))
+    except ValueError:
+        return str(path)
+
+
+def read_pointer(path: Path) -> RunPointer | None:
+    """The run a pointer file names, if it is trustworthy and up: a file this user owns that nobody else
+    may read, written by a launcher that still runs (not another process with its pid), whose
+    credentials file exists; else None."""
+    try:
+        st = path.stat()
+        if st.st_uid != os.getuid() or stat.S_IMODE(st.st_mode) & 0o077:
+            return None
+        info = json.loads(path.read_text())
+        pid = int(info["pid"])
+        os.kill(pid, 0)
+        if b"hilsim" not in Path(f"/proc/{pid}/cmdline").read_bytes():
+            return None
+        got = RunPointer(str(info["endpoint"]), Path(info["run_dir"]), str(info.get("scenario") or ""),
+                         Path(info["client_config"]), pid)
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return got if got.client_config.is_file() else None
+
+
+def live_runs() -> list[RunPointer]:
+    """The runs of this user that are up, in this network namespace (by their pointers), oldest first."""
+    d = pointer_dir()
+    found = [read_pointer(p) for p in sorted(d.glob(f"*-{_net_namespace()}.json"))] if d.is_dir() else []
+    return sorted((r for r in found if r is not None), key=lambda r: (str(r.run_dir), r.endpoint))
+
+
+def run_at(endpoints: list[str]) -> RunPointer | None:
+    """The run of this user whose router listens on one of ``endpoints`` (loopback), from its pointer."""
     for ep in endpoints:
         port = loopback_port(ep)
-        if port is None:
-            continue
-        path = pointer_path(port)
-        try:
-            st = path.stat()
-            if st.st_uid != os.getuid() or stat.S_IMODE(st.st_mode) & 0o077:
-                continue
-            info = json.loads(path.read_text())
-            os.kill(int(info["pid"]), 0)  # the launcher that wrote it still runs (not another process
-            if b"hilsim" not in Path(f"/proc/{int(info['pid'])}/cmdline").read_bytes():  # with its pid)
-                continue
-            client = Path(info["client_config"])
-        except (OSError, ValueError, KeyError, TypeError):
-            continue
-        if client.is_file():
-            return client
+        if port is not None:
+            got = read_pointer(pointer_path(port))
+            if got is not None:
+                return got
     return None
+
+
+def find_credentials(endpoints: list[str]) -> Path | None:
+    """The tools' credentials of the run whose router listens on one of ``endpoints`` (loopback), from its
+    pointer file: only one this user owns and no one else may read, of a launcher still running."""
+    got = run_at(endpoints)
+    return got.client_config if got is not None else None
 
 
 # certificate and key paths of a router config file, resolved against the file's directory
@@ -418,27 +441,110 @@ def tool_keys(robot: str = "arm", prefix: str | None = None, domain: int | None 
     return Keys(tool_prefix(prefix), robot, tool_domain(domain))
 
 
-def tool_zenoh(connect: str | None = None) -> ZenohConfig:
-    """The Zenoh settings of a tool: :func:`tool_endpoints`, a TLS identity from ``HILSIM_TLS_*``
-    when set, else a user and password: ``HILSIM_ZENOH_AUTH`` (a Zenoh config file), else those of
-    the ``hilsim up`` of this user whose router listens there (:func:`find_credentials`; docs/security.md)."""
+class ToolTarget(NamedTuple):
+    """Where a tool connects, with what, and the run of this user it joins there (None: not known)."""
+
+    zenoh: ZenohConfig
+    run: RunPointer | None
+
+    def describe(self) -> str:
+        """The tool's first line: the run it joined (directory, scenario, endpoint), or the endpoint."""
+        if self.run is not None:
+            return f"joined {self.run.describe()}"
+        return f"joined {', '.join(self.zenoh.connect)} (no run of yours is known there)"
+
+
+def choose_run(runs: list[RunPointer], tool: str) -> RunPointer:
+    """One of several runs of this user that are up: asked on a terminal; otherwise ConfigError (one
+    line) listing them, never a guess."""
+    listed = "; ".join(r.describe() for r in runs)
+    if not (sys.stdin.isatty() and sys.stderr.isatty()):
+        raise ConfigError(f"{tool}: {len(runs)} runs of yours are up ({listed}): say which with --run DIR "
+                          f"or --connect ENDPOINT")
+    sys.stderr.write(f"{tool}: {len(runs)} runs of yours are up:\n")
+    for i, r in enumerate(runs, 1):
+        sys.stderr.write(f"  {i}. {r.describe()}\n")
+    while True:
+        sys.stderr.write(f"which one (1-{len(runs)})? ")
+        sys.stderr.flush()
+        answer = sys.stdin.readline()
+        if not answer:
+            raise ConfigError(f"{tool}: no run chosen; say which with --run DIR or --connect ENDPOINT")
+        if answer.strip().isdigit() and 1 <= int(answer) <= len(runs):
+            return runs[int(answer) - 1]
+
+
+def tool_target(connect: str | None = None, run: str | Path | None = None, tool: str = "hilsim") -> ToolTarget:
+    """Where a tool connects and with what (docs/tools.md):
+
+    - ``--run DIR``: the run of this user up in ``DIR`` (its router, its tools' credentials);
+    - ``--connect`` (or ``HILSIM_ZENOH_CONNECT``): there (:func:`tool_endpoints`), with the credentials of
+      the run of this user whose router it is, if any;
+    - neither: the run of this user that is up, if there is one; several: :func:`choose_run` (asked,
+      never guessed); none: the well-known :data:`DEFAULT_CONNECT`.
+
+    Credentials: a TLS identity from ``HILSIM_TLS_*`` when set, else ``HILSIM_ZENOH_AUTH`` (a Zenoh config
+    file), else the run's tools' file (docs/security.md). ConfigError (one line) for a ``--run`` that is
+    not up, or several runs and no choice."""
     from pydantic import ValidationError
 
     tls = tls_from_env()
-    endpoints = tool_endpoints(connect)
-    # user and password: HILSIM_ZENOH_AUTH, else those of the run (of this user) whose router it is
+    ptr: RunPointer | None
+    if run is not None:
+        want = Path(run).resolve()
+        up = live_runs()
+        ptr = next((r for r in up if r.run_dir.resolve() == want), None)
+        if ptr is None:
+            others = f" (up: {'; '.join(r.describe() for r in up)})" if up else " (none of yours is up)"
+            raise ConfigError(f"{tool}: --run {run}: no run of yours is up there{others}")
+        endpoints = [ptr.endpoint]
+    elif connect or os.environ.get("HILSIM_ZENOH_CONNECT"):
+        endpoints = tool_endpoints(connect)
+        ptr = run_at(endpoints)
+    else:
+        up = live_runs()
+        ptr = up[0] if len(up) == 1 else choose_run(up, tool) if up else None
+        endpoints = [ptr.endpoint] if ptr is not None else tool_endpoints()
     env_auth = os.environ.get(AUTH_ENV, "").strip()
-    auth = None if tls else Path(env_auth) if env_auth else find_credentials(endpoints)
+    auth = None if tls else Path(env_auth) if env_auth else ptr.client_config if ptr is not None else None
     try:
-        return ZenohConfig(connect=endpoints, tls=TlsConfig(**tls) if tls else None, auth=auth)
+        zc = ZenohConfig(connect=endpoints, tls=TlsConfig(**tls) if tls else None, auth=auth)
     except ValidationError as e:
         err = e.errors()[0]
         raise ConfigError(f"TLS from the environment: {err['msg'].removeprefix('Value error, ')}") from None
+    return ToolTarget(zc, ptr)
 
 
-def open_tool_session(connect: str | None = None) -> zenoh.Session:
-    """A peer session for a tool (see :func:`tool_zenoh`); ConnectionError if it cannot open."""
-    return open_session(tool_zenoh(connect))
+def tool_zenoh(connect: str | None = None) -> ZenohConfig:
+    """The Zenoh settings of a tool connecting to ``connect`` (:func:`tool_target`)."""
+    return tool_target(connect).zenoh
+
+
+def open_tool_session(connect: str | None = None, *, run: str | Path | None = None, tool: str | None = None,
+                      wait: float = 2.0) -> zenoh.Session:
+    """A session for a tool (:func:`tool_target`). With ``tool`` (its name, e.g. ``hilsim topic``), its first
+    line on standard error names the run it joined, and a session that reaches nobody within ``wait``
+    seconds (no router, no peer: an empty port) is a ConnectionError instead of a quiet tool."""
+    target = tool_target(connect, run, tool or "hilsim")
+    if tool is not None:
+        print(f"{tool}: {target.describe()}", file=sys.stderr, flush=True)
+    session = open_session(target.zenoh)
+    if tool is not None and not connected(session, wait):
+        session.close()
+        raise ConnectionError(f"nothing answers at {', '.join(target.zenoh.connect)} (no router or simulation "
+                              "there; is the run up?)")
+    return session
+
+
+def connected(session: zenoh.Session, wait: float) -> bool:
+    """True once ``session`` reaches a router or a peer (within ``wait`` seconds)."""
+    end = time.monotonic() + wait
+    while True:
+        if any(True for _ in session.info.routers_zid()) or any(True for _ in session.info.peers_zid()):
+            return True
+        if time.monotonic() >= end:
+            return False
+        time.sleep(0.02)
 
 
 def wait_for_service(session: zenoh.Session, keys: Keys, service: str, timeout: float) -> bool:

@@ -178,7 +178,7 @@ def cmd_goal(args: argparse.Namespace) -> int:
         return 2
     keys = transport.tool_keys(args.robot, args.prefix)
     try:
-        session = transport.open_tool_session(args.connect)
+        session = transport.open_tool_session(args.connect, run=getattr(args, "run", None), tool="hilsim goal")
     except ConnectionError as e:
         print(f"hilsim goal: {e}", file=sys.stderr)
         return 2

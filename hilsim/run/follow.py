@@ -29,6 +29,7 @@ from hilsim.core import fleet, msgs, transport
 from hilsim.core.config import Scenario
 from hilsim.core.keys import Keys, topic_name
 from hilsim.core.provenance import Provenance
+from hilsim.core.rights import owners
 
 
 @dataclass
@@ -87,12 +88,13 @@ class Follower:
     def subscribe(self, session: zenoh.Session) -> list[Any]:
         """Declare its subscribers on ``session`` (the caller undeclares them)."""
         fk = self.follow_keys
+        # the results of the services this run has (the key table's writers): a result key no service of
+        # the run writes is the tools' to write (hilsim.core.rights), and no result of the run's
+        results = [t for t in ("planner/result", "navigator/result", "task/result") if owners(self.sc, t)]
         return [
             # first: who writes what, so that only the services' own samples are believed
             session.liveliness().declare_subscriber(self.keys.all_writers, self.prov.on_token, history=True),
-            session.declare_subscriber(fk.topic("planner/result"), self._on_result),
-            session.declare_subscriber(fk.topic("navigator/result"), self._on_result),
-            session.declare_subscriber(fk.topic("task/result"), self._on_result),
+            *(session.declare_subscriber(fk.topic(t), self._on_result) for t in results),
             session.declare_subscriber(fk.health("*"), self._on_health),
             session.declare_subscriber(fk.log("*"), self._on_log),
         ]
@@ -116,8 +118,12 @@ class Follower:
         self.say(f"  … sim time {ph.get('sim_time', '?')} s, real-time factor {ph.get('real_time_factor', '?')}")
 
     def _trusted(self, sample: zenoh.Sample) -> bool:
-        """A sample from the key's announced writer (not a stranger's, nor a duplicate)."""
-        why, _ = self.prov.check(str(sample.key_expr), transport.read_attachment(sample))
+        """A sample from the key's announced writer (not a stranger's, nor a duplicate), on a key that has
+        one (a result put before anyone announced a writer for its key is nobody's)."""
+        key = str(sample.key_expr)
+        why, _ = self.prov.check(key, transport.read_attachment(sample), sample.payload.to_bytes())
+        if why is None and key not in self.prov.restricted:
+            why = "no announced writer"
         if why is not None:
             self.untrusted += 1
         return why is None

@@ -5,8 +5,9 @@ holds the command; following what the services report is :mod:`hilsim.run.follow
 printed at the end :mod:`hilsim.run.summary`, the embedded router :mod:`hilsim.run.router`.
 
 The launcher opens an embedded Zenoh router on a free loopback port (or joins ``--router``) that
-admits only the run's processes (a user and password made for the run, :func:`open_run_router`;
-docs/security.md), writes the resolved scenario to ``runs/<timestamp>/scenario.yaml``, starts one
+admits only the run's processes, each with an identity of its own that may write only what the key
+table gives it (:func:`open_run_router`, :mod:`hilsim.core.rights`; docs/security.md; the launcher's own
+session only reads), writes the resolved scenario to ``runs/<timestamp>/scenario.yaml``, starts one
 ``hilsim run SERVICE`` process per service of the scenario and per external joint server it
 names (in the reverse of the order the service classes declare for stopping), waits for each
 liveliness token, then follows the task result, every service's health and its faults. It stops
@@ -70,7 +71,7 @@ from hilsim.core.restart import RESTART_ENV, STATE_DIR
 from hilsim.core.scenario import load_scenario, write_scenario
 from hilsim.core.service import watch_signals
 from hilsim.run.follow import Follower, Outcome, Restart
-from hilsim.run.router import cmd_router, open_default_router, open_run_router
+from hilsim.run.router import cmd_router, identity_file, open_default_router, open_run_router
 from hilsim.run.summary import summarise
 from hilsim.run.worlds import world_scenario
 
@@ -158,8 +159,12 @@ class Launcher:
     """The processes of one run: started, watched (liveliness, exit codes), restarted, stopped."""
 
     def __init__(self, sc: Scenario, run_dir: Path, *, router: str | None = None, quiet: bool = False,
-                 only: list[str] | None = None) -> None:
+                 only: list[str] | None = None, per_service: bool = True) -> None:
         self.sc = sc
+        # each process its own identity on the run's router (hilsim.core.rights); False: one for all, with
+        # every right (hilsim bench loop's baseline)
+        self.per_service = per_service
+        self.identities: dict[str, Path] = {}  # launch unit -> its identity's client config
         # --only: the launch units started here; the rest run on other hosts (their tokens only)
         self.local = local_units(sc, only)
         self.remote: dict[str, bool] = {}  # remote service -> alive now
@@ -204,16 +209,27 @@ class Launcher:
     # ------------------------------------------------------------------ start
     def start(self) -> None:
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        own = self.sc.zenoh.model_copy()  # the launcher's own session: it only reads
         if self.router_ep is None:
-            # only this run's processes may join it: a user and password of its own (docs/security.md)
-            rr = open_run_router(self.run_dir, self.sc.zenoh.guests)
+            # only this run's processes may join it, each with an identity of its own that may write only
+            # what the key table gives it (hilsim.core.rights, docs/security.md)
+            rr = open_run_router(self.run_dir, self.sc, per_service=self.per_service)
             self.router_ep, self._router, self._pointer = rr.endpoint, rr.session, rr.pointer
-            self.sc.zenoh.auth = rr.client_config
+            self.identities = rr.identities
+            self.sc.zenoh.auth, own.auth = rr.client_config, rr.launcher_config  # scenario.yaml: the tools' file
             guests = f"; guests read with {rr.guest_config}" if rr.guest_config else ""
-            self.say(f"zenoh router: {self.router_ep} (user and password in {rr.client_config}{guests})")
+            self.say(f"zenoh router: {self.router_ep} (each process an identity of its own in "
+                     f"{rr.client_config.parent / transport.IDENTITIES_DIR}; tools and ROS 2 nodes: "
+                     f"{rr.client_config}{guests})")
             if self.sc.clock.mode == "realtime":
                 self._raise_router_priority()
+        else:
+            ptr = transport.run_at([self.router_ep])
+            if ptr is not None and self.sc.zenoh.tls is None:  # the router of another run of this user
+                found = {u: identity_file(ptr.run_dir, u) for u in self.local}
+                self.identities = {u: f for u, f in found.items() if f.is_file()}
         self.sc.zenoh.connect = [self.router_ep]
+        own.connect = [self.router_ep]
         self.sc.logger.run_dir = self.run_dir.resolve()
         cfg = self.run_dir / "scenario.yaml"
         write_scenario(self.sc, cfg)
@@ -223,7 +239,7 @@ class Launcher:
         # before the liveliness subscriber: its history (services of other hosts already up) comes at once
         self.remote = {s: False for u in self.sc.launch_units() if u not in self.local
                        for s in fleet.members(self.sc, u)}
-        self.session = transport.open_session(self.sc.zenoh)
+        self.session = transport.open_session(own)
         self._subs = [
             *self.follower.subscribe(self.session),  # first who writes what, then results, health, logs
             self.session.liveliness().declare_subscriber(self.follow_keys.all_alive, self._on_alive, history=True),
@@ -254,8 +270,9 @@ class Launcher:
         env.setdefault("PYTHONUNBUFFERED", "1")
         if attempt:
             env[RESTART_ENV] = str(attempt)
-        if self.sc.zenoh.auth is not None:  # the run's credentials, whatever the caller's environment says
-            env[transport.AUTH_ENV] = str(self.sc.zenoh.auth)
+        auth = self.identities.get(name, self.sc.zenoh.auth)
+        if auth is not None:  # its own identity on the run's router, whatever the caller's environment says
+            env[transport.AUTH_ENV] = str(auth)
         log_path = self.run_dir / f"{name}.log"
         with open(log_path, "ab" if attempt else "wb") as logf:
             if attempt:

@@ -1,7 +1,9 @@
 """The Zenoh router of a run: ``hilsim up``'s embedded one, and ``hilsim router`` (a standalone one).
 
-``hilsim up`` opens its router in its own process (:func:`open_default_router`) on the well-known
-loopback port when it is free, so ``hilsim topic`` finds it; every service of the run connects to it.
+``hilsim up`` opens its router in its own process (:func:`open_run_router`) on the well-known
+loopback port when it is free; every process of the run connects to it with an identity of its own,
+whose rights the access control derives from the key table (:mod:`hilsim.core.rights`), and this user's
+tools find theirs through a pointer file.
 ``hilsim router`` is one for several hosts (docs/deployment.md), optionally from a Zenoh config file
 (listen endpoints, TLS, access control: docs/security.md).
 
@@ -13,6 +15,7 @@ from __future__ import annotations
 import argparse
 import ipaddress
 import json
+import re
 import secrets
 import sys
 import threading
@@ -22,6 +25,8 @@ from typing import NamedTuple
 import zenoh
 
 from hilsim.core import transport
+from hilsim.core.config import Scenario
+from hilsim.core.rights import EVERY, Rights, access_control, tools_rights, unit_rights
 from hilsim.core.transport import Credentials, RouterUsers
 
 
@@ -43,30 +48,71 @@ class RunRouter(NamedTuple):
 
     endpoint: str
     session: zenoh.Session
-    client_config: Path  # <run dir>/zenoh-client.json5: the run's user (0600)
+    client_config: Path  # <run dir>/zenoh-client.json5: the tools' identity (0600), for tools and ROS 2 nodes
     guest_config: Path | None  # <run dir>/zenoh-guest.json5: the read-only guest (zenoh.guests: read)
     pointer: Path | None  # where this user's tools find client_config (transport.pointer_path)
+    identities: dict[str, Path]  # launch unit -> its identity's client config (<run dir>/identities/, 0600)
+    launcher_config: Path  # the launcher's own identity: it reads, and writes nothing
 
 
-def open_run_router(run_dir: Path, guests: str = "none") -> RunRouter:
-    """The router of one run, on loopback, that only the run's own processes may join: a user and
-    password made for this run (Zenoh's usrpwd authentication, access control by username), written
-    to ``run_dir`` with mode 0600 as the router's dictionary and a client config file; with ``guests:
-    read`` also a guest user that may only read, its config file readable by anyone. The pointer file
-    (:func:`transport.write_pointer`) lets this user's tools find the credentials by port."""
+def identity_file(run_dir: Path, unit: str) -> Path:
+    """Where the identity of launch unit ``unit`` (``physics``, ``controller@*``, ``a+b+c``) is written."""
+    return (run_dir / transport.IDENTITIES_DIR / f"{_safe(unit)}.json5").resolve()
+
+
+def _safe(unit: str) -> str:
+    return re.sub(r"[^A-Za-z0-9_.+-]", "_", unit.replace("@*", "@all")).replace("@", "_at_")
+
+
+def open_run_router(run_dir: Path, sc: Scenario, *, per_service: bool = True) -> RunRouter:
+    """The router of one run, on loopback, that only the run's own processes may join, each with the
+    rights of its identity (Zenoh's usrpwd authentication, access control by username,
+    :mod:`hilsim.core.rights`): a user and password for every launch unit of the scenario (written to
+    ``<run dir>/identities/<unit>.json5``), one for the launcher (it only reads), one for the tools and
+    the ROS 2 nodes a person points at the run (``zenoh-client.json5``), and with ``zenoh.guests: read``
+    a guest that may only read (its file readable by anyone). Every file but the guest's is mode 0600,
+    and so is the router's dictionary. The pointer file (:func:`transport.write_pointer`) lets this
+    user's tools find theirs by port.
+
+    ``per_service`` False (``hilsim bench loop``'s baseline only): every process with the tools' file,
+    which may then do everything, as before identities of their own."""
     run_dir.mkdir(parents=True, exist_ok=True)
-    user, password = f"run-{secrets.token_hex(6)}", secrets.token_urlsafe(24)
-    guest = (f"guest-{secrets.token_hex(6)}", secrets.token_urlsafe(24)) if guests == "read" else None
+    ids = run_dir / transport.IDENTITIES_DIR
+    ids.mkdir(mode=0o700, exist_ok=True)
+    units = sc.launch_units()
+    cred: dict[str, Credentials] = {}  # identity -> user and password
+    rights: dict[str, Rights | None] = {}  # username -> what it may do (None: read only)
+
+    def user(name: str, r: Rights | None) -> Credentials:
+        c = Credentials(f"{_safe(name)}-{secrets.token_hex(4)}", secrets.token_urlsafe(24))
+        cred[name], rights[c.user] = c, r
+        return c
+
+    if per_service:
+        for u in units:
+            user(u, unit_rights(sc, u))
+        user("launcher", None)
+        user("tools", tools_rights(sc))
+    else:  # one identity for every process, with every right: the baseline of `hilsim bench loop`
+        user("tools", Rights(put={*EVERY}, serve={*EVERY}, ask={*EVERY}, tokens={*EVERY}))
+    if sc.zenoh.guests == "read":
+        user("guest", None)
     users = (run_dir / transport.USERS_FILE).resolve()
-    transport.write_private(users, "".join(f"{u}:{p}\n" for u, p in [(user, password), *([guest] if guest else [])]))
-    ep, session = open_default_router(RouterUsers(users, user, guest[0] if guest else None))
-    client = (run_dir / transport.CLIENT_CONFIG).resolve()
-    transport.write_private(client, transport.client_config_text(ep, Credentials(user, password)))
+    transport.write_private(users, "".join(f"{c.user}:{c.password}\n" for c in cred.values()))
+    ep, session = open_default_router(RouterUsers(users, access_control(rights)))
+
+    def config(name: str, path: Path, mode: int = 0o600) -> Path:
+        transport.write_private(path, transport.client_config_text(ep, cred[name]), mode)
+        return path
+
+    client = config("tools", (run_dir / transport.CLIENT_CONFIG).resolve())
+    identities = {u: config(u, identity_file(run_dir, u)) if per_service else client for u in units}
+    launcher = config("launcher", identity_file(run_dir, "launcher")) if per_service else client
     guest_config = None
-    if guest is not None:  # meant to be handed out: readable by anyone who can reach the run directory
-        guest_config = (run_dir / transport.GUEST_CONFIG).resolve()
-        transport.write_private(guest_config, transport.client_config_text(ep, Credentials(*guest)), 0o644)
-    return RunRouter(ep, session, client, guest_config, transport.write_pointer(ep, run_dir, client))
+    if "guest" in cred:  # meant to be handed out: readable by anyone who can reach the run directory
+        guest_config = config("guest", (run_dir / transport.GUEST_CONFIG).resolve(), 0o644)
+    pointer = transport.write_pointer(ep, run_dir, client, scenario=sc.name)
+    return RunRouter(ep, session, client, guest_config, pointer, identities, launcher)
 
 
 def cmd_router(args: argparse.Namespace) -> int:

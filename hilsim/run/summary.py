@@ -111,6 +111,9 @@ def summarise(la: FinishedRun) -> int:
         if bad:
             last = f" (last: {h['last_error']})" if h.get("last_error") else ""  # none: no empty "(last: )"
             print(f"  {name}: {h.get('rejected')} rejected, {h.get('errors')} errors{last}")
+        if _num(h.get("suspect")):
+            print(f"  {name}: {h['suspect']} suspect samples (a writer's id in samples out of its order: delivered, "
+                  "its gaps not counted as lost; docs/keys.md)")
     rrd = la.run_dir / "recording.rrd"
     if any("logger" in u.split("+") for u in la.local):  # a recorder on another host summarises there
         # a recorder that died left no footer (and no counts): make its file whole, say what it holds
@@ -136,6 +139,8 @@ def summarise(la: FinishedRun) -> int:
                 return name[len(own):] if name.startswith(own) else name.lstrip("/")
 
             line = f"  recorded {rec} of {recv} received messages on {len(counts)} keys"
+            suspect = {k: v["suspect"] for k, v in counts.items() if v.get("suspect")}
+            contested = sum(v.get("contested", 0) for v in counts.values())
             if n_lost:
                 where = "in transport"
                 if n_full:
@@ -158,6 +163,12 @@ def summarise(la: FinishedRun) -> int:
             if stopped is not None:  # logger.max_size or min_free: the files hold the run up to there, whole
                 print(f"  recording stopped at sim time {stopped.get('sim_time')} s: {stopped.get('reason')}; "
                       f"{stopped.get('after_stop', 0)} samples after it not recorded (the run went on)")
+            if suspect or contested:
+                top = sorted(suspect.items(), key=lambda kv: (-kv[1], kv[0]))
+                keys = ", ".join(f"{short(k)} {n}" for k, n in top[:8]) + (", …" if len(top) > 8 else "")
+                print(f"  recorder: {sum(suspect.values())} suspect samples ({keys or 'none'}), recorded; "
+                      f"{contested} gaps not counted as lost: of writers whose id others used, or where every "
+                      "sample the writers published arrived")
             if any("bagged" in v for v in counts.values()):  # logger.bag: count what the bag's files hold
                 # a restarted recorder's counts are its last process's: the bag is shown, not judged
                 ok = _check_bag(la.run_dir, counts, short, judge=not logger_restarted) and ok
@@ -171,7 +182,8 @@ def summarise(la: FinishedRun) -> int:
                         published[k[10:]] = published.get(k[10:], 0) + _num(v)
             unseen = {}
             for k, v in counts.items() if stopped is None else ():  # stopped: the rest was not recorded, on purpose
-                seen = v["received"] + v.get("lost", 0) + v.get("before_first", 0)
+                own = v["received"] - v.get("suspect", 0)  # a writer's early samples come before its token:
+                seen = own + v.get("lost", 0) + v.get("before_first", 0)  # unannounced, but its own
                 if published.get(k, 0) > seen:
                     unseen[k] = published[k] - seen
             if unseen:

@@ -41,6 +41,7 @@ import argparse
 import json
 import logging
 import os
+import statistics
 import time
 from pathlib import Path
 from tempfile import TemporaryDirectory
@@ -121,18 +122,20 @@ def cpu_s(pid: int) -> float:
 
 
 def _run(sc: Scenario, run_dir: Path, cpu: dict[str, float] | None = None, *, task: bool = False,
-         run_router: bool = False) -> Any:
+         run_router: bool = False, per_service: bool = True) -> Any:
     """Run ``sc`` with ``hilsim up``'s launcher; its outcome (hilsim.run.follow.Outcome). ``cpu``, if
     given, is filled with the CPU seconds each process spent from "ready" to the end of the run (the
     router and launcher: this process). ``task``: the run ends with its task, not at a duration.
 
     The router: a plain one, whose clients are then peers that also reach each other directly
     (every earlier sitting's figures); ``run_router``: the run's own, with its user and password,
-    as ``hilsim up`` opens it, every service a client of it, so every sample passes through it."""
+    as ``hilsim up`` opens it, every service a client of it, so every sample passes through it; each
+    process with an identity of its own (``per_service``), or all with one that may do everything (as
+    before identities, docs/security.md)."""
     from hilsim.run.launcher import Launcher, open_default_router
 
     ep, router = (None, None) if run_router else open_default_router()
-    la = Launcher(sc, run_dir, router=ep, quiet=True)
+    la = Launcher(sc, run_dir, router=ep, quiet=True, per_service=per_service)
     try:
         la.start()
         if not la.wait_ready():
@@ -157,9 +160,9 @@ def _run(sc: Scenario, run_dir: Path, cpu: dict[str, float] | None = None, *, ta
 
 
 def _launch(sc: Scenario, run_dir: Path, cpu: dict[str, float] | None = None,
-            run_router: bool = False) -> dict[str, str]:
+            run_router: bool = False, per_service: bool = True) -> dict[str, str]:
     """:func:`_run` to the scenario's duration; physics' health at the end."""
-    return dict(_run(sc, run_dir, cpu, run_router=run_router).health.get("physics", {}))
+    return dict(_run(sc, run_dir, cpu, run_router=run_router, per_service=per_service).health.get("physics", {}))
 
 
 def bench_up_arm(tmp: Path, batch: int = 0) -> dict[str, float]:
@@ -194,14 +197,39 @@ def bench_composed(sim_seconds: float, tmp: Path, with_recorder: bool = False,
 
 
 def bench_pipelined(sim_seconds: float, tmp: Path, cpu: dict[str, float] | None = None, batch: int = 0,
-                    run_router: bool = False) -> float:
+                    run_router: bool = False, per_service: bool = True) -> float:
     """``hilsim up arm`` with ``clock.controller_lag: 1``: physics steps on while sensors and
     controller work on the step before (the pipelined lockstep, docs/keys.md); ``batch``: ``logger.batch``;
     ``run_router``: through the run's own router, as ``hilsim up`` runs it (see :func:`_launch`)."""
-    h = _launch(_scenario(sim_seconds, **{"clock.controller_lag": 1, "logger.batch": batch}),
-                tmp / ("distributed-lag1" + (f"-batch{batch}" if batch else "") + ("-routed" if run_router else "")),
-                cpu, run_router=run_router)
+    name = ("distributed-lag1" + (f"-batch{batch}" if batch else "") + ("-routed" if run_router else "")
+            + ("" if per_service else "-one-identity"))
+    h = _launch(_scenario(sim_seconds, **{"clock.controller_lag": 1, "logger.batch": batch}), tmp / name,
+                cpu, run_router=run_router, per_service=per_service)
     return float(h["real_time_factor"])
+
+
+def bench_identities(sim_seconds: float, tmp: Path, repeat: int, say: Any) -> dict[str, Any]:
+    """What an identity per process costs (docs/security.md): the pipelined arm through the run's own
+    router with one identity that may do everything (as before) and with one per process, alternated
+    ``repeat`` times in one sitting (a shared machine's load drifts: each pair's ratio, and their median)."""
+    one, each, ratios, router_one, router_each = [], [], [], [], []
+    steps = sim_seconds * 1000
+    for i in range(repeat):
+        ca: dict[str, float] = {}
+        cb: dict[str, float] = {}
+        a = bench_pipelined(sim_seconds, tmp / f"id{i}", ca, run_router=True, per_service=False)
+        b = bench_pipelined(sim_seconds, tmp / f"id{i}", cb, run_router=True, per_service=True)
+        one.append(a)
+        each.append(b)
+        ratios.append(b / a)
+        # the router checks every sample against its access control: its CPU per step (in this process)
+        router_one.append(1e6 * ca["router+launcher"] / steps)
+        router_each.append(1e6 * cb["router+launcher"] / steps)
+        say(f"    pair {i + 1}: one identity {a:.3f}x, one per process {b:.3f}x real time (ratio {b / a:.3f}); "
+            f"router+launcher {router_one[-1]:.0f} vs {router_each[-1]:.0f} µs of CPU per step")
+    return {"one_identity_rtf": one, "per_process_rtf": each, "ratios": ratios,
+            "median_ratio": float(statistics.median(ratios)), "router_us_one_identity": router_one,
+            "router_us_per_process": router_each}
 
 
 def bench_realtime(seconds: float, tmp: Path) -> dict[str, float]:
@@ -236,6 +264,15 @@ def cmd_loop(args: argparse.Namespace) -> int:
     say = progress(args.json)
 
     say(f"hilsim bench loop: arm, 1 kHz physics and control, {sim:g} s sim per lockstep run")
+    if getattr(args, "identities", 0):
+        say(f"  identities: the pipelined arm through the run's own router, one identity vs one per process, "
+            f"{args.identities} pairs …")
+        with TemporaryDirectory(prefix="hilsim-bench-") as d:
+            res["identities"] = r = bench_identities(sim, Path(d), args.identities, say)
+        say(f"    median ratio (one per process / one identity): {r['median_ratio']:.3f}")
+        if args.json:
+            print(json.dumps(res, indent=1))
+        return 0
     say("  bare (MuJoCo + PID, no messages) …")
     res["bare_rtf"] = bench_bare(sim)
     say(f"    {res['bare_rtf']:.2f}x real time")

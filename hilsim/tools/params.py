@@ -40,7 +40,7 @@ def cmd_gains(args: argparse.Namespace) -> int:
             return 2
         values[name.strip()] = v
     keys = transport.tool_keys(args.robot, args.prefix)
-    with transport.open_tool_session(args.connect) as ses:
+    with transport.open_tool_session(args.connect, run=getattr(args, "run", None), tool="hilsim gains") as ses:
         res = set_parameters(ses, keys, values)
     print(("set: " if res.successful else "not set: ") + res.reason)
     return 0 if res.successful else 1

@@ -14,9 +14,21 @@
   before its start as it did in the run: played at its start stamp instead, it raced the joint
   states of that step (another key, another publisher: Zenoh keeps no order between them) and
   lost, by up to 10 steps, in one play of three at ``--rate 1``.
-- As a ROS 2 node would: node ``hilsim_play`` in the graph (``NN`` token), one publisher per key with
-  its ``MP`` token and the gid derived from it (rmw_zenoh's rule), rmw_zenoh attachments with its own
-  sequence numbers from 1, so receivers' provenance checks (:mod:`hilsim.core.provenance`) accept it.
+- A writer of its own, as a ROS 2 node would be: node ``hilsim_play`` in the graph (``NN`` token), one
+  publisher per key with its ``MP`` token and the gid derived from it (rmw_zenoh's rule), rmw_zenoh
+  attachments with its own sequence numbers from 1, so receivers' provenance checks
+  (:mod:`hilsim.core.provenance`) take it for what it is; the recorded writers' gids and numbers stay in
+  the bag (each message's metadata), never on the wire. It connects with the tools' identity of the run
+  (docs/security.md), which may write only what a person commands and what no service of the run writes.
+- Which run: the first line names the run it joined (directory, scenario, router endpoint;
+  :func:`hilsim.core.transport.tool_target`: ``--run DIR``, ``--connect``, else the one run of yours that
+  is up; several: asked, never guessed). Refused, in one line, before anything is played: a key a
+  service of that run writes (named, with the way to do it on purpose: a run without that service), a
+  key its tools may not write, and, unless the target was named (``--run``/``--connect``), a key other
+  publishers of that run write. Nothing answering there is an error, not an empty success.
+- While playing: a key nobody subscribes to is said (its samples reach nobody); the summary counts what
+  was played (messages, keys, the sim time from the first played to the last played, also after an
+  early stop).
 - ``--clock``: the recorded ``/clock`` is not played; the player publishes its own ``/clock`` at each
   new stamp, before the samples of that stamp.
 - ``--keys``: ROS 2 topic globs (``/arm/joint_states``, ``/arm/*``) or Zenoh key expressions
@@ -32,6 +44,7 @@ from __future__ import annotations
 
 import argparse
 import fnmatch
+import os
 import signal
 import sys
 import threading
@@ -193,9 +206,16 @@ def play(session: zenoh.Session, items: list[Item], *, domain: int, rate: float 
     if delay > 0:
         stop.wait(delay)
     span = (items[0].sim_ns, items[-1].sim_ns) if items else (0, 0)
+    deaf = sorted(k for k in keys if not _has_subscriber(player.pubs[k][0]))
+    if deaf and not quiet:
+        names = ", ".join(wire_topic(k) for k in deaf)
+        print(f"hilsim play: warning: nobody subscribes to {names}: its samples reach nobody", file=sys.stderr,
+              flush=True)
     prog = Progress(len(items), span, quiet)
     played = 0
     loops = 0
+    played_keys: set[str] = set()
+    first_ns = last_ns = None
     wall0 = time.monotonic()
     try:
         while True:
@@ -213,6 +233,10 @@ def play(session: zenoh.Session, items: list[Item], *, domain: int, rate: float 
                     last_clock = it.sim_ns
                 player.put(it.key, it.data)
                 played += 1
+                played_keys.add(it.key)
+                if first_ns is None:
+                    first_ns = it.sim_ns
+                last_ns = it.sim_ns if loops == 0 else span[1]
                 prog.show(n + 1, it.sim_ns, loops)
             else:
                 prog.show(len(items), span[1], loops, force=True)
@@ -223,8 +247,22 @@ def play(session: zenoh.Session, items: list[Item], *, domain: int, rate: float 
     finally:
         prog.done()
         player.close()
-    return {"messages": played, "keys": len(keys), "loops": loops, "sim_s": (span[1] - span[0]) / 1e9,
-            "wall_s": time.monotonic() - wall0}
+    sim_s = ((last_ns - first_ns) / 1e9 if first_ns is not None and last_ns is not None else 0.0)
+    return {"messages": played, "keys": len(played_keys), "loops": loops, "sim_s": sim_s,
+            "wall_s": time.monotonic() - wall0, "deaf": deaf}
+
+
+def _has_subscriber(pub: Any) -> bool:
+    try:
+        return bool(pub.matching_status.matching)
+    except (AttributeError, zenoh.ZError):  # an in-process bus: no matching status to ask
+        return True
+
+
+def wire_topic(key: str) -> str:
+    """A key as a person names it: its ROS 2 topic (``/arm/joint_states``), else the key."""
+    parts = key.split("/")
+    return "/" + "/".join(parts[1:-2]) if len(parts) >= 4 and parts[-1].startswith("RIHS") else key
 
 
 def cmd_play(args: argparse.Namespace) -> int:
@@ -244,34 +282,111 @@ def cmd_play(args: argparse.Namespace) -> int:
         print(f"hilsim play: {args.bag}: no message matches --keys {args.keys!r}", file=sys.stderr)
         return 1
     domain = args.domain if args.domain is not None else int(items[0].key.split("/", 1)[0])
+    run = getattr(args, "run", None)
+    target = transport.tool_target(args.connect, run, "hilsim play")
+    print(f"hilsim play: {target.describe()}", file=sys.stderr, flush=True)
     try:
-        session = transport.open_tool_session(args.connect)
+        session = transport.open_session(target.zenoh)
     except ConnectionError as e:
         print(f"hilsim play: {e}", file=sys.stderr)
         return 1
-    pace = "as fast as possible" if args.rate == 0 else f"at {args.rate:g}x"
-    print(f"hilsim play: {len(items)} messages on {len({i.key for i in items})} keys, {pace}"
-          + (", publishing /clock" if args.clock else ""), file=sys.stderr)
-    # Ctrl-C or SIGTERM ends the play between two messages: taken by a watcher thread, not as a
-    # KeyboardInterrupt, which a put blocked by a slow subscriber would hold back (seen: a --loop
-    # play that went on for 20 s after Ctrl-C), and which a script's background job never gets
-    from hilsim.core.service import watch_signals
-
-    signals: list[int] = []
-    stop = threading.Event()
-
-    def on_signal(signum: int) -> None:
-        signals.append(signum)
-        stop.set()
-
-    restore = watch_signals(on_signal, (signal.SIGINT, signal.SIGTERM))
     try:
-        res = play(session, items, domain=domain, rate=args.rate, loop=args.loop, clock=args.clock, delay=args.delay,
-                   stop=stop)
+        if not transport.connected(session, 2.0):
+            print(f"hilsim play: nothing answers at {', '.join(target.zenoh.connect)} (no router or simulation "
+                  "there; is the run up?): nothing played", file=sys.stderr)
+            return 1
+        keys = sorted({i.key for i in items} | ({Keys(domain=domain).clock} if args.clock else set()))
+        explicit = bool(run or args.connect or os.environ.get("HILSIM_ZENOH_CONNECT"))
+        refused = refusal(session, keys, domain, target.run, explicit)
+        if refused:
+            print(f"hilsim play: {refused}", file=sys.stderr)
+            return 1
+        pace = "as fast as possible" if args.rate == 0 else f"at {args.rate:g}x"
+        print(f"hilsim play: {len(items)} messages on {len({i.key for i in items})} keys, {pace}"
+              + (", publishing /clock" if args.clock else ""), file=sys.stderr)
+        # Ctrl-C or SIGTERM ends the play between two messages: taken by a watcher thread, not as a
+        # KeyboardInterrupt, which a put blocked by a slow subscriber would hold back (seen: a --loop
+        # play that went on for 20 s after Ctrl-C), and which a script's background job never gets
+        from hilsim.core.service import watch_signals
+
+        signals: list[int] = []
+        stop = threading.Event()
+
+        def on_signal(signum: int) -> None:
+            signals.append(signum)
+            stop.set()
+
+        restore = watch_signals(on_signal, (signal.SIGINT, signal.SIGTERM))
+        try:
+            res = play(session, items, domain=domain, rate=args.rate, loop=args.loop, clock=args.clock,
+                       delay=args.delay, stop=stop)
+        finally:
+            restore()
     finally:
         session.close()
-        restore()
-    print(f"hilsim play: played {res['messages']} messages on {res['keys']} keys, {res['sim_s']:.3f} s of sim time "
-          f"in {res['wall_s']:.3f} s" + (f" (stopped by {signal.Signals(signals[0]).name})" if signals else ""),
+    of = f" of {len(items)}" if not args.loop and res["messages"] < len(items) else ""
+    print(f"hilsim play: played {res['messages']}{of} messages on {res['keys']} keys, {res['sim_s']:.3f} s of sim "
+          f"time in {res['wall_s']:.3f} s" + (f" (stopped by {signal.Signals(signals[0]).name})" if signals else ""),
           file=sys.stderr)
     return 128 + signals[0] if signals else 0
+
+
+def live_publishers(session: zenoh.Session, domain: int) -> dict[str, set[str]]:
+    """Who publishes what now, from the ROS 2 graph: data key -> the nodes (``/arm/sensors``) with a publisher."""
+    out: dict[str, set[str]] = {}
+    for reply in session.liveliness().get(wire.graph_key(domain), timeout=2.0):
+        if reply.ok is None:
+            continue
+        try:
+            tok = wire.parse_token(str(reply.ok.key_expr))
+        except ValueError:
+            continue
+        if tok.kind == "MP" and tok.topic is not None and tok.dds_type is not None and tok.type_hash is not None:
+            key = wire.topic_key(tok.domain, tok.topic, tok.dds_type, tok.type_hash)
+            out.setdefault(key, set()).add(tok.fq_node_name)
+    return out
+
+
+def _run_scenario(ptr: transport.RunPointer | None) -> Any:
+    """The resolved scenario of the run joined (its ``scenario.yaml``), or None if it cannot be read."""
+    if ptr is None:
+        return None
+    from hilsim.core.config import ConfigError
+    from hilsim.core.scenario import load_scenario
+
+    try:
+        return load_scenario(str(ptr.run_dir / "scenario.yaml"))
+    except (ConfigError, OSError, ValueError):
+        return None
+
+
+def refusal(session: zenoh.Session, keys: list[str], domain: int, ptr: transport.RunPointer | None,
+            explicit: bool) -> str | None:
+    """Why these keys are not to be played into the run joined (one line), or None (module docstring)."""
+    from hilsim.core import rights
+    from hilsim.core.keys import relative_topic
+
+    sc = _run_scenario(ptr)
+    where = ptr.describe() if ptr is not None else "the run joined"
+    live = live_publishers(session, domain)
+    services = {s.replace("-", "_"): s for s in rights.running(sc)} if sc is not None else {}
+    for key in keys:
+        topic = wire_topic(key)
+        nodes = sorted(live.get(key, ()))
+        owned = [n for n in nodes if n.rsplit("/", 1)[-1] in services]
+        if owned:
+            svc = services.get(owned[0].rsplit("/", 1)[-1], owned[0].rsplit("/", 1)[-1])
+            how = ""
+            if sc is not None:
+                rest = [s for s in sc.services if s != svc]
+                how = f", e.g. hilsim up {sc.name} --set services=[{','.join(rest)}]"
+            return (f"{topic} is written by {svc} ({owned[0]}) in {where}: a second writer would fight it; to play "
+                    f"it on purpose, play it into a run without {svc}{how}")
+        if sc is not None and not rights.tools_rights(sc).may_put(key):
+            writers = rights.owners(sc, relative_topic(key, sc.ros2.namespace)) or ["a service"]
+            return (f"{topic}: the tools of {where} may not write it (written by {', '.join(writers)}; "
+                    "docs/security.md); play it into a run without that service")
+        if nodes and not explicit:
+            return (f"{where} has its own publishers on {topic} ({', '.join(nodes)}); to play into it all the same, "
+                    "name it: --run DIR or --connect ENDPOINT")
+    return None

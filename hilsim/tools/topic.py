@@ -40,7 +40,9 @@ NO_PUBLISHER_AFTER_S = 1.0  # echo: a topic without publisher nor sample is said
 
 
 def _session(args: argparse.Namespace) -> zenoh.Session:
-    return transport.open_tool_session(args.connect)
+    """The tool's session; its first line names the run it joined (ConnectionError: nothing there)."""
+    return transport.open_tool_session(args.connect, run=getattr(args, "run", None),
+                                       tool=f"hilsim topic {args.topic_cmd}")
 
 
 def _stamp_of(msg: Any) -> float | None:

@@ -8,8 +8,10 @@ Zenoh keys: none of its own; it opens the session the others use (``transport.op
 and reads the robots' liveliness (``alive/*``) from the watcher to find a run started elsewhere.
 
 Without ``--connect`` (``hilsim ui``), the panel finds a simulation already running on this machine
-by itself: when a Zenoh router already listens on the well-known ``tcp/127.0.0.1:7447`` (a ``hilsim
-up`` of a terminal, or ``hilsim router``), it joins that router instead of opening one of its own; when
+by itself: the run of this user that is up (its pointer, wherever its port; among several it asks, never
+guesses: :func:`hilsim.core.transport.tool_target`), saying which in its first line; else, when a Zenoh
+router already listens on the well-known ``tcp/127.0.0.1:7447`` (``hilsim router``), it joins that router
+instead of opening one of its own; when
 that router is gone by the time the panel starts a run, it opens the router there itself. With
 ``hilsim up … --ui`` (``attach=False``) it keeps to a router of its own, as before (7447 when free).
 """
@@ -56,7 +58,8 @@ class Panel:
             self.endpoint = connect
         else:
             joined = self._own_or_join_router(attach)
-        self.session = joined or transport.open_tool_session(self.endpoint)
+        # joining a run: the first line names it (directory, scenario, endpoint); nothing there is an error
+        self.session = joined or transport.open_tool_session(self.endpoint, tool="hilsim ui" if connect else None)
         self.monitor = Monitor(self.session, self.prefix)
         self.options = scenario_options()
         self.planners = planner_names()
@@ -74,6 +77,13 @@ class Panel:
         is returned); else a router of the panel's own on a free port."""
         from hilsim.run.launcher import open_default_router
 
+        runs = transport.live_runs() if attach else []
+        if runs:  # runs of this user are up: join one, wherever its port (asked among several, never guessed)
+            run = runs[0] if len(runs) == 1 else transport.choose_run(runs, "hilsim ui")
+            self.endpoint = run.endpoint
+            session = transport.open_tool_session(run.endpoint, tool="hilsim ui")
+            print("hilsim ui: its simulation is shown", flush=True)
+            return session
         ep = transport.DEFAULT_CONNECT
         try:
             self.endpoint, self.router = ep, transport.open_router(ep)
@@ -84,8 +94,9 @@ class Panel:
             session = transport.open_tool_session(ep)
             if _has_router(session, ROUTER_WAIT_S):
                 self.endpoint = ep
-                print(f"hilsim panel: a Zenoh router already listens on {ep} (a hilsim up running?): "
-                      "joined it, its simulation is shown", flush=True)
+                run = transport.run_at([ep])
+                which = run.describe() if run is not None else f"{ep} (a hilsim up running?)"
+                print(f"hilsim ui: joined {which}: its simulation is shown", flush=True)
                 return session
             session.close()
         self.endpoint, self.router = open_default_router()  # says which port it took instead

@@ -35,6 +35,7 @@ from pathlib import Path
 
 import zenoh
 
+from hilsim.core import transport
 from hilsim.ui.jsonio import BadInput
 from hilsim.ui.panel import Panel
 from hilsim.ui.routes import make_app
@@ -95,7 +96,10 @@ def serve(host: str, port: int, *, connect: str | None = None, prefix: str | Non
 
 
 def cmd_ui(args: argparse.Namespace) -> int:
-    return serve(args.host, args.port, connect=args.connect, prefix=args.prefix)
+    connect = args.connect
+    if getattr(args, "run", None):  # the run's router (hilsim.core.transport.tool_target)
+        connect = ",".join(transport.tool_target(run=args.run, tool="hilsim ui").zenoh.connect)
+    return serve(args.host, args.port, connect=connect, prefix=args.prefix)
 
 
 def cmd_up_ui(args: argparse.Namespace) -> int:
