@@ -61,6 +61,7 @@ def main() -> int:
     node = Node("lab_node", parameter_overrides=[Parameter("use_sim_time", Parameter.Type.BOOL, True)])
     seen = {"counts": {}, "truth_pairs": 0, "max_encoder_error": 0.0, "clock_checks": []}
     truth_by_stamp = {}
+    js_by_stamp = {}
     last = {}
 
     def count(name):
@@ -70,21 +71,35 @@ def main() -> int:
         count("clock")
         last["clock"] = ns(m.clock)
 
+    def pair(encoders, truth):
+        if len(truth) == len(encoders):
+            seen["truth_pairs"] += 1
+            seen["max_encoder_error"] = max(seen["max_encoder_error"],
+                                            max(abs(x - y) for x, y in zip(encoders, truth, strict=True)))
+
+    def remember(by_stamp, stamp, position):
+        by_stamp[stamp] = position
+        if len(by_stamp) > 2000:
+            by_stamp.pop(next(iter(by_stamp)))
+
+    # the two topics of one physics step arrive in either order (two writers): paired by stamp either way
     def on_truth_js(m):
         count("truth_joint_states")
         last["truth_js"] = m
-        truth_by_stamp[ns(m.header.stamp)] = list(m.position)
-        if len(truth_by_stamp) > 2000:
-            truth_by_stamp.pop(next(iter(truth_by_stamp)))
+        stamp = ns(m.header.stamp)
+        if stamp in js_by_stamp:
+            pair(js_by_stamp.pop(stamp), list(m.position))
+        else:
+            remember(truth_by_stamp, stamp, list(m.position))
 
     def on_js(m):
         count("joint_states")
         last["js"] = m
-        t = truth_by_stamp.get(ns(m.header.stamp))
-        if t is not None and len(t) == len(m.position):
-            seen["truth_pairs"] += 1
-            seen["max_encoder_error"] = max(seen["max_encoder_error"],
-                                            max(abs(x - y) for x, y in zip(m.position, t, strict=True)))
+        stamp = ns(m.header.stamp)
+        if stamp in truth_by_stamp:
+            pair(list(m.position), truth_by_stamp.pop(stamp))
+        else:
+            remember(js_by_stamp, stamp, list(m.position))
 
     def keep(name):
         def cb(m):

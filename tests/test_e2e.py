@@ -135,7 +135,8 @@ def up_captured(out: Path, keys: dict[str, str], *args: str,
     return p.returncode, stdout, got
 
 
-@pytest.mark.parametrize("lag", [0, 1])
+# lag 1 as shipped; lag 0 is proven bit for bit across composition by the fleet test (test_fleet_arrays)
+@pytest.mark.parametrize("lag", [1])
 def test_lockstep_runs_are_bit_identical(tmp_path: Path, lag: int) -> None:
     """Same seed, lockstep: the joint-state streams of two runs are equal byte for byte, the
     second with physics, sensors and the controller composed in one process (hilsim.run.compose):

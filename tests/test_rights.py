@@ -45,7 +45,8 @@ def test_each_identity_may_write_what_the_key_table_gives_it(scenario: Any) -> N
     assert {e for e in logger.put if "/@adv/" not in e} == {k3.health("logger").replace("arm3", "*"),
                                                            k3.log("logger").replace("arm3", "*"),
                                                            k3.sync("logger").replace("arm3", "*"),
-                                                           k3.server_state("logger").replace("arm3", "*")}
+                                                           k3.server_state("logger").replace("arm3", "*"),
+                                                           k3.server_setpoints("logger").replace("arm3", "*")}
     assert not logger.tokens & {f"{sc.prefix}/batch/0/**"}  # the recorder sends no batches
     composed = rights.unit_rights(sc, "physics+sensors+controller")
     assert composed.may_put(k.clock) and composed.may_put(k.topic("joint_commands"))

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 import subprocess
 import sys
 import threading
@@ -84,7 +85,7 @@ def test_a_tool_names_the_run_it_joins_and_never_guesses_between_two(runs_up: Ca
     stops in one line; --run DIR picks one, and a --run that is not up is refused."""
     a = runs_up("a")
     t = transport.tool_target(tool="hilsim topic list")
-    assert t.run is not None and t.run.run_dir == a.resolve()
+    assert t.run is not None and t.run.run_dir == a.resolve(), _pointers_as_read()
     assert t.zenoh.auth == (a / transport.CLIENT_CONFIG).resolve()
     said = t.describe()
     assert said.startswith("joined run ") and str(a) in said and "(scenario arm) at tcp/" in said, said
@@ -105,6 +106,18 @@ def test_a_tool_names_the_run_it_joins_and_never_guesses_between_two(runs_up: Ca
     monkeypatch.setattr(sys, "stderr", _Tty(""))
     assert transport.tool_target(tool="hilsim goal").run.run_dir == b.resolve()  # type: ignore[union-attr]
     assert "1. run " in sys.stderr.getvalue() and "which one (1-2)?" in sys.stderr.getvalue()
+
+
+def _pointers_as_read() -> list[tuple[str, int, str, int, str, bool, bool]]:
+    """Each pointer file as the tools judge it (owner, mode, launcher's command line, read): why none is up."""
+    out = []
+    for p in sorted(transport.pointer_dir().glob("*.json")):
+        st = p.stat()
+        pid = int(json.loads(p.read_text())["pid"])
+        cmd = Path(f"/proc/{pid}/cmdline").read_bytes() if Path(f"/proc/{pid}").exists() else b"(gone)"
+        out.append((p.name, st.st_uid, oct(st.st_mode), os.getuid(), cmd.decode(errors="replace"),
+                    p.name.endswith(f"-{transport._net_namespace()}.json"), transport.read_pointer(p) is not None))
+    return out
 
 
 class _Tty(io.StringIO):
