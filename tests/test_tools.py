@@ -8,6 +8,7 @@ import os
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -57,6 +58,13 @@ def runs_up(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Callabl
     for name in ("HILSIM_ZENOH_CONNECT", "HILSIM_ZENOH_AUTH", "HILSIM_TLS_ROOT_CA"):
         monkeypatch.delenv(name, raising=False)
     launcher = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)", "hilsim-up"])
+    # a process just started may show an empty command line for a moment (a real launcher writes its
+    # pointer long after): wait until it is the launcher the tools look for
+    cmdline = Path(f"/proc/{launcher.pid}/cmdline")
+    for _ in range(500):
+        if b"hilsim-up" in cmdline.read_bytes():
+            break
+        time.sleep(0.01)
 
     def up(name: str) -> Path:
         run = tmp_path / name
