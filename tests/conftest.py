@@ -85,11 +85,15 @@ def run_service() -> Callable[[Any], ServiceThread]:
 def no_leaks() -> Iterator[None]:
     """Fail a test that leaves a child process or a service thread running after it ends."""
     before = {t.ident for t in threading.enumerate()}
-    yield
     me = psutil.Process()
+    # what ran before the test is not the test's: scripts/test.sh's ROS 2 install beside the suite (pytest
+    # took over its shell, so it is pytest's child) and whatever it starts
+    older = {k.pid for k in me.children(recursive=True)}
+    yield
     deadline = time.monotonic() + 5.0
     while True:
-        kids = [k for k in me.children(recursive=True) if k.is_running() and k.status() != psutil.STATUS_ZOMBIE]
+        kids = [k for k in me.children(recursive=True) if k.is_running() and k.status() != psutil.STATUS_ZOMBIE
+                and not _started_by(k, older)]
         if not kids or time.monotonic() > deadline:
             break
         time.sleep(0.1)
@@ -104,6 +108,14 @@ def no_leaks() -> Iterator[None]:
     rt = [f"{tid} ({_comm(tid)})" for tid in os.listdir("/proc/self/task")
           if _policy(int(tid)) != os.SCHED_OTHER and not _comm(tid).startswith("Watchdog")]
     assert not rt, f"test left threads of the test process in a real-time scheduling class: {rt}"
+
+
+def _started_by(proc: psutil.Process, pids: set[int]) -> bool:
+    """``proc`` is one of ``pids`` or their descendant."""
+    try:
+        return proc.pid in pids or any(p.pid in pids for p in proc.parents())
+    except psutil.Error:
+        return False
 
 
 def _comm(tid: str) -> str:

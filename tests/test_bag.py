@@ -481,6 +481,7 @@ def test_the_run_summary_counts_the_bag_and_recovers_a_killed_one(scenario: Any,
     assert (tmp_path / "bag" / "metadata.yaml").is_file() and read_file(tmp_path / "bag" / "bag_0.mcap").complete
 
 
+@pytest.mark.serial
 def test_the_bench_measures_the_bags_cost() -> None:
     from hilsim.tools.bench import _recorder_line
     from hilsim.tools.bench_bag import worker_cost

@@ -6,8 +6,11 @@ import math
 from pathlib import Path
 
 import psutil
+import pytest
 
 from hilsim.tools.ring import round_trip_us
+
+pytestmark = pytest.mark.serial  # measurements: alone on the machine
 
 
 def test_the_zenoh_ring_measures_a_round_and_its_relays_exit() -> None:

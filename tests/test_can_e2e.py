@@ -293,6 +293,7 @@ def test_without_ipv6_multicast_the_demo_runs_on_the_ipv4_group_or_stops_at_once
         assert "joint_1 (node 0) in closed-loop control (position)" in log, log
 
 
+@pytest.mark.serial
 def test_bench_can_measures_both_directions_against_python_can() -> None:
     """``hilsim bench can --json`` (small): every probe comes through each path, figures present."""
     p = subprocess.run([sys.executable, "-m", "hilsim.cli", "bench", "can", "--json", "--samples", "60",

@@ -327,6 +327,7 @@ def test_bad_scenario_is_one_line(tmp_path: Path) -> None:
     assert str(bad) in lines[0] and "clock.dt" in lines[0] and "Traceback" not in r.stderr
 
 
+@pytest.mark.serial
 def test_realtime_clock_runs_the_task_at_wall_speed(tmp_path: Path) -> None:
     """Realtime: sim time advances with the wall clock, as measured here (the truth's sim stamps
     against when they arrived), not as physics says."""

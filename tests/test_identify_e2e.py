@@ -20,7 +20,7 @@ import yaml
 
 from hilsim.core.scenario import load_scenario
 
-pytestmark = pytest.mark.e2e
+pytestmark = [pytest.mark.e2e, pytest.mark.serial]  # a drive in realtime: its timing is the fit
 REPO = Path(__file__).resolve().parent.parent
 LEAN = REPO / "config" / "arm-lean.yaml"
 EMULATED = REPO / "config" / "hil" / "can-emulated.yaml"

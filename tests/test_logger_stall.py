@@ -15,7 +15,7 @@ import pytest
 from hilsim.core import transport
 from hilsim.core.keys import Keys
 
-pytestmark = pytest.mark.e2e
+pytestmark = [pytest.mark.e2e, pytest.mark.serial]  # realtime physics timed
 REPO = Path(__file__).resolve().parent.parent
 DURATION_S = 6  # long enough for a blocking publisher to fill the kernel's socket buffers and stall
 DELAY_US = 2000  # the logger takes at most ~500 samples/s; the arm publishes ~6,000/s

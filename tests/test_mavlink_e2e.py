@@ -279,6 +279,7 @@ def test_the_simulation_feeds_an_autopilot_hil_gps_and_hil_sensor(router: str, t
     assert len(beats) >= 3 and all(b.type == mavlink.MAV_TYPE_ONBOARD_CONTROLLER for b in beats)
 
 
+@pytest.mark.serial
 def test_bench_mavlink_measures_the_bridge_against_pymavlink() -> None:
     """``hilsim bench mavlink --json`` (small): every probe comes through both paths, figures present."""
     p = subprocess.run([sys.executable, "-m", "hilsim.cli", "bench", "mavlink", "--json", "--samples", "60",

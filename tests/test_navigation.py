@@ -298,6 +298,7 @@ def test_plan_evaluate_rover_goals(tmp_path: Path) -> None:
     assert sum(int(r[9]) for r in (corridor, room_b, wall)) == 1
 
 
+@pytest.mark.serial
 def test_bench_rover_laser_alone_counts_rays() -> None:
     """``hilsim bench rover``'s laser figure: the scenario's own sensor, 541 rays per scan."""
     from hilsim.tools.bench import bench_laser

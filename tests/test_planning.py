@@ -198,6 +198,7 @@ def test_ik_reaches_pose_with_orientation(arm: ArmModel) -> None:
         solve_ik(arm, np.array([1.5, 0.0, 0.2]), restarts=2)
 
 
+@pytest.mark.serial
 def test_bench_reports_against_baseline() -> None:
     from hilsim.planning import bench
 

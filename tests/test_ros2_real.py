@@ -40,7 +40,7 @@ JAZZY_TYPES = get_typestore(Stores.ROS2_JAZZY)
 TARGET = [0.4, -0.3, 0.25, 0.2, 0.35, -0.2]
 BARE = "_CREATED_BY_BARE_DDS_APP_"
 
-pytestmark = pytest.mark.e2e
+pytestmark = [pytest.mark.e2e, pytest.mark.serial]  # a realtime rover
 
 
 @pytest.fixture

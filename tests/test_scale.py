@@ -11,6 +11,7 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
+import pytest
 import zenoh
 from util import REPO, finish, up
 
@@ -125,6 +126,7 @@ def test_two_arms_reach_their_own_targets_in_the_truth_and_do_not_interfere(tmp_
     assert Keys().clock in counts
 
 
+@pytest.mark.serial
 def test_bench_scale_reports_each_robot_count_against_one_robot_measured_in_the_same_run() -> None:
     p = subprocess.run([sys.executable, "-m", "hilsim.cli", "bench", "scale", "--robots", "1,2", "--subscribers",
                         "1", "--sim-seconds", "0.3", "--json"], capture_output=True, text=True, cwd=REPO, timeout=240)

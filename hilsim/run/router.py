@@ -39,7 +39,7 @@ def open_default_router(users: RouterUsers | None = None) -> tuple[str, zenoh.Se
     except ConnectionError:
         ep = f"tcp/127.0.0.1:{transport.free_port()}"
         print(f"note: port {transport.DEFAULT_ROUTER_PORT} is taken (another simulation?); using {ep} "
-              f"(pass --connect {ep} to hilsim topic)", flush=True)
+              f"(pass --connect {ep} to hilsim topic)", file=sys.stderr, flush=True)
         return ep, transport.open_router(ep, users)
 
 
