@@ -316,11 +316,34 @@ class ControllerService(Service):
             self._pending = (msg, key)  # the setpoint to start from is not known yet: taken before any step
             why = None
         else:
-            why = self._accept(msg, key)
+            why = self._out_of_date(msg)
+            if why is not None:
+                self.reject(key, why)
+            else:
+                why = self._accept(msg, key)
         self._taken[msgs.ns_of(msg.header.stamp)] = why
         while len(self._taken) > HANDOFF_KEPT:
             self._taken.popitem(last=False)
         self._took.notify_all()
+
+    def _out_of_date(self, msg: msgs.JointTrajectory) -> str | None:
+        """Why a stamped trajectory comes too late to be followed, else None: one that ended before it
+        arrived (ROS 2's joint_trajectory_controller refuses it too), or one that starts before the
+        trajectory being followed (a newer one replaced it). Such a sample is a replay, most likely of the
+        planner's own (its writer's id and all: docs/security.md); followed, it would send the arm back
+        to an old target. Stamp zero means "now": never late."""
+        stamp = msgs.ns_of(msg.header.stamp)
+        if not stamp or not msg.points:
+            return None
+        end = stamp + msgs.ns_of(msg.points[-1].time_from_start)
+        if end < self.sim_ns:
+            return (f"the trajectory ended at {end * 1e-9:.3f} s, before it arrived ({self.sim_ns * 1e-9:.3f} s): "
+                    "old (a replay?)")
+        current = self.next_traj or self.traj
+        if current is not None and stamp < current.start_ns:
+            return (f"the trajectory starts at {stamp * 1e-9:.3f} s, before the one being followed "
+                    f"({current.start_ns * 1e-9:.3f} s): out of date (a replay?)")
+        return None
 
     def on_has_trajectory(self, start: msgs.Time) -> msgs.GoalResponse:
         """``controller/has_trajectory`` (see the module docstring); runs under self.lock, which the wait

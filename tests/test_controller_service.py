@@ -146,6 +146,39 @@ def test_reference_follows_a_trajectory(rig: Rig) -> None:
     assert rig.refs[-1].position == pytest.approx([0.05] * 6)
 
 
+def test_a_replayed_trajectory_cannot_send_the_arm_back(rig: Rig) -> None:
+    """A stamped trajectory that ended before it arrived, or starts before the one being followed, is
+    refused with its reason (a replay of the planner's own, as an insider or a wrong bag sends it): the
+    arm keeps following the newest. Stamp zero ("now") is never late."""
+    key = rig.keys.topic("joint_trajectory")
+
+    def to(target: float, start_step: int, seconds: float = 0.02) -> msgs.JointTrajectory:
+        return msgs.JointTrajectory(header=msgs.header(start_step * DT_NS), joint_names=["joint_1"], points=[
+            msgs.JointTrajectoryPoint(positions=[target], time_from_start=msgs.duration(seconds))])
+
+    rig.step(js(0))
+    old = to(0.3, 2)  # ends at step 22
+    rig.trajectory(old)
+    for k in range(1, 30):
+        rig.step(js(k))
+    assert rig.refs[-1].position[0] == pytest.approx(0.3)
+    rig.trajectory(to(-0.2, 30, 0.1))  # the newer one: to -0.2 by step 130
+    for k in range(30, 40):
+        rig.step(js(k))
+    rig.trajectory(old)  # ended at step 22: old
+    rig.trajectory(to(0.3, 25, 1.0))  # not ended, but starts before the one being followed
+    assert rig.svc.rejected[key] == 2, dict(rig.svc.rejected)
+    for k in range(40, 140):
+        rig.step(js(k))
+    assert rig.refs[-1].position[0] == pytest.approx(-0.2)  # the newest, followed to its end
+    nows = msgs.JointTrajectory(joint_names=["joint_1"], points=[
+        msgs.JointTrajectoryPoint(positions=[0.1], time_from_start=msgs.duration(0.01))])
+    rig.trajectory(nows)
+    for k in range(140, 160):
+        rig.step(js(k))
+    assert rig.svc.rejected[key] == 2 and rig.refs[-1].position[0] == pytest.approx(0.1)
+
+
 def test_live_gain_change_changes_the_output(rig: Rig) -> None:
     rig.step(js(0))
     before = rig.step(js(1, [0.0, 0.01, 0.0, 0.0, 0.0, 0.0]))

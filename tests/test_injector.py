@@ -128,7 +128,9 @@ def test_the_arm_reaches_its_targets_while_every_key_is_attacked(tmp_path: Path)
     assert refused.get("connected") is False and "Unable to connect" in refused.get("error", ""), refused
     first, rest = play.stderr.split("\n", 1)
     assert play.returncode == 1 and first.startswith("hilsim play: joined run ") and "(scenario arm)" in first, play
-    assert rest.startswith("hilsim play: /arm/joint_states is written by sensors") and "without sensors" in rest, play
+    # the service seen writing it live, or (its token not seen in time on a busy machine) the key table's owner
+    assert rest.startswith("hilsim play: /arm/joint_states") and "written by sensors" in rest, play
+    assert "into a run without" in rest, play
     assert rest.count("\n") == 1, play.stderr  # one line
     assert up.returncode == 0, out
     assert "targets reached: 3/3" in out, out
