@@ -43,7 +43,9 @@ being followed.
 
 Setpoint: the first measured position until a trajectory arrives; a trajectory replaces the
 current one at its start time (``header.stamp``; zero = on receipt) and its last point is held
-after its end; an empty trajectory means hold the current measured position.
+after its end; an empty trajectory means hold the current measured position. A stamped trajectory on
+``joint_trajectory`` that ended before it arrived, or starts before the one being followed, is rejected
+as out of date (a replay, e.g. of the planner's own: docs/security.md).
 """
 
 from __future__ import annotations
