@@ -44,8 +44,8 @@ being followed.
 Setpoint: the first measured position until a trajectory arrives; a trajectory replaces the
 current one at its start time (``header.stamp``; zero = on receipt) and its last point is held
 after its end; an empty trajectory means hold the current measured position. A stamped trajectory on
-``joint_trajectory`` that ended before it arrived, or starts before the one being followed, is rejected
-as out of date (a replay, e.g. of the planner's own: docs/security.md).
+``joint_trajectory`` that starts before the one being followed is rejected as out of date (a replay,
+e.g. of the planner's own: docs/security.md).
 """
 
 from __future__ import annotations
@@ -329,18 +329,15 @@ class ControllerService(Service):
         self._took.notify_all()
 
     def _out_of_date(self, msg: msgs.JointTrajectory) -> str | None:
-        """Why a stamped trajectory comes too late to be followed, else None: one that ended before it
-        arrived (ROS 2's joint_trajectory_controller refuses it too), or one that starts before the
+        """Why a stamped trajectory comes too late to be followed, else None: one that starts before the
         trajectory being followed (a newer one replaced it). Such a sample is a replay, most likely of the
         planner's own (its writer's id and all: docs/security.md); followed, it would send the arm back
-        to an old target. Stamp zero means "now": never late."""
+        to an old target. One that ended before it arrived is still taken when nothing newer is followed:
+        the planner hands its trajectory again to a restarted controller, which then holds its end.
+        Stamp zero means "now": never late."""
         stamp = msgs.ns_of(msg.header.stamp)
         if not stamp or not msg.points:
             return None
-        end = stamp + msgs.ns_of(msg.points[-1].time_from_start)
-        if end < self.sim_ns:
-            return (f"the trajectory ended at {end * 1e-9:.3f} s, before it arrived ({self.sim_ns * 1e-9:.3f} s): "
-                    "old (a replay?)")
         current = self.next_traj or self.traj
         if current is not None and stamp < current.start_ns:
             return (f"the trajectory starts at {stamp * 1e-9:.3f} s, before the one being followed "

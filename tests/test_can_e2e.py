@@ -209,6 +209,7 @@ def wait_for(cond: object, timeout: float, what: str) -> None:
         time.sleep(0.01)
 
 
+@pytest.mark.serial  # wall-clock timing: failed two tests at a time
 def test_controller_in_the_loop_a_can_host_drives_the_simulated_joints(observed: tuple[str, Observer],
                                                                          tmp_path: Path) -> None:
     """Physics, sensors and the emulator (simulation mode) as processes; the test is the host: it

@@ -147,8 +147,8 @@ def test_reference_follows_a_trajectory(rig: Rig) -> None:
 
 
 def test_a_replayed_trajectory_cannot_send_the_arm_back(rig: Rig) -> None:
-    """A stamped trajectory that ended before it arrived, or starts before the one being followed, is
-    refused with its reason (a replay of the planner's own, as an insider or a wrong bag sends it): the
+    """A stamped trajectory that starts before the one being followed (ended or not) is refused with its
+    reason (a replay of the planner's own, as an insider or a wrong bag sends it): the
     arm keeps following the newest. Stamp zero ("now") is never late."""
     key = rig.keys.topic("joint_trajectory")
 
@@ -165,7 +165,7 @@ def test_a_replayed_trajectory_cannot_send_the_arm_back(rig: Rig) -> None:
     rig.trajectory(to(-0.2, 30, 0.1))  # the newer one: to -0.2 by step 130
     for k in range(30, 40):
         rig.step(js(k))
-    rig.trajectory(old)  # ended at step 22: old
+    rig.trajectory(old)  # ended at step 22, and older than the one followed
     rig.trajectory(to(0.3, 25, 1.0))  # not ended, but starts before the one being followed
     assert rig.svc.rejected[key] == 2, dict(rig.svc.rejected)
     for k in range(40, 140):

@@ -89,6 +89,7 @@ def test_a_split_bag_is_one_bag_for_every_reader(tmp_path: Path, capsys: Any) ->
     assert "Messages:          4000" in text and "Sim time:          0.000000 s to 1.999000 s" in text
 
 
+@pytest.mark.serial  # wall-clock timing: failed two tests at a time
 def test_a_bag_splits_by_duration(tmp_path: Path) -> None:
     series = BagSeries(tmp_path, max_duration=0.1)
     _feed(series, 150, 10, pause=0.04)  # a flush every 40 ms, 15 of them: a new file about every fourth

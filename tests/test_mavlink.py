@@ -459,6 +459,7 @@ def test_a_gps_on_a_serial_device(bridge: Any) -> None:
         os.close(slave)
 
 
+@pytest.mark.serial  # wall-clock timing: failed two tests at a time
 def test_a_tcp_link_that_closes_is_a_fault_and_is_reopened(bridge: Any) -> None:
     """``tcp:`` to a server of the test: fixes come; the server closes the connection (a fault: closed,
     or reset when our heartbeats were still unread), the

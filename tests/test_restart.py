@@ -170,6 +170,7 @@ def test_each_service_killed_in_turn_is_restarted_and_the_task_completes(tmp_pat
                                       for pid in pids), 10), pids
 
 
+@pytest.mark.serial  # wall-clock timing: failed two tests at a time
 @pytest.mark.e2e
 def test_in_realtime_restarted_sensors_and_controller_just_rejoin(tmp_path: Path) -> None:
     """Realtime (the lean arm): the wall clock does not wait. The sensors, then the controller,
