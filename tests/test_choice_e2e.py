@@ -4,15 +4,13 @@ picked and why is in the results on the wire and in the recording's bag."""
 
 from __future__ import annotations
 
-import os
-import signal
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 from test_e2e import hilsim_up
-from util import Observer
+from util import Observer, finish
 
 from hilsim.core import msgs, transport
 from hilsim.core.keys import Keys
@@ -34,11 +32,9 @@ def test_auto_planner_runs_the_arm_task(tmp_path: Path) -> None:
     p = hilsim_up("arm", "--set", "planner.planner=auto", "--set", "planner.criterion=length",
                   "--out", str(out), "--router", ep)
     try:
-        stdout, _ = p.communicate(timeout=300)
+        stdout = finish(p, 300)
         time.sleep(0.3)
     finally:
-        if p.poll() is None:
-            os.killpg(p.pid, signal.SIGKILL)
         sub.undeclare()
         ses.close()
         obs.close()

@@ -21,9 +21,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from hilsim.core.config import CONFIG_DIR, ConfigError
+from hilsim.planning import scenes as scenes_file
 from hilsim.planning.collision import ArmModel
 from hilsim.planning.library import PlannerLibrary, Problem
 from hilsim.planning.objectives import path_length, summed_turning_angle
@@ -34,22 +34,8 @@ PLANNERS = ("rrtstar", "improved_rrtstar", "informed_rrtstar", "rrtconnect")
 
 
 def load_scenes(path: Path = SCENES) -> dict[str, dict[str, Any]]:
-    try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as e:
-        raise ConfigError(f"{path}: cannot read scenes: {e}") from None
-    scenes = data.get("scenes") if isinstance(data, dict) else None
-    if not isinstance(scenes, dict) or not scenes:
-        raise ConfigError(f"{path}: expected 'scenes: {{name: {{model, queries}}}}'")
-    out = {}
-    for name, s in scenes.items():
-        try:
-            model = (path.parent / s["model"]).resolve()
-            queries = [(np.array(q["start"], float), np.array(q["goal"], float)) for q in s["queries"]]
-        except (KeyError, TypeError, ValueError) as e:
-            raise ConfigError(f"{path}: scenes.{name}: expected model and queries with start/goal ({e})") from None
-        out[name] = {"model": model, "queries": queries}
-    return out
+    """The scenes of a scenes file (:func:`hilsim.planning.scenes.load_scenes`), as the bench takes them."""
+    return {name: {"model": s.model, "queries": s.queries} for name, s in scenes_file.load_scenes(path).items()}
 
 
 def run_bench(
