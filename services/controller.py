@@ -61,6 +61,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from hilsim.core import msgs, registry
 from hilsim.core.config import ConfigError, Scenario, format_error
+from hilsim.core.keys import NOT_REACHED
 from hilsim.core.msgs import control as cm
 from hilsim.core.restart import keep, kept
 from hilsim.core.service import Publisher, Service
@@ -354,7 +355,7 @@ class ControllerService(Service):
         while ns not in self._taken and not self.stop_event.is_set() and (left := end - time.monotonic()) > 0:
             self._took.wait(min(left, 0.2))
         if ns not in self._taken:
-            return msgs.GoalResponse(accepted=False, reason=f"no joint_trajectory starting at {ns * 1e-9:.3f} s "
+            return msgs.GoalResponse(accepted=False, reason=f"{NOT_REACHED} starting at {ns * 1e-9:.3f} s "
                                      f"reached the controller within {wait:g} s")
         why = self._taken[ns]
         return msgs.GoalResponse(accepted=why is None, reason=why or "")

@@ -14,7 +14,9 @@ Reads:
 
 Writes:
 - ``joint_trajectory`` (trajectory_msgs/JointTrajectory) for the joint trajectory controller,
-  stamped to start ``START_DELAY`` after the tick it was planned on;
+  stamped to start ``START_DELAY`` after the tick it was planned on; never dropped on a congested link
+  (a sample given once: hilsim.core.keys), and in realtime sent again, up to ``HANDOVER_TRIES`` times
+  in all, while the controller answers ``controller/has_trajectory`` that it did not reach it;
 - ``planner/path`` (the geometric path, for the logger), ``planner/feedback`` (state ``planning`` /
   ``executing`` / ``settling``, progress, 10 Hz sim), ``planner/result`` (MoveResult);
 - ``task/result`` (MoveResult ``task``): the outcome of the scenario task;
@@ -57,6 +59,7 @@ import zenoh
 
 from hilsim.core import msgs
 from hilsim.core.config import Scenario
+from hilsim.core.keys import NOT_REACHED
 from hilsim.core.restart import keep, kept
 from hilsim.core.service import Service
 from hilsim.planning import quiet_ompl_at_exit
@@ -75,6 +78,8 @@ from hilsim.services.ros2_action import ActionServer, goal_text
 from hilsim.sim.tasks import TaskGoal, TaskRunner, is_reserved
 
 START_DELAY_NS = 20_000_000  # trajectory starts 20 ms (sim) after the tick it was planned on
+# realtime: a trajectory that did not reach the controller is sent this many times in all
+HANDOVER_TRIES = 3
 FEEDBACK_PERIOD_NS = 100_000_000  # 10 Hz sim
 MOVE_ACTION = "move"  # /<robot>/move
 MOVE_ACTION_TYPE = "hilsim_msgs/action/Move"
@@ -157,7 +162,8 @@ class PlannerService(Service):
         self.plans = 0
         self.goals_rejected = 0
         self.last_planning_time = 0.0
-        self.handovers = 0  # trajectories the controller confirmed it holds (lockstep)
+        self.handovers = 0  # trajectories the controller confirmed it holds
+        self.resent = 0  # realtime: trajectories sent again, the controller not holding them
         self.handover_wait_max = 0.0  # [s of wall time] the longest wait for that
         self._jobs: queue.Queue[tuple[Goal, int, np.ndarray] | None] = queue.Queue()
         self._planning = False  # a job is queued or being planned
@@ -208,6 +214,7 @@ class PlannerService(Service):
             "goals_rejected": self.goals_rejected,
             "last_planning_time_s": round(self.last_planning_time, 4),
             "handovers": self.handovers,
+            "trajectories_resent": self.resent,
             "handover_wait_max_s": round(self.handover_wait_max, 4),
         }
 
@@ -497,7 +504,7 @@ class PlannerService(Service):
                     if goal.state == "planning":
                         self._finish(goal, False, msgs.PLANNING_FAILED, f"{type(e).__name__}: {e}")
             finally:
-                if sent is not None and self.lockstep:
+                if sent is not None:
                     self._handed_over(goal, sent)
                 with self.lock:
                     if self.lockstep:
@@ -508,18 +515,39 @@ class PlannerService(Service):
                         self._decide(*self._deferred.popleft())
 
     def _handed_over(self, goal: Goal, start_ns: int) -> None:
-        """Lockstep: wait until the controller holds the trajectory starting at ``start_ns`` (its
-        ``controller/has_trajectory``), so the tick is acknowledged only then. Zenoh keeps no order
-        between keys: a trajectory the controller took after the joint states of its start step would
-        act later than in another run of the seed. No answer (no controller yet, or a control law
-        without the query): nothing to wait for; no answer in time: a warning, and the tick is acknowledged."""
+        """Wait until the controller holds the trajectory starting at ``start_ns`` (its
+        ``controller/has_trajectory``). Lockstep: the tick is acknowledged only then. Zenoh keeps no
+        order between keys: a trajectory the controller took after the joint states of its start step
+        would act later than in another run of the seed. Realtime: one that never reached it (lost on
+        the way) is sent again, up to ``HANDOVER_TRIES`` times in all, or the arm would not move for the
+        rest of the goal's time. No answer (no controller yet, or a control law without the query):
+        nothing to wait for; no answer in time: a warning (lockstep: and the tick is acknowledged)."""
         if not self._controller_seen:
             return
         session = self.zenoh_session
         if session is None:
             return  # an in-process bus (benchmarks): delivery is in publication order
+        tries = 1 if self.lockstep else HANDOVER_TRIES
+        for attempt in range(1, tries + 1):
+            got = self._ask_controller(session, start_ns)
+            if got is None or got.accepted:
+                return  # no controller answers this query, or it holds the trajectory
+            with self.lock:
+                again = (attempt < tries and got.reason.startswith(NOT_REACHED) and self.active is goal
+                         and goal.state in ("executing", "settling"))
+                # lockstep: this run may not repeat bit for bit; a refusal: the controller says why too
+                self.warn(f"{goal.goal_id}: the controller does not hold the trajectory: {got.reason}"
+                          + ("; sent again" if again else ""))
+                if not again:
+                    return
+                self.resent += 1
+                self.pub_traj.put(goal.traj_msg)
+
+    def _ask_controller(self, session: zenoh.Session, start_ns: int) -> msgs.GoalResponse | None:
+        """The controller's ``controller/has_trajectory`` answer for ``start_ns``; None if none came."""
         w0 = time.perf_counter()
         key, ask = self.keys.topic("controller/has_trajectory"), msgs.encode(msgs.stamp(start_ns))
+        got: msgs.GoalResponse | None = None
         # Half of physics' patience (the controller's own wait is a third): a controller that stopped
         # answering (SIGSTOP, hung) is then named silent by physics, not this planner waiting for it
         for reply in session.get(key, payload=ask, timeout=self.sc.clock.ack_timeout / 2):
@@ -530,10 +558,8 @@ class PlannerService(Service):
                 got = msgs.GoalResponse(reason=f"bad answer: {e}")
             with self.lock:
                 self.handover_wait_max = max(self.handover_wait_max, time.perf_counter() - w0)
-                if got.accepted:
-                    self.handovers += 1
-                else:  # a timeout or a rejection: this run may not repeat bit for bit
-                    self.warn(f"{goal.goal_id}: the controller did not confirm the trajectory: {got.reason}")
+                self.handovers += got.accepted
+        return got
 
     def _plan(self, goal: Goal, t: int, q: np.ndarray) -> int | None:
         """Plan ``goal`` from ``q`` at tick ``t``; the start stamp of the trajectory sent, if one was."""

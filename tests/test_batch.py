@@ -106,6 +106,27 @@ def test_a_batch_is_sent_full_old_or_at_the_end() -> None:
     assert (b.batches, b.samples) == (3, 5)
 
 
+def test_a_frame_stays_below_zenohs_transport_batch() -> None:
+    """Frames are never sent in fragments (a congested link loses fragments, and with them whole frames):
+    one that would pass MAX_FRAME goes first; a sample larger than that alone, in its own frame."""
+    pub, token = _Put(), _Put()
+    b = batch.Batcher(pub, token, size=1000, max_age_s=60)
+    w = b.writer("0/a/x/RIHS01_1", GID_A)
+    sample = bytes(7000)
+    for i in range(1, 20):
+        b.add(w, i, i, sample)
+    big = bytes(batch.MAX_FRAME + 5)
+    b.add(w, 20, 20, big)
+    b.add(w, 21, 21, b"x")
+    b.undeclare()
+    sizes = [len(f) for f in pub.frames]
+    assert all(n <= batch.MAX_FRAME for n in sizes[:-2]) and len(sizes) >= 4, sizes
+    seqs = [[r.seq for r in batch.decode(f)] for f in pub.frames]
+    assert [s for frame in seqs for s in frame] == list(range(1, 22)), seqs  # none lost, in order
+    assert seqs[-2:] == [[20], [21]], seqs  # the large one alone; the next after it
+    assert all(len(frame) == 8 for frame in seqs[:2]), seqs  # 8 × 7 kB fill a frame below 60 kB
+
+
 # ---------------------------------------------------------------------------------- the recorder's counting
 def test_a_sample_that_comes_twice_is_taken_once(scenario: Any, tmp_path: Path) -> None:
     from hilsim.services.logger import LoggerService

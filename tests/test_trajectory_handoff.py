@@ -46,14 +46,15 @@ class SlowTrajectoryController(ControllerService):
 '''
 
 
-def _plugin(where: Path) -> Path:
+def _plugin(where: Path, law: str = "slow", module: str = "slow_law", source: str = SLOW_LAW,
+            cls: str = "SlowTrajectoryController") -> Path:
     """A control law installed as a plug-in would be: a module and its entry point (a dist-info)."""
     where.mkdir()
-    (where / "slow_law.py").write_text(textwrap.dedent(SLOW_LAW))
-    info = where / "slow_law-0.dist-info"
+    (where / f"{module}.py").write_text(textwrap.dedent(source))
+    info = where / f"{module}-0.dist-info"
     info.mkdir()
-    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: slow-law\nVersion: 0\n")
-    (info / "entry_points.txt").write_text("[hilsim.controllers]\nslow = slow_law:SlowTrajectoryController\n")
+    (info / "METADATA").write_text(f"Metadata-Version: 2.1\nName: {module}\nVersion: 0\n")
+    (info / "entry_points.txt").write_text(f"[hilsim.controllers]\n{law} = {module}:{cls}\n")
     return where
 
 
@@ -84,3 +85,47 @@ def test_a_trajectory_that_reaches_the_controller_late_changes_nothing(tmp_path:
     # and the arm moved on its trajectory: the comparison is not of two arms at rest
     first, last = (msgs.decode(msgs.JointState, truths[0][t]) for t in (common[0], common[-1]))
     assert max(abs(a - b) for a, b in zip(first.position, last.position, strict=True)) > 0.05
+
+
+LOSSY_LAW = '''
+"""A joint_trajectory controller that never gets the first trajectory sent to it (lost on the way)."""
+from hilsim.services.controller import ControllerService
+
+
+class LossyTrajectoryController(ControllerService):
+    lost = 0
+
+    def on_trajectory(self, msg, key):
+        if not self.lost:
+            self.lost += 1
+            return
+        ControllerService.on_trajectory(self, msg, key)
+'''
+
+
+def test_realtime_a_trajectory_lost_on_the_way_is_sent_again(tmp_path: Path) -> None:
+    """Realtime: a trajectory that never reached the controller (dropped under load, issue 36) would leave
+    the arm still for the rest of the goal's time; the planner asks the controller whether it holds it
+    and sends it again. Judged by the physics truth: the arm reaches task-1's target."""
+    keys = Keys()
+    plugin = _plugin(tmp_path / "plugin", "lossy", "lossy_law", LOSSY_LAW, "LossyTrajectoryController")
+    env = {"PYTHONPATH": os.pathsep.join([str(plugin), os.environ.get("PYTHONPATH", "")])}
+    rc, stdout, cap = up_captured(
+        tmp_path / "run", {"truth": keys.topic("truth/joint_states"), "trajs": keys.topic("joint_trajectory"),
+                           "health": keys.health("planner")},
+        "arm", "--clock", "realtime", "--duration", "8", "--no-logger", "--set", "controller.type=lossy",
+        # the controller answers "not reached" after a third of this: a second, not ten
+        "--set", "clock.ack_timeout=3", env=env)
+    assert rc == 3 and "task-1: reached" in stdout, stdout
+    log = (tmp_path / "run" / "planner.log").read_text()
+    assert "task-1: the controller does not hold the trajectory: no joint_trajectory starting at" in log, log
+    assert "; sent again" in log, log
+    trajs = [msgs.decode(msgs.JointTrajectory, b) for b in cap["trajs"]]
+    assert len(trajs) >= 2 and trajs[0] == trajs[1], [t.header for t in trajs]  # the same trajectory, again
+    last = {kv.key: kv.value for kv in msgs.decode(msgs.DiagnosticArray, cap["health"][-1]).status[0].values}
+    assert last["trajectories_resent"] == "1", last
+    # the physics truth: the arm came to the trajectory's last point (then went on to task-2's)
+    goal = dict(zip(trajs[0].joint_names, trajs[0].points[-1].positions, strict=True))
+    errs = [max(abs(p - goal[n]) for n, p in zip(js.name, js.position, strict=True) if n in goal)
+            for js in (msgs.decode(msgs.JointState, b) for b in cap["truth"])]
+    assert min(errs) < 0.01, min(errs)

@@ -38,6 +38,11 @@ _HEAD = struct.Struct("<3sBHI")
 _KEYLEN = struct.Struct("<H")
 _REC = struct.Struct("<HQqI")
 MAX_WRITERS = 0xFFFF
+# A frame stays below Zenoh's transport batch (65535 bytes, less its headers): a larger one is sent in
+# fragments, and on a congested link a DROP put loses fragments, not frames: seen on a loaded machine
+# as frames the recorder got with their start missing ("not a batch (magic b'\x00jo')"), every record
+# in them lost. A single sample larger than this still goes, alone in its frame.
+MAX_FRAME = 60_000
 
 
 class BatchError(ValueError):
@@ -128,7 +133,9 @@ class Batcher:
         self.size = size
         self.max_age_s = max_age_s
         self.writers: list[tuple[str, bytes]] = []
+        self._writers_size = _HEAD.size  # the frame's header and writer table, in bytes
         self._records: list[tuple[int, int, int, bytes]] = []
+        self._size = 0  # the records held, in bytes of the frame
         self._first = 0.0  # time.monotonic() of the oldest record held
         # one lock for adding, swapping and sending: batches leave in the order their records came
         self._lock = threading.Lock()
@@ -143,30 +150,36 @@ class Batcher:
         """The index of a publisher (``key``, ``gid``) in this service's writer table."""
         with self._lock:
             self.writers.append((key, gid))
+            self._writers_size += _KEYLEN.size + len(key.encode()) + GID_SIZE
             return len(self.writers) - 1
 
     def add(self, writer: int, seq: int, t_ns: int, payload: bytes) -> bool:
         """Append a sample; True when the batch is full (the caller then calls :meth:`flush`, outside
         its own lock)."""
+        size = _REC.size + len(payload)
         with self._lock:
+            if self._records and self._writers_size + self._size + size > MAX_FRAME:
+                self._send()  # this sample would make the frame one Zenoh sends in fragments
             recs = self._records
             if not recs:
                 self._first = time.monotonic()
                 self._wake.notify()  # the flusher now has a deadline to wait for
             recs.append((writer, seq, t_ns, payload))
-            return len(recs) >= self.size
+            self._size += size
+            return len(recs) >= self.size or self._writers_size + self._size >= MAX_FRAME
 
     def flush(self, older_than: float | None = None) -> None:
         """Send what is held (with ``older_than``: only if its first sample is at least that old)."""
         with self._lock:
-            recs = self._records
-            if not recs or (older_than is not None and time.monotonic() - self._first < older_than):
+            if not self._records or (older_than is not None and time.monotonic() - self._first < older_than):
                 return
-            self._records = []
-            frame = encode(self.writers, recs)
-            self._pub.put(frame)
-            self.batches += 1
-            self.samples += len(recs)
+            self._send()
+
+    def _send(self) -> None:
+        recs, self._records, self._size = self._records, [], 0
+        self._pub.put(encode(self.writers, recs))
+        self.batches += 1
+        self.samples += len(recs)
 
     def _age(self) -> None:
         # no sample waits longer than max_age_s for the batch to fill (a slow key, a quiet service)

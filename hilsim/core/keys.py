@@ -42,14 +42,18 @@ OWN = "own"
 
 
 class Topic(NamedTuple):
-    """A row of the key table: the message type a topic carries and who writes it."""
+    """A row of the key table: the message type a topic carries, who writes it, and whether each sample
+    is given once (``once``: an order or a result that no later sample replaces, as a trajectory, unlike
+    a stream of states at a rate). In realtime a stream's sample may be dropped on a congested link
+    (the next one replaces it); a sample given once never is (hilsim.core.publisher)."""
 
     cls: type
     writers: tuple[str, ...]
+    once: bool = False
 
 
-def _row(cls: type, *writers: str) -> Topic:
-    return Topic(cls, writers)
+def _row(cls: type, *writers: str, once: bool = False) -> Topic:
+    return Topic(cls, writers, once)
 
 
 # topic -> (message type, writers). Topics are relative to <prefix>/<robot>/ unless listed in GLOBAL_TOPICS.
@@ -60,7 +64,8 @@ TOPIC_TABLE: dict[str, Topic] = {
     "joint_states_throttle": _row(msgs.JointState, "sensors"),
     # the drive emulator in simulation mode commands its joints in the controller's place
     "joint_commands": _row(msgs.JointState, "controller", "drive-emulator"),
-    "joint_trajectory": _row(msgs.JointTrajectory, "planner", "bridge-ros2-dds", USER),
+    # given once: dropped on a congested link (a loaded machine), the arm would never move to its target
+    "joint_trajectory": _row(msgs.JointTrajectory, "planner", "bridge-ros2-dds", USER, once=True),
     "controller/reference": _row(msgs.JointState, "controller"),
     "imu": _row(msgs.Imu, "sensors"),
     "gps/fix": _row(msgs.NavSatFix, "sensors", "bridge-mavlink"),  # a real GPS in the loop, in its place
@@ -72,14 +77,14 @@ TOPIC_TABLE: dict[str, Topic] = {
     "truth/imu": _row(msgs.Imu, "physics"),
     "truth/odom": _row(msgs.Odometry, "physics"),
     "truth/contacts": _row(msgs.Contacts, "physics"),
-    "planner/path": _row(msgs.JointTrajectory, "planner"),
+    "planner/path": _row(msgs.JointTrajectory, "planner", once=True),
     "planner/feedback": _row(msgs.MoveFeedback, "planner"),
-    "planner/result": _row(msgs.MoveResult, "planner"),
-    "task/result": _row(msgs.MoveResult, "planner", "navigator"),
+    "planner/result": _row(msgs.MoveResult, "planner", once=True),
+    "task/result": _row(msgs.MoveResult, "planner", "navigator", once=True),
     "map": _row(msgs.OccupancyGrid, "navigator"),
-    "plan": _row(msgs.Path, "navigator"),
+    "plan": _row(msgs.Path, "navigator", once=True),
     "navigator/feedback": _row(msgs.MoveFeedback, "navigator"),
-    "navigator/result": _row(msgs.MoveResult, "navigator"),
+    "navigator/result": _row(msgs.MoveResult, "navigator", once=True),
     # robots > 1 with fleet.arrays (hilsim.core.fleet): one sample per step for every robot, under the
     # scenario's own namespace (/arm/fleet/…), its joints named <robot>/<joint> (arm0/joint_1, …)
     "fleet/truth/joint_states": _row(msgs.JointState, "physics"),
@@ -125,6 +130,9 @@ SERVED_TABLE: dict[str, Served] = {
     "controller/has_trajectory": Served(msgs.Time, msgs.GoalResponse, "controller", ("planner",)),
 }
 SERVICES: dict[str, tuple[type, type]] = {n: (row.request, row.reply) for n, row in SERVED_TABLE.items()}
+# controller/has_trajectory's answer when no trajectory of that start stamp reached the controller (its
+# reason begins so): a realtime planner then sends it again; any other refusal is the trajectory's own
+NOT_REACHED = "no joint_trajectory"
 
 
 def plugin_topics() -> dict[str, type]:
@@ -443,6 +451,16 @@ def relative_topic(key: str, namespace_template: str = DEFAULT_NAMESPACE) -> str
     name = topic_name(key).strip("/").split("/")
     depth = len([p for p in namespace_template.strip("/").split("/") if p])
     return "/".join(name[depth:]) if len(name) > depth else "/".join(name)
+
+
+def given_once(key: str, namespace_template: str = DEFAULT_NAMESPACE) -> bool:
+    """Whether a data key's samples are each given once (its key table row's ``once``); False for any
+    other key (streams, per-service keys, keys outside the scheme)."""
+    try:
+        row = TOPIC_TABLE.get(relative_topic(key, namespace_template))
+    except UnknownKey:
+        return False
+    return row is not None and row.once
 
 
 def message_type(key: str) -> type:

@@ -17,7 +17,7 @@ from typing import Any
 
 import zenoh
 
-from hilsim.core import msgs, transport
+from hilsim.core import keys, msgs, transport
 from hilsim.core.ros2 import wire
 
 
@@ -30,9 +30,11 @@ class Publisher:
         self._svc = service
         if latched:  # transient-local: the last sample kept for subscribers that come later
             self._pub = transport.latched_publisher(service.session, key)
-        else:  # realtime: a subscriber that cannot keep up loses samples rather than delaying us
+        else:  # realtime: a subscriber that cannot keep up loses a stream's samples rather than delaying
+            # us; never an order given once (a trajectory: nothing would replace it, the arm would not move)
+            once = keys.given_once(key, service.keys.namespace_template)
             self._pub = transport.publisher(service.session, key,
-                                            drop_when_congested=service.sc.clock.mode == "realtime")
+                                            drop_when_congested=service.sc.clock.mode == "realtime" and not once)
         self.seq = 0
         self._lock = threading.Lock()
         # composed (hilsim.run.compose): also handed, unencoded, to the subscribers in this process

@@ -41,6 +41,11 @@ from hilsim.core.ros2 import wire
 LOG = logging.getLogger(__name__)
 DEFAULT_ROUTER_PORT = 7447
 
+if os.environ.get("RUST_LOG"):
+    # Zenoh's own log (a link closed, a lease expired) on stderr, i.e. in the service's log, as a
+    # Zenoh application does with RUST_LOG: what to look at when samples went missing
+    zenoh.init_log_from_env_or("error")
+
 
 def zenoh_config(zc: ZenohConfig, *, mode: str | None = None, listen: list[str] | None = None) -> zenoh.Config:
     conf = zenoh.Config()
