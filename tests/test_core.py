@@ -40,6 +40,24 @@ def test_key_scheme_and_types() -> None:
         message_type("7/arm/nope/pkg::msg::dds_::Nope_/RIHS01_00")
 
 
+def test_given_once_keys_and_sessions_without_shared_memory() -> None:
+    """Issue 36: on a loaded machine a trajectory or a result must not be lost on the way. Samples given
+    once are the key table's (never dropped when congested: hilsim.core.publisher); and no session hands
+    a sample over as a shared-memory buffer (Zenoh's watchdog overran under load and receivers lost such
+    samples or got their bytes zeroed): every kind of session, the router's too."""
+    from hilsim.core import keys as keyscheme
+    from hilsim.core import transport
+    from hilsim.core.config import ZenohConfig
+
+    k = Keys()
+    assert keyscheme.given_once(k.topic("joint_trajectory")) and keyscheme.given_once(k.topic("task/result"))
+    assert not keyscheme.given_once(k.topic("joint_states")) and not keyscheme.given_once(k.clock)
+    assert not keyscheme.given_once(k.health("planner"))
+    for mode in ("client", "peer", "router"):
+        conf = transport.zenoh_config(ZenohConfig(), mode=mode)
+        assert conf.get_json("transport/shared_memory/enabled") == "false", mode
+
+
 def test_cdr_round_trip_matches_ros_layout() -> None:
     m = msgs.JointState(header=msgs.header(1_500_000_001, "world"), name=["a"], position=[1.0], velocity=[], effort=[])
     b = msgs.encode(m)

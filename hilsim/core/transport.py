@@ -72,6 +72,11 @@ def zenoh_config(zc: ZenohConfig, *, mode: str | None = None, listen: list[str] 
     # as rmw_zenoh's default config: transient-local publishers (robot_description, tf_static) are
     # Zenoh advanced publishers, which need timestamps
     conf.insert_json5("timestamping/enabled", "{router: true, peer: true, client: true}")
+    # No shared memory between processes (Zenoh's default hands a sample over 3 kB to a process on the
+    # same host as a shared buffer): on a loaded machine its watchdog overran ("timer overrun") and
+    # receivers got such samples with their bytes gone (batches starting with zeros) or not at all
+    # (a goal's result, a trajectory): issue 36. Over loopback TCP every byte arrives or is counted lost.
+    conf.insert_json5("transport/shared_memory/enabled", "false")
     if zc.connect and (mode or zc.mode) != "router":
         conf.insert_json5("connect/endpoints", json.dumps(zc.connect))
     ls = listen if listen is not None else zc.listen
