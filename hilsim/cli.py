@@ -402,7 +402,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    except ConnectionError as e:  # a tool that reaches nothing (hilsim.core.transport.open_tool_session)
+    except ConnectionError as e:  # a tool that reaches nothing (hilsim.core.runs.open_tool_session)
         print(f"error: {str(e).splitlines()[0]}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:

@@ -26,7 +26,8 @@ Writes: only its own health and log keys (``<prefix>/<robot>/health/logger``,
 
 This module is the service's wiring: subscriptions, the queue, the worker thread, loss
 accounting, health and lifecycle. What is written for each kind of message (and the entity
-layout) is ``hilsim.record.rows``; the robot model and tool kinematics ``hilsim.sim.kinematics``.
+layout) is ``hilsim.record.rows``; which keys are subscribed one by one ``hilsim.record.routes``; the
+robot model and tool kinematics ``hilsim.sim.kinematics``.
 
 Composed with other services (``--compose physics,sensors,controller,logger``, hilsim.run.compose),
 it takes their samples as message objects in the process (none of them crosses Zenoh) and the
@@ -100,15 +101,13 @@ from pathlib import Path
 from typing import Any
 
 import zenoh
-import zenoh.ext as zenoh_ext
 
 from hilsim.core import batch, msgs, transport
 from hilsim.core.config import Scenario
-from hilsim.core.keys import Keys, UnknownKey, message_type
+from hilsim.core.keys import UnknownKey, message_type
 from hilsim.core.provenance import DUPLICATE, TAKEN, Sequence, digest_of
 from hilsim.core.recording import RECORDING_NAME, STOPPED_ENTRY, SUMMARY_NAME, disable_analytics, part_name
 from hilsim.core.restart import restarted
-from hilsim.core.ros2 import wire
 from hilsim.core.scenario import write_scenario
 from hilsim.core.service import LEVEL_WARN, Service
 
@@ -118,6 +117,7 @@ import rerun as rr  # noqa: E402
 from hilsim.record.bag import NO_ATTACHMENT, TIME_NOTE, BagError  # noqa: E402
 from hilsim.record.bag_read import BAG_DIR, bag_paths, recover_file  # noqa: E402
 from hilsim.record.limits import BagSeries, human_bytes, stop_reason  # noqa: E402
+from hilsim.record.routes import KeyRoutes  # noqa: E402
 from hilsim.record.rows import RowWriter  # noqa: E402
 from hilsim.record.viewer import default_blueprint  # noqa: E402
 from hilsim.sim.kinematics import RobotModel  # noqa: E402
@@ -186,14 +186,8 @@ class LoggerService(Service):
         # logger.batch: the services send batches; keys are subscribed one by one for the other writers
         self.batching = scenario.logger.batch > 0
         self.duplicates: Counter[str] = Counter()  # samples that came both ways (batching, latched), taken once
-        self._route_lock = threading.Lock()
-        self._batching_nodes: set[tuple[str, str]] = set()  # (zid, node id) of the batching services
-        self._plain: dict[str, dict[bytes, tuple[str, str]]] = {}  # key -> its non-batching writers' nodes
-        self._key_subs: dict[str, list[Any]] = {}  # key -> its own subscription (batching)
-        self._recorded_keys: dict[str, bool] = {}  # key -> whether logger.record covers it
-        self._record_exprs = [zenoh.KeyExpr(self.keys.scoped(e)) for e in scenario.logger.record]
+        self.routes = KeyRoutes(self.keys, scenario.logger.record, batching=self.batching)  # key by key
         self._malformed_warned = False
-        self._routes_closed = False
         # keys with a late-joiner subscription beside `**` (latched writers, without batches): their
         # samples can come both ways and are taken once, as batches are
         self._twice: set[str] = set()
@@ -262,13 +256,15 @@ class LoggerService(Service):
                 subs.append(local(self.keys.scoped(expr), self._on_local))
             self._subs.extend(subs)
             self._declared.extend(subs)
-        if self.batching:
-            self._take_batches()
-        else:
-            # A transient-local sample (/tf_static, robot_description) is put once, often before `**`
-            # reaches its publisher: a late-joiner subscription per latched writer asks its cache
-            self._declared.append(self.session.liveliness().declare_subscriber(
-                self.keys.all_writers, self._on_writer_token, history=True))
+        if self.batching:  # the services' batches; key by key the writers no batch covers (self.routes)
+            sub = self.session.declare_subscriber(self.keys.all_batches, self._on_batch)
+            self._subs.append(sub)
+            self._declared.append(sub)
+        # without batches too: a transient-local sample (/tf_static, robot_description) is put once, often
+        # before `**` reaches its publisher: a late-joiner subscription per latched writer asks its cache
+        self._declared.extend(self.routes.start(
+            self.session, self.zenoh_session, self._zid, composed=local is not None,
+            on_sample=self._on_sample, on_twice=self._takes_twice))
         limit = f"queue limit {self.queue_limit}" if self.queue_limit else "unbounded queue"
         self.log.info(
             "recording %s to %s (clock %s, %s)",
@@ -322,91 +318,10 @@ class LoggerService(Service):
             return None
 
     # ------------------------------------------------------------------ batches (logger.batch)
-    def _take_batches(self) -> None:
-        """Subscribe to the services' batches, and to each key that has a writer no batch covers: the
-        ROS 2 graph's publisher tokens say who writes what (hilsim.core.provenance), the batching
-        services' tokens (``Keys.batch``) which nodes batch. The batching tokens first, with their
-        history, so that at start-up the writers of those nodes are known as covered."""
-        assert self.session is not None
-        sub = self.session.declare_subscriber(self.keys.all_batches, self._on_batch)
-        self._subs.append(sub)
-        self._declared.append(sub)
-        live = self.session.liveliness()
-        self._declared.append(live.declare_subscriber(self.keys.all_batches, self._on_batch_token, history=True))
-        self._declared.append(live.declare_subscriber(self.keys.all_writers, self._on_writer_token, history=True))
-
-    def _records_key(self, key: str) -> bool:
-        got = self._recorded_keys.get(key)
-        if got is None:
-            try:
-                ke = zenoh.KeyExpr(key)
-                got = any(e.intersects(ke) for e in self._record_exprs)
-            except zenoh.ZError:
-                got = False
-            self._recorded_keys[key] = got
-        return got
-
-    def _on_batch_token(self, sample: zenoh.Sample) -> None:
-        node = Keys.batch_node(str(sample.key_expr))
-        if node is None:
-            return
-        with self._route_lock:
-            if sample.kind != zenoh.SampleKind.PUT:
-                self._batching_nodes.discard(node)
-                return
-            self._batching_nodes.add(node)
-            # its publishers seen before its token (a race): their keys need no subscription of ours
-            # unless another writer does (the batch brings what the subscription did, duplicates dropped)
-            for key, writers in list(self._plain.items()):
-                for gid in [g for g, n in writers.items() if n == node]:
-                    del writers[gid]
-                if not writers:
-                    del self._plain[key]
-                    for d in self._key_subs.pop(key, []):
-                        try:
-                            d.undeclare()
-                        except zenoh.ZError:
-                            pass
-
-    def _on_writer_token(self, sample: zenoh.Sample) -> None:
-        key_expr = str(sample.key_expr)
-        if "/MP/" not in key_expr:
-            return
-        try:
-            tok = wire.parse_token(key_expr)
-        except ValueError:
-            return
-        if tok.topic is None or tok.dds_type is None or tok.type_hash is None:
-            return
-        key = wire.topic_key(tok.domain, tok.topic, tok.dds_type, tok.type_hash)
-        if sample.kind != zenoh.SampleKind.PUT or not self._records_key(key):
-            return  # a writer gone: its key's subscription stays (its last samples may be in flight)
-        latched = tok.qos is not None and tok.qos.durability == wire.Durability.TRANSIENT_LOCAL
-        if not self.batching and not latched:
-            return  # `**` takes it
-        node = (tok.zid, tok.node_id)
-        if getattr(self.session, "local_subscriber", None) is not None and tok.zid == self._zid and not latched:
-            # composed: this process's own services, taken as message objects; but a latched sample is
-            # Zenoh's (an advanced publisher, put in setup, maybe before this recorder existed): its cache
-            return
-        with self._route_lock:
-            if self._routes_closed or (node in self._batching_nodes and not latched):
-                return
-            self._plain.setdefault(key, {})[tok.gid] = node
-            if key not in self._key_subs:
-                if not self.batching:
-                    with self.lock:
-                        self._twice.add(key)
-                self._key_subs[key] = [self._subscribe_key(key, latched)]
-
-    def _subscribe_key(self, key: str, latched: bool) -> Any:
-        assert self.session is not None
-        real = self.zenoh_session
-        if latched and real is not None:
-            # transient-local, as rmw_zenoh subscribes: the publisher's cache gives what it sent before
-            return zenoh_ext.declare_advanced_subscriber(
-                real, key, self._on_sample, history=zenoh_ext.HistoryConfig(detect_late_publishers=True))
-        return self.session.declare_subscriber(key, self._on_sample)
+    def _takes_twice(self, key: str) -> None:
+        """A key whose samples can come two ways (``**`` and a latched writer's cache): taken once."""
+        with self.lock:
+            self._twice.add(key)
 
     def _on_batch(self, sample: zenoh.Sample) -> None:
         raw = sample.payload.to_bytes()
@@ -420,7 +335,7 @@ class LoggerService(Service):
             self._take(str(sample.key_expr), None, raw)
             return
         for r in records:
-            if self._records_key(r.key):
+            if self.routes.covers(r.key):
                 self._take(r.key, transport.Attachment(r.seq, r.source_ns, r.gid), r.payload)
 
     # ------------------------------------------------------------------ receiving (Zenoh thread)
@@ -667,10 +582,7 @@ class LoggerService(Service):
                 k = self._queue.popleft()[0]
                 self.counts_in[k] -= 1
                 self.after_stop[k] += 1
-        with self._route_lock:
-            self._routes_closed = True
-            subs = [*self._subs, *(d for ds in self._key_subs.values() for d in ds)]
-            self._key_subs.clear()
+        subs = [*self._subs, *self.routes.close()]
         for sub in subs:
             try:
                 sub.undeclare()
@@ -712,7 +624,7 @@ class LoggerService(Service):
             "lost": sum(lost.values()),
             "dropped": sum(self.dropped.values()),
             "suspect": sum(self.suspect.values()),
-            **({"duplicates": sum(self.duplicates.values()), "key_subscriptions": len(self._key_subs)}
+            **({"duplicates": sum(self.duplicates.values()), "key_subscriptions": len(self.routes.key_subs)}
                if self.batching else {}),
             "rrd": str(self.rrd_path),
             **({"bagged": sum(self.bagged.values()), "bag": str(self.bag.path), "bag_files": len(self.bag.files)}
@@ -738,10 +650,7 @@ class LoggerService(Service):
             return
         self._finished = True
         self._await_quiet()
-        with self._route_lock:  # no key subscription declared after this
-            self._routes_closed = True
-            key_subs = [d for ds in self._key_subs.values() for d in ds]
-            self._key_subs.clear()
+        key_subs = self.routes.close()  # no key subscription declared after this
         for sub in [*self._subs, *key_subs]:
             try:
                 sub.undeclare()
@@ -795,8 +704,7 @@ class LoggerService(Service):
             duplicates = Counter(self.duplicates)
             after_stop = Counter(self.after_stop)
             suspect = Counter(self.suspect)
-        with self._route_lock:
-            plain = set(self._plain) if self.batching else set()
+        plain = self.routes.plain_keys()
         gaps = self.lost()
         lost = self._judged_lost(gaps, received)
         contested = self.contested()

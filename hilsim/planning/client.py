@@ -29,7 +29,7 @@ from typing import Any
 
 import zenoh
 
-from hilsim.core import msgs, transport
+from hilsim.core import msgs, runs, transport
 from hilsim.core.keys import Keys
 
 
@@ -176,9 +176,9 @@ def cmd_goal(args: argparse.Namespace) -> int:
     except ValueError as e:
         print(f"hilsim goal: {e}", file=sys.stderr)
         return 2
-    keys = transport.tool_keys(args.robot, args.prefix)
+    keys = runs.tool_keys(args.robot, args.prefix)
     try:
-        session = transport.open_tool_session(args.connect, run=getattr(args, "run", None), tool="hilsim goal")
+        session = runs.open_tool_session(args.connect, run=getattr(args, "run", None), tool="hilsim goal")
     except ConnectionError as e:
         print(f"hilsim goal: {e}", file=sys.stderr)
         return 2

@@ -63,7 +63,7 @@ from typing import Any
 
 import zenoh
 
-from hilsim.core import fleet, transport
+from hilsim.core import fleet, runs, transport
 from hilsim.core.config import Scenario
 from hilsim.core.keys import Keys
 from hilsim.core.provenance import Provenance
@@ -178,7 +178,7 @@ class Launcher:
         self.quiet = quiet
         self.router_ep = router
         self._router: zenoh.Session | None = None
-        self._pointer: Path | None = None  # the pointer file to this run's router (transport.write_pointer)
+        self._pointer: Path | None = None  # the pointer file to this run's router (runs.write_pointer)
         self.children: dict[str, Child] = {}
         self.hurry = False  # a second stop signal: services are killed, not waited for
         self.changed = threading.Event()
@@ -224,7 +224,7 @@ class Launcher:
             if self.sc.clock.mode == "realtime":
                 self._raise_router_priority()
         else:
-            ptr = transport.run_at([self.router_ep])
+            ptr = runs.run_at([self.router_ep])
             if ptr is not None and self.sc.zenoh.tls is None:  # the router of another run of this user
                 found = {u: identity_file(ptr.run_dir, u) for u in self.local}
                 self.identities = {u: f for u, f in found.items() if f.is_file()}
@@ -540,7 +540,7 @@ class Launcher:
                 self.session.close()
             if self._router is not None:
                 self._router.close()
-                transport.remove_pointer(self._pointer)
+                runs.remove_pointer(self._pointer)
 
     def _silent(self, c: Child) -> bool:
         """A service physics waited for in vain (the run stalled on it), or whose process is stopped (SIGSTOP)."""
@@ -628,7 +628,7 @@ def _interactive_hint(la: Launcher, example: list[float] | None) -> str:
     """What ``hilsim up --interactive`` says once ready: how to stop, and a goal to try."""
     sc = la.sc
     robot = fleet.robot_names(sc)[0] if sc.robots > 1 else sc.robot
-    connect = "" if la.router_ep == transport.DEFAULT_CONNECT else f" --connect {la.router_ep}"
+    connect = "" if la.router_ep == runs.DEFAULT_CONNECT else f" --connect {la.router_ep}"
     if "planner" in sc.services:
         joints = " ".join(f"{v:g}" for v in example) if example else "J1 …"
         try_ = f"hilsim goal {robot} --joints {joints}{connect}"
@@ -703,7 +703,7 @@ def cmd_up(args: argparse.Namespace) -> int:
                           "tls/ endpoint with --router (docs/security.md)")
     if args.router and sc.zenoh.tls is None and sc.zenoh.auth is None:
         # the router of another run of this user (its credentials, as a tool finds them), or one without
-        sc.zenoh.auth = transport.find_credentials([args.router])
+        sc.zenoh.auth = runs.find_credentials([args.router])
     la = Launcher(sc, run_dir, router=args.router, only=only)
     here = f" ({', '.join(la.local)} here, the rest from other hosts)" if only else ""
     print(f"hilsim up {sc.name}: {len(sc.processes())} services{here}, clock {sc.clock.mode}, seed {sc.seed}, "

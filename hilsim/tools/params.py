@@ -11,7 +11,7 @@ import math
 
 import zenoh
 
-from hilsim.core import msgs, transport
+from hilsim.core import msgs, runs, transport
 from hilsim.core.keys import Keys
 
 
@@ -39,8 +39,8 @@ def cmd_gains(args: argparse.Namespace) -> int:
             print(f"hilsim gains: {item!r}: expected JOINT.GAIN=NUMBER, e.g. joint_2.kp=80")
             return 2
         values[name.strip()] = v
-    keys = transport.tool_keys(args.robot, args.prefix)
-    with transport.open_tool_session(args.connect, run=getattr(args, "run", None), tool="hilsim gains") as ses:
+    keys = runs.tool_keys(args.robot, args.prefix)
+    with runs.open_tool_session(args.connect, run=getattr(args, "run", None), tool="hilsim gains") as ses:
         res = set_parameters(ses, keys, values)
     print(("set: " if res.successful else "not set: ") + res.reason)
     return 0 if res.successful else 1

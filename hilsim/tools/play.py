@@ -21,7 +21,7 @@
   the bag (each message's metadata), never on the wire. It connects with the tools' identity of the run
   (docs/security.md), which may write only what a person commands and what no service of the run writes.
 - Which run: the first line names the run it joined (directory, scenario, router endpoint;
-  :func:`hilsim.core.transport.tool_target`: ``--run DIR``, ``--connect``, else the one run of yours that
+  :func:`hilsim.core.runs.tool_target`: ``--run DIR``, ``--connect``, else the one run of yours that
   is up; several: asked, never guessed). Refused, in one line, before anything is played: a key a
   service of that run writes (named, with the way to do it on purpose: a run without that service), a
   key its tools may not write, and, unless the target was named (``--run``/``--connect``), a key other
@@ -54,7 +54,7 @@ from typing import Any
 
 import zenoh
 
-from hilsim.core import msgs, transport
+from hilsim.core import msgs, runs, transport
 from hilsim.core.keys import Keys
 from hilsim.core.ros2 import types as ros2types
 from hilsim.core.ros2 import wire
@@ -283,7 +283,7 @@ def cmd_play(args: argparse.Namespace) -> int:
         return 1
     domain = args.domain if args.domain is not None else int(items[0].key.split("/", 1)[0])
     run = getattr(args, "run", None)
-    target = transport.tool_target(args.connect, run, "hilsim play")
+    target = runs.tool_target(args.connect, run, "hilsim play")
     print(f"hilsim play: {target.describe()}", file=sys.stderr, flush=True)
     try:
         session = transport.open_session(target.zenoh)
@@ -347,7 +347,7 @@ def live_publishers(session: zenoh.Session, domain: int) -> dict[str, set[str]]:
     return out
 
 
-def _run_scenario(ptr: transport.RunPointer | None) -> Any:
+def _run_scenario(ptr: runs.RunPointer | None) -> Any:
     """The resolved scenario of the run joined (its ``scenario.yaml``), or None if it cannot be read."""
     if ptr is None:
         return None
@@ -360,7 +360,7 @@ def _run_scenario(ptr: transport.RunPointer | None) -> Any:
         return None
 
 
-def refusal(session: zenoh.Session, keys: list[str], domain: int, ptr: transport.RunPointer | None,
+def refusal(session: zenoh.Session, keys: list[str], domain: int, ptr: runs.RunPointer | None,
             explicit: bool) -> str | None:
     """Why these keys are not to be played into the run joined (one line), or None (module docstring)."""
     from hilsim.core import rights

@@ -19,7 +19,7 @@ from typing import Any
 
 import zenoh
 
-from hilsim.core import msgs, transport
+from hilsim.core import msgs, runs
 from hilsim.sim.control import GAIN_FIELDS
 from hilsim.ui.jsonio import BadInput, number
 from hilsim.ui.options import ScenarioOption
@@ -46,7 +46,7 @@ class Commands:
 
         key = (self.robot(), service)
         if key not in self.clients:
-            keys = transport.tool_keys(self.robot(), self.prefix)
+            keys = runs.tool_keys(self.robot(), self.prefix)
             self.clients[key] = MoveClient(self.session, keys, query_timeout=15.0, service=service)
         return self.clients[key]
 
@@ -153,7 +153,7 @@ class Commands:
                            f"{', '.join(GAIN_FIELDS)}")
         if not values:
             raise BadInput("gains", "no gain given")
-        res = set_parameters(self.session, transport.tool_keys(self.robot(), self.prefix), values, timeout=10.0)
+        res = set_parameters(self.session, runs.tool_keys(self.robot(), self.prefix), values, timeout=10.0)
         if not res.successful:
             raise BadInput("gains", f"not set: {res.reason}", 422)
         return {"set": values, "reason": res.reason}

@@ -4,12 +4,12 @@ to the watcher (:mod:`hilsim.ui.watch`), run control (:mod:`hilsim.ui.runs`), co
 robot is shown and what goals are checked against, and composes the state the page is sent
 (``GET /api/state``, the event stream of :mod:`hilsim.ui.events`).
 
-Zenoh keys: none of its own; it opens the session the others use (``transport.open_tool_session``)
+Zenoh keys: none of its own; it opens the session the others use (``runs.open_tool_session``)
 and reads the robots' liveliness (``alive/*``) from the watcher to find a run started elsewhere.
 
 Without ``--connect`` (``hilsim ui``), the panel finds a simulation already running on this machine
 by itself: the run of this user that is up (its pointer, wherever its port; among several it asks, never
-guesses: :func:`hilsim.core.transport.tool_target`), saying which in its first line; else, when a Zenoh
+guesses: :func:`hilsim.core.runs.tool_target`), saying which in its first line; else, when a Zenoh
 router already listens on the well-known ``tcp/127.0.0.1:7447`` (``hilsim router``), it joins that router
 instead of opening one of its own; when
 that router is gone by the time the panel starts a run, it opens the router there itself. With
@@ -26,7 +26,7 @@ from typing import Any
 
 import zenoh
 
-from hilsim.core import transport
+from hilsim.core import runs, transport
 from hilsim.ui.commands import Commands
 from hilsim.ui.jsonio import BadInput
 from hilsim.ui.options import ScenarioOption, planner_names, scenario_options
@@ -51,7 +51,7 @@ def _has_router(session: zenoh.Session, wait: float) -> bool:
 class Panel:
     def __init__(self, *, connect: str | None = None, prefix: str | None = None, runs_dir: Path = Path("runs"),
                  robot: str = "arm", attach: bool = True) -> None:
-        self.prefix = transport.tool_prefix(prefix)
+        self.prefix = runs.tool_prefix(prefix)
         self.router: zenoh.Session | None = None
         joined = None
         if connect:
@@ -59,7 +59,7 @@ class Panel:
         else:
             joined = self._own_or_join_router(attach)
         # joining a run: the first line names it (directory, scenario, endpoint); nothing there is an error
-        self.session = joined or transport.open_tool_session(self.endpoint, tool="hilsim ui" if connect else None)
+        self.session = joined or runs.open_tool_session(self.endpoint, tool="hilsim ui" if connect else None)
         self.monitor = Monitor(self.session, self.prefix)
         self.options = scenario_options()
         self.planners = planner_names()
@@ -77,24 +77,24 @@ class Panel:
         is returned); else a router of the panel's own on a free port."""
         from hilsim.run.launcher import open_default_router
 
-        runs = transport.live_runs() if attach else []
-        if runs:  # runs of this user are up: join one, wherever its port (asked among several, never guessed)
-            run = runs[0] if len(runs) == 1 else transport.choose_run(runs, "hilsim ui")
+        up = runs.live_runs() if attach else []
+        if up:  # runs of this user are up: join one, wherever its port (asked among several, never guessed)
+            run = up[0] if len(up) == 1 else runs.choose_run(up, "hilsim ui")
             self.endpoint = run.endpoint
-            session = transport.open_tool_session(run.endpoint, tool="hilsim ui")
+            session = runs.open_tool_session(run.endpoint, tool="hilsim ui")
             print("hilsim ui: its simulation is shown", flush=True)
             return session
-        ep = transport.DEFAULT_CONNECT
+        ep = runs.DEFAULT_CONNECT
         try:
             self.endpoint, self.router = ep, transport.open_router(ep)
             return None
         except ConnectionError:
             pass
         if attach:
-            session = transport.open_tool_session(ep)
+            session = runs.open_tool_session(ep)
             if _has_router(session, ROUTER_WAIT_S):
                 self.endpoint = ep
-                run = transport.run_at([ep])
+                run = runs.run_at([ep])
                 which = run.describe() if run is not None else f"{ep} (a hilsim up running?)"
                 print(f"hilsim ui: joined {which}: its simulation is shown", flush=True)
                 return session

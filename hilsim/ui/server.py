@@ -35,7 +35,7 @@ from pathlib import Path
 
 import zenoh
 
-from hilsim.core import transport
+from hilsim.core import runs
 from hilsim.ui.jsonio import BadInput
 from hilsim.ui.panel import Panel
 from hilsim.ui.routes import make_app
@@ -97,8 +97,8 @@ def serve(host: str, port: int, *, connect: str | None = None, prefix: str | Non
 
 def cmd_ui(args: argparse.Namespace) -> int:
     connect = args.connect
-    if getattr(args, "run", None):  # the run's router (hilsim.core.transport.tool_target)
-        connect = ",".join(transport.tool_target(run=args.run, tool="hilsim ui").zenoh.connect)
+    if getattr(args, "run", None):  # the run's router (hilsim.core.runs.tool_target)
+        connect = ",".join(runs.tool_target(run=args.run, tool="hilsim ui").zenoh.connect)
     return serve(args.host, args.port, connect=connect, prefix=args.prefix)
 
 
