@@ -26,7 +26,8 @@ Writes: only its own health and log keys (``<prefix>/<robot>/health/logger``,
 
 This module is the service's wiring: subscriptions, the queue, the worker thread, loss
 accounting, health and lifecycle. What is written for each kind of message (and the entity
-layout) is ``hilsim.record.rows``; which keys are subscribed one by one ``hilsim.record.routes``; the
+layout) is ``hilsim.record.rows``; which keys are subscribed one by one ``hilsim.record.routes``; what
+the summary file and lines say ``hilsim.record.report``; the
 robot model and tool kinematics ``hilsim.sim.kinematics``.
 
 Composed with other services (``--compose physics,sensors,controller,logger``, hilsim.run.compose),
@@ -106,7 +107,7 @@ from hilsim.core import batch, msgs, transport
 from hilsim.core.config import Scenario
 from hilsim.core.keys import UnknownKey, message_type
 from hilsim.core.provenance import DUPLICATE, TAKEN, Sequence, digest_of
-from hilsim.core.recording import RECORDING_NAME, STOPPED_ENTRY, SUMMARY_NAME, disable_analytics, part_name
+from hilsim.core.recording import RECORDING_NAME, SUMMARY_NAME, disable_analytics, part_name
 from hilsim.core.restart import restarted
 from hilsim.core.scenario import write_scenario
 from hilsim.core.service import LEVEL_WARN, Service
@@ -114,6 +115,7 @@ from hilsim.core.service import LEVEL_WARN, Service
 disable_analytics()  # before rerun is imported: its SDK reads the analytics config at start-up
 import rerun as rr  # noqa: E402
 
+from hilsim.record import report  # noqa: E402
 from hilsim.record.bag import NO_ATTACHMENT, TIME_NOTE, BagError  # noqa: E402
 from hilsim.record.bag_read import BAG_DIR, bag_paths, recover_file  # noqa: E402
 from hilsim.record.limits import BagSeries, human_bytes, stop_reason  # noqa: E402
@@ -696,73 +698,28 @@ class LoggerService(Service):
 
     def _report(self) -> None:
         with self.lock:
-            received = Counter(self.counts_in)
-            recorded = Counter(self.recorded)
-            bagged = Counter(self.bagged)
-            dropped, before = Counter(self.dropped), Counter(self.before_first)
-            unannounced = Counter(self.unannounced)
-            duplicates = Counter(self.duplicates)
-            after_stop = Counter(self.after_stop)
-            suspect = Counter(self.suspect)
-        plain = self.routes.plain_keys()
+            c = report.Counts(
+                received=Counter(self.counts_in), recorded=Counter(self.recorded), bagged=Counter(self.bagged),
+                rejected=Counter(self.rejected), lost=Counter(), dropped=Counter(self.dropped),
+                before_first=Counter(self.before_first), unannounced=Counter(self.unannounced),
+                duplicates=Counter(self.duplicates), after_stop=Counter(self.after_stop),
+                suspect=Counter(self.suspect), contested=Counter())
+        c.plain = self.routes.plain_keys()
         gaps = self.lost()
-        lost = self._judged_lost(gaps, received)
-        contested = self.contested()
+        c.lost = self._judged_lost(gaps, c.received)
+        c.contested = self.contested()
         for k in gaps:  # gaps its writers' own counts say are not losses: said apart, as contested ones
-            contested[k] += gaps[k] - lost[k]
-        keys = sorted(set(received) | set(recorded) | set(lost))
-        summary = {
-            k: {
-                "received": received[k],
-                "recorded": recorded[k],
-                **({"bagged": bagged[k]} if self.sc.logger.bag else {}),
-                "rejected": self.rejected[k],
-                "lost": lost[k],
-                "dropped": dropped[k],
-                "before_first": before[k],
-                "unannounced": unannounced[k],
-                **({"duplicates": duplicates[k]} if self.batching or duplicates[k] else {}),
-                **({"after_stop": after_stop[k]} if self.stopped is not None else {}),
-                # batching: a key the recorder subscribed one by one for a writer no batch covers (a ROS 2
-                # node, a tool, another run's bridge): its before_first were published before that subscription
-                **({"key_subscribed": True} if k in plain else {}),
-                # samples that do not fit their writer's sequence, and gaps not counted as lost for it
-                **({"suspect": suspect[k]} if suspect[k] else {}),
-                **({"contested": contested[k]} if contested[k] else {}),
-            }
-            for k in keys
-        }
-        if self.stopped is not None:  # not a key: what stopped the recording (hilsim.core.recording.read_counts)
-            summary[STOPPED_ENTRY] = {**self.stopped_at, "after_stop": sum(after_stop.values())}
-        tmp = self.summary_path.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(summary, indent=1, sort_keys=True) + "\n")
-        tmp.replace(self.summary_path)
-        total_in, total_rec, total_lost = sum(received.values()), sum(recorded.values()), sum(lost.values())
+            c.contested[k] += gaps[k] - c.lost[k]
         bag = self.sc.logger.bag
-        lines = [
-            f"recorded {k}: received {received[k]} recorded {recorded[k]}" + (f" bagged {bagged[k]}" if bag else "")
-            + (f" lost {lost[k]}" if lost[k] else "")
-            for k in keys
-        ]
-        lines.append(
-            f"recorded total: received {total_in} recorded {total_rec} rejected {sum(self.rejected.values())} "
-            f"lost {total_lost} in {len(keys)} keys -> {self.rrd_path}"
-            + (f"; bagged {sum(bagged.values())} -> {self.bag_dir}" if bag else "")
-        )
-        early = {k: before[k] for k in sorted(plain) if before[k]}
-        if early:
-            lines.append(f"not recorded: {sum(early.values())} samples their writers published before the recorder's "
-                         "subscription reached them (logger.batch): "
-                         + ", ".join(f"{k} {n}" for k, n in early.items()))
-        if self.stopped is not None:
-            lines.append(f"recording stopped at sim time {self.stopped_at.get('sim_time')} s: {self.stopped}; "
-                         f"{sum(after_stop.values())} samples after it not recorded")
-        if total_lost:
-            n_drop = sum(dropped.values())
-            lines.append(
-                f"lost {total_lost} samples ({self.sc.clock.mode}: the recorder could not keep up): "
-                f"{total_lost - n_drop} in transport, {n_drop} dropped by the logger (queue full)"
-            )
+        stopped_at = self.stopped_at if self.stopped is not None else None
+        tmp = self.summary_path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(report.summary(c, bag=bag, batching=self.batching, stopped_at=stopped_at),
+                                  indent=1, sort_keys=True) + "\n")
+        tmp.replace(self.summary_path)
+        lines = report.lines(c, rrd=self.rrd_path, bag_dir=self.bag_dir if bag else None, clock=self.sc.clock.mode,
+                             stopped_at=stopped_at)
+        total_in, total_rec, total_lost = sum(c.received.values()), sum(c.recorded.values()), sum(c.lost.values())
+        bagged = c.bagged
         try:
             print("\n".join(lines), flush=True)
         except BrokenPipeError:

@@ -349,3 +349,35 @@ def test_launcher_summary_reports_losses(scenario: Any, tmp_path: Path, capsys: 
     (tmp_path / "record_summary.json").write_text(json.dumps(counts))
     assert summarise(la) == 1
     assert f"MISMATCH (received but not recorded) on ['{clock}']" in capsys.readouterr().out
+
+
+def test_the_recorders_summary_and_lines_say_every_count() -> None:
+    """hilsim.record.report: the summary holds each key's counts (bagged with a bag; duplicates with
+    batches; after_stop, and the stop entry, for a recording stopped early); the lines say the totals,
+    what a late subscription missed and the losses."""
+    from collections import Counter
+
+    from hilsim.core.recording import STOPPED_ENTRY
+    from hilsim.record import report
+
+    k, t = "0/arm/joint_states/x/RIHS01_1", "0/lab/burst/x/RIHS01_2"
+    c = report.Counts(received=Counter({k: 10, t: 3}), recorded=Counter({k: 10, t: 3}), bagged=Counter({k: 10, t: 3}),
+                      rejected=Counter({k: 1}), lost=Counter({k: 2}), dropped=Counter({k: 1}),
+                      before_first=Counter({t: 4}), unannounced=Counter(), duplicates=Counter({k: 5}),
+                      after_stop=Counter({k: 7}), suspect=Counter(), contested=Counter({k: 1}), plain={t})
+    stop = {"reason": "logger.max_size 1 MB reached", "sim_time": 2.5}
+    s = report.summary(c, bag=True, batching=True, stopped_at=stop)
+    assert s[k] == {"received": 10, "recorded": 10, "bagged": 10, "rejected": 1, "lost": 2, "dropped": 1,
+                    "before_first": 0, "unannounced": 0, "duplicates": 5, "after_stop": 7, "contested": 1}
+    assert s[t]["key_subscribed"] and s[t]["before_first"] == 4 and "suspect" not in s[t]
+    assert s[STOPPED_ENTRY] == {**stop, "after_stop": 7}
+    plain = report.summary(c, bag=False, batching=False, stopped_at=None)
+    assert "bagged" not in plain[t] and "after_stop" not in plain[k] and STOPPED_ENTRY not in plain
+    out = report.lines(c, rrd=Path("r.rrd"), bag_dir=Path("bag"), clock="realtime", stopped_at=stop)
+    assert out[0] == f"recorded {k}: received 10 recorded 10 bagged 10 lost 2"
+    assert "recorded total: received 13 recorded 13 rejected 1 lost 2 in 2 keys -> r.rrd; bagged 13 -> bag" in out
+    assert f"{t} 4" in out[3] and out[3].startswith("not recorded: 4 samples")
+    assert out[4] == ("recording stopped at sim time 2.5 s: logger.max_size 1 MB reached; "
+                      "7 samples after it not recorded")
+    assert out[5] == ("lost 2 samples (realtime: the recorder could not keep up): 1 in transport, "
+                      "1 dropped by the logger (queue full)")

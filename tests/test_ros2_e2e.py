@@ -111,8 +111,15 @@ def test_a_ros2_node_sees_the_arm_and_moves_it_with_a_joint_trajectory(router: s
             return truth is not None and max(abs(a - b) for a, b in zip(truth.position, target, strict=True)) < 0.01
 
         assert wait_until(reached, 60), seen.last("/arm/truth/joint_states")
-        # the sensors' joint_states say what the truth says (within their noise), in ROS 2's layout
-        js, truth = seen.last("/arm/joint_states"), seen.last("/arm/truth/joint_states")
+        # the sensors' joint_states say what the truth of the same step says (within their noise), in ROS 2's
+        # layout (the same step: under load the two topics' latest samples can be 200 ms of motion apart)
+        def stamp(m: Any) -> int:
+            return m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
+
+        with seen.lock:  # the latest step of which both arrived (two keys: either may come first)
+            truths = {stamp(t): t for t in seen.msgs["/arm/truth/joint_states"]}
+            js = next(j for j in reversed(seen.msgs["/arm/joint_states"]) if stamp(j) in truths)
+        truth = truths[stamp(js)]
         assert list(js.name) == ARM_JOINTS and list(truth.name) == ARM_JOINTS
         assert np.allclose(js.position, truth.position, atol=0.02), (js.position, truth.position)
         imu = seen.last("/arm/imu")
