@@ -719,7 +719,6 @@ class LoggerService(Service):
         lines = report.lines(c, rrd=self.rrd_path, bag_dir=self.bag_dir if bag else None, clock=self.sc.clock.mode,
                              stopped_at=stopped_at)
         total_in, total_rec, total_lost = sum(c.received.values()), sum(c.recorded.values()), sum(c.lost.values())
-        bagged = c.bagged
         try:
             print("\n".join(lines), flush=True)
         except BrokenPipeError:
@@ -727,8 +726,8 @@ class LoggerService(Service):
             self.log.warning("stdout closed; per-key counts are in %s", self.summary_path)
         if total_in != total_rec:
             self.fault(f"received {total_in} messages but recorded {total_rec}")
-        if bag and sum(bagged.values()) != total_rec:
-            self.fault(f"recorded {total_rec} messages but bagged {sum(bagged.values())}")
+        if bag and sum(c.bagged.values()) != total_rec:
+            self.fault(f"recorded {total_rec} messages but bagged {sum(c.bagged.values())}")
         if total_lost and not self.realtime:
             self.fault(f"lost {total_lost} samples in lockstep, where nothing may be lost")
         elif total_lost:

@@ -454,13 +454,16 @@ def relative_topic(key: str, namespace_template: str = DEFAULT_NAMESPACE) -> str
 
 
 def given_once(key: str, namespace_template: str = DEFAULT_NAMESPACE) -> bool:
-    """Whether a data key's samples are each given once (its key table row's ``once``); False for any
+    """Whether a data key's samples are each given once: its key table row's ``once``; outside the table
+    (a plug-in's topic) a ``…/result`` (a goal's result: its waiters, launchers on every host and clients,
+    cannot do without it; seen lost on a congested link to another host when dropped); False for any
     other key (streams, per-service keys, keys outside the scheme)."""
     try:
-        row = TOPIC_TABLE.get(relative_topic(key, namespace_template))
+        topic = relative_topic(key, namespace_template)
     except UnknownKey:
         return False
-    return row is not None and row.once
+    row = TOPIC_TABLE.get(topic)
+    return row.once if row is not None else topic.endswith("/result")
 
 
 def message_type(key: str) -> type:

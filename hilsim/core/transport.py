@@ -212,16 +212,12 @@ def publisher(session: zenoh.Session, key: str, *, drop_when_congested: bool = F
     Lockstep (``drop_when_congested=False``): BLOCK, a slow subscriber (the recorder) slows the
     sender and nothing is lost. Realtime (``True``): DROP, a subscriber that cannot keep up
     loses samples (counted by the receiver from the attachment's sequence numbers) instead of
-    delaying the wall-clock loop; except a ``…/result`` key, always BLOCK (a lost result leaves
-    its waiters waiting). Not express: Zenoh may then send samples that queued up together in one
+    delaying the wall-clock loop (the caller passes False for a sample given once, e.g. a result:
+    hilsim.core.keys.given_once). Not express: Zenoh may then send samples that queued up together in one
     write. Measured (docs/performance.md, "Express off"): the ring round (the latency of a
     lockstep step's hops) no worse, the CPU per sample less than half for sender and receiver,
     composed runs about 1.45x faster.
     """
-    if key.endswith("/result"):
-        # a goal's or the task's result is one sample that its waiters (launchers on every host,
-        # clients) cannot do without: seen lost on a congested link to another host when dropped
-        drop_when_congested = False
     cc = zenoh.CongestionControl.DROP if drop_when_congested else zenoh.CongestionControl.BLOCK
     return session.declare_publisher(key, congestion_control=cc, reliability=zenoh.Reliability.RELIABLE, express=False)
 
