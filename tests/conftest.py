@@ -13,6 +13,7 @@ from typing import Any
 import psutil
 import pytest
 import zenoh
+from util import alive
 
 from hilsim.core import transport
 from hilsim.core.config import ZenohConfig
@@ -92,7 +93,7 @@ def no_leaks() -> Iterator[None]:
     yield
     deadline = time.monotonic() + 5.0
     while True:
-        kids = [k for k in me.children(recursive=True) if k.is_running() and k.status() != psutil.STATUS_ZOMBIE
+        kids = [k for k in me.children(recursive=True) if alive(k)
                 and not _started_by(k, older)]
         if not kids or time.monotonic() > deadline:
             break

@@ -15,7 +15,7 @@ import numpy as np
 import psutil
 import pytest
 import zenoh
-from util import Observer, sim_rate, wait_until
+from util import Observer, alive, sim_rate, wait_until
 
 from hilsim.core import msgs, transport
 from hilsim.core.keys import Keys
@@ -282,7 +282,7 @@ def test_killed_service_is_reported_and_nothing_hangs(tmp_path: Path) -> None:
     assert p.returncode != 0
     assert "service controller" in out and "exited" in out, out
     time.sleep(0.5)
-    assert not [pr for pr in procs if pr.is_running() and pr.status() != psutil.STATUS_ZOMBIE], "orphan services"
+    assert not [pr for pr in procs if alive(pr)], "orphan services"
 
 
 def test_ctrl_c_stops_everything(tmp_path: Path) -> None:
@@ -304,7 +304,7 @@ def test_ctrl_c_stops_everything(tmp_path: Path) -> None:
     counts = json.loads((tmp_path / "run" / "record_summary.json").read_text())
     assert all(v["received"] == v["recorded"] for v in counts.values())
     time.sleep(0.5)
-    assert not [k for k in kids if k.is_running() and k.status() != psutil.STATUS_ZOMBIE]
+    assert not [k for k in kids if alive(k)]
 
 
 _ROUTERS: list[zenoh.Session] = []
@@ -434,4 +434,4 @@ def test_an_interactive_run_takes_goals_until_ctrl_c(tmp_path: Path) -> None:
     out = "".join(lines) + stdout
     assert p.returncode == 0 and out.rstrip().endswith("result: OK"), out
     assert [g for g in obs.results if g.startswith("task")] == [] and "targets reached" not in out, out
-    assert not [k for k in kids if k.is_running() and k.status() != psutil.STATUS_ZOMBIE], "services left behind"
+    assert not [k for k in kids if alive(k)], "services left behind"

@@ -15,7 +15,7 @@ from typing import Any
 
 import psutil
 import pytest
-from util import finish, until_ready, up, wait_until
+from util import alive, finish, until_ready, up, wait_until
 
 from hilsim.core.keys import Keys
 
@@ -61,7 +61,7 @@ def _still_there(kids: list[psutil.Process]) -> str:
 
 
 def _all_gone(kids: list[psutil.Process]) -> bool:
-    return all(not k.is_running() or k.status() == psutil.STATUS_ZOMBIE for k in kids)
+    return not any(alive(k) for k in kids)
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGKILL], ids=["SIGTERM", "SIGKILL"])

@@ -23,7 +23,7 @@ from typing import Any
 import psutil
 import pytest
 import zenoh
-from util import REPO, wait_until
+from util import REPO, alive, wait_until
 
 from hilsim.core import msgs, runs, transport
 from hilsim.core.config import ZenohConfig
@@ -384,4 +384,4 @@ def test_a_stopped_controller_ends_the_run_or_is_restarted(tmp_path: Path, polic
     assert not any(v["lost"] for v in counts.values()), counts
     assert " lost " not in out and "never reached the recorder" not in out and "MISMATCH" not in out, out
     time.sleep(0.5)
-    assert not [p for p in procs if p.is_running() and p.status() != psutil.STATUS_ZOMBIE], "processes left"
+    assert not [p for p in procs if alive(p)], "processes left"

@@ -36,6 +36,17 @@ def wait_until(cond: Callable[[], bool], timeout: float = 5.0) -> bool:
     return cond()
 
 
+def alive(p: Any) -> bool:
+    """Whether the psutil process ``p`` still runs (a zombie does not); one that goes while asked is
+    gone, not an error (``is_running`` and ``status`` are two reads of /proc)."""
+    import psutil
+
+    try:
+        return p.is_running() and p.status() != psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
+        return False
+
+
 def sim_rate(marks: list[tuple[int, float]], from_ns: int = 1_000_000_000, window_s: float = 0.5) -> float:
     """Sim seconds per wall second from (sim stamp ns, wall arrival s) marks, from ``from_ns`` on.
 

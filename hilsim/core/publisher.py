@@ -57,12 +57,15 @@ class Publisher:
         self.matching = True
         self._matching = None
         if not latched and self._local is None and isinstance(self._pub, zenoh.Publisher):
-            self.matching = self._pub.matching_status.matching
+            # the listener first, then the status: a change in between is not missed
             self._matching = self._pub.declare_matching_listener(self._on_matching)
+            self.matching = self._pub.matching_status.matching
         self._token = service.session.liveliness().declare_token(token)
 
-    def _on_matching(self, status: Any) -> None:
-        self.matching = bool(status.matching)
+    def _on_matching(self, _status: Any) -> None:
+        # the status now, not the event's: events of a route that moves (two peers' own link replacing
+        # the router's brokering) may come in any order, and the last one read would stop the key for good
+        self.matching = bool(self._pub.matching_status.matching)
 
     def put(self, msg: Any) -> None:
         if self._batch is not None:

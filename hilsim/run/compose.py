@@ -56,13 +56,13 @@ class _LocalPublisher:
         # physics' truth/imu goes to the sensors in the process and nowhere else)
         self.remote = True
         try:
-            self.remote = pub.matching_status.matching
             self._listener = pub.declare_matching_listener(self._on_matching)
+            self.remote = pub.matching_status.matching
         except (AttributeError, zenoh.ZError):  # an older binding: always send
             self._listener = None
 
-    def _on_matching(self, status: Any) -> None:
-        self.remote = bool(status.matching)
+    def _on_matching(self, _status: Any) -> None:
+        self.remote = bool(self.pub.matching_status.matching)  # the status now (hilsim.core.publisher)
 
     def deliver(self, msg: Any, att: transport.Attachment) -> None:
         self.cs.deliver(self.key, msg, att)
