@@ -233,12 +233,12 @@ class MavlinkBridgeService(Service):
     # ---------------------------------------------------------------- the link
     def _on_link(self, up: bool, reason: str) -> None:
         with self.lock:
+            self._update_state()  # before saying so: whoever reads the line finds the state it names
             if up:
                 self._info(f"MAVLink link {self.cfg.describe()} open")
             else:
                 self.fault(f"MAVLink link {self.cfg.describe()} down: {reason}; retrying every "
                            f"{self.cfg.reconnect_interval:g} s")
-            self._update_state()
 
     def _on_bad(self, kind: str, text: str) -> None:
         with self.lock:
@@ -289,6 +289,7 @@ class MavlinkBridgeService(Service):
         fix = mg.fix_of(m, stamp_ns=self.sim_ns, frame=self.frame, altitude=g.altitude, uere=g.uere)
         if self.lost:
             self.lost = False
+            self._update_state()  # before saying so (_on_link)
             self._info(f"GPS messages back after {now - self.lost_since:.1f} s without ({t} from system {src[0]} "
                        f"component {src[1]}): publishing fixes again")
         self.last_gps, self.last_msg = now, m
@@ -319,15 +320,17 @@ class MavlinkBridgeService(Service):
         allowed = g.jump_gate + g.max_speed * (now - self.ref[2])
         if d <= allowed:
             if self.jump is not None:
+                flagged, self.jump = self.jump["flagged"], None
+                self._update_state()  # before saying so (_on_link)
                 self._info(f"GPS position back within the gate ({d:.1f} m from the last good fix) after a jump; "
-                           f"{self.jump['flagged']} fixes were flagged NO_FIX")
-                self.jump = None
+                           f"{flagged} fixes were flagged NO_FIX")
             self.ref = here
             return
         j = self.jump
         if j is None:
             self.n["jumps"] += 1
             j = self.jump = {"cand": here, "agree": 1, "flagged": 0}
+            self._update_state()  # before saying so (_on_link)
             self.fault(f"GPS position jump: {d:.1f} m from the last good fix in {now - self.ref[2]:.2f} s "
                        f"(gate {allowed:.1f} m); published as NO_FIX until the track returns or "
                        f"{g.jump_confirm} consecutive fixes agree on the new position")
@@ -338,10 +341,11 @@ class MavlinkBridgeService(Service):
             j["cand"] = here
         if j["agree"] >= g.jump_confirm:
             self.n["jumps_accepted"] += 1
-            self._info(f"GPS position jump accepted: {j['agree']} consecutive fixes agree on the new position "
-                       f"({d:.1f} m from the old one); {j['flagged']} fixes were flagged NO_FIX")
             self.jump = None
             self.ref = here
+            self._update_state()  # before saying so (_on_link)
+            self._info(f"GPS position jump accepted: {j['agree']} consecutive fixes agree on the new position "
+                       f"({d:.1f} m from the old one); {j['flagged']} fixes were flagged NO_FIX")
             return
         j["flagged"] += 1
         self.n["jump_flagged"] += 1
@@ -380,8 +384,8 @@ class MavlinkBridgeService(Service):
                 self._info(f"autopilot present: system {src[0]} component {src[1]} ({_describe_hb(m)})")
             elif self.ap_lost:
                 self.ap_lost = False
+                self._update_state()  # before saying so (_on_link)
                 self._info(f"autopilot present again: system {src[0]} component {src[1]} ({_describe_hb(m)})")
-                self._update_state()
             return
         if src not in self.peers:
             self.log.info("MAVLink peer: system %d component %d (%s)", src[0], src[1], _describe_hb(m))
@@ -443,6 +447,7 @@ class MavlinkBridgeService(Service):
             limit = g.timeout if self.last_gps >= 0 else g.startup_timeout
             if not self.lost and now - since > limit:
                 self.lost, self.lost_since = True, since
+                self._update_state()  # before saying so (_on_link)
                 what = (f"no GPS message ({', '.join(g.messages)}) for {now - since:.1f} s (timeout {limit:g} s)"
                         if self.last_gps >= 0 else f"no GPS message ({', '.join(g.messages)}) within "
                         f"{limit:g} s of the simulation starting (is the GPS sending to {c.describe()}?)")
@@ -453,6 +458,7 @@ class MavlinkBridgeService(Service):
                 self._publish_no_fix()
         if self.ap is not None and not self.ap_lost and now - self.ap_t > c.autopilot.timeout:
             self.ap_lost = True
+            self._update_state()  # before saying so (_on_link)
             text = (f"autopilot lost: no HEARTBEAT from system {self.ap[0]} component {self.ap[1]} for "
                     f"{now - self.ap_t:.1f} s (timeout {c.autopilot.timeout:g} s)")
             if c.to_autopilot.enabled:

@@ -56,6 +56,7 @@ class Publisher:
         # sample is kept for later subscribers, so it is always put.
         self.matching = True
         self._matching = None
+        self._zenoh_pub = self._pub
         if not latched and self._local is None and isinstance(self._pub, zenoh.Publisher):
             # the listener first, then the status: a change in between is not missed
             self._matching = self._pub.declare_matching_listener(self._on_matching)
@@ -65,7 +66,7 @@ class Publisher:
     def _on_matching(self, _status: Any) -> None:
         # the status now, not the event's: events of a route that moves (two peers' own link replacing
         # the router's brokering) may come in any order, and the last one read would stop the key for good
-        self.matching = bool(self._pub.matching_status.matching)
+        self.matching = bool(self._zenoh_pub.matching_status.matching)
 
     def put(self, msg: Any) -> None:
         if self._batch is not None:

@@ -256,7 +256,10 @@ def tool_target(connect: str | None = None, run: str | Path | None = None, tool:
     env_auth = os.environ.get(AUTH_ENV, "").strip()
     auth = None if tls else Path(env_auth) if env_auth else ptr.client_config if ptr is not None else None
     try:
-        zc = ZenohConfig(connect=endpoints, tls=TlsConfig(**tls) if tls else None, auth=auth)
+        # a client of the router, as rmw_zenoh has a remote tool (rviz) be: its samples take one path, through
+        # the router, in the order sent. A peer's path moves once gossip gives it its own link to a service
+        # (late on a loaded machine): a joint state sent that way overtook the trajectory played before it
+        zc = ZenohConfig(mode="client", connect=endpoints, tls=TlsConfig(**tls) if tls else None, auth=auth)
     except ValidationError as e:
         err = e.errors()[0]
         raise ConfigError(f"TLS from the environment: {err['msg'].removeprefix('Value error, ')}") from None

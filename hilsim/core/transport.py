@@ -87,6 +87,9 @@ def open_session(zc: ZenohConfig) -> zenoh.Session:
     try:
         return zenoh.open(zenoh_config(zc))
     except zenoh.ZError as e:
+        if "Unable to connect" in str(e):  # a client (a tool, a service of hilsim up): no router, or refused
+            raise ConnectionError(f"nothing answers at {', '.join(zc.connect)}, or it refused these credentials (no "
+                                  "router or simulation there, or not its run's; is the run up?)") from None
         raise ConnectionError(f"cannot open a Zenoh session (connect={zc.connect}): {e}") from e
 
 
