@@ -84,6 +84,7 @@ ROUTER_PRIORITY = 5  # realtime: SCHED_FIFO of the run's router (physics 10, the
 LOOP_PRIORITY = 8  # realtime: SCHED_FIFO the launcher gives the loop's services that asked for none
 PLANNING_PRIORITY = 1  # …and the planner or navigator: below every other, its plans are bursts of CPU
 RESTART_READY_TIMEOUT = 120.0  # wall seconds a restarted service has to announce itself
+REMOTE_LEAVE_TIMEOUT = 10.0  # s the recorder waits, at a run's end, for the other hosts' services to leave
 REMOTE_MISSES = 2  # --only: polls in a row that must miss a remote service's token before it has left
 REMOTE_GRACE_S = 10.0  # --only: how long a departed remote writer's samples are still its own
 
@@ -524,6 +525,7 @@ class Launcher:
                         c.proc.kill()
                     else:
                         if name == "logger":  # the loop has stopped: the recorder drains at full priority
+                            self._await_remote_leaving()
                             _renice(c.proc.pid, 0)  # (raising it back needs root or CAP_SYS_NICE; else as it was)
                         c.proc.send_signal(signal.SIGINT)
                         c.proc.send_signal(signal.SIGCONT)  # a stopped (suspended) service must handle it too
@@ -541,6 +543,29 @@ class Launcher:
             if self._router is not None:
                 self._router.close()
                 runs.remove_pointer(self._pointer)
+
+    def _await_remote_leaving(self, timeout: float = REMOTE_LEAVE_TIMEOUT) -> None:
+        """Several hosts: the recorder here stops once the other hosts' services have left (bounded), so
+        that what they sent last (their final health, counted in what they published) reaches it: one
+        host's recorder stopped first once, and a run that had lost nothing ended FAILED. Not when this host
+        was interrupted: the others may go on."""
+        if self.outcome.interrupted:
+            return
+        end = time.monotonic() + timeout
+        waited = False
+        last_poll = time.monotonic()
+        while time.monotonic() < end and not self.hurry:
+            with self.lock:
+                up = [s for s, on in self.remote.items() if on]
+            if not up:
+                break
+            waited = True
+            if time.monotonic() - last_poll > 1.0:  # a departure event can be lost (_poll_remote)
+                last_poll = time.monotonic()
+                self._poll_remote()
+            time.sleep(0.05)
+        if waited:
+            time.sleep(0.2)  # a sample put just before a token went may reach the recorder after the token's news
 
     def _silent(self, c: Child) -> bool:
         """A service physics waited for in vain (the run stalled on it), or whose process is stopped (SIGSTOP)."""
