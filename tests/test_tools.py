@@ -95,6 +95,8 @@ def test_a_tool_names_the_run_it_joins_and_never_guesses_between_two(runs_up: Ca
     t = runs.tool_target(tool="hilsim topic list")
     assert t.run is not None and t.run.run_dir == a.resolve(), _pointers_as_read()
     assert t.zenoh.auth == (a / transport.CLIENT_CONFIG).resolve()
+    # a client of the router, against a plain one too: one path, samples in order (docs/tools.md)
+    assert t.zenoh.mode == "client" and runs.tool_target("tcp/127.0.0.1:1").zenoh.mode == "client"
     said = t.describe()
     assert said.startswith("joined run ") and str(a) in said and "(scenario arm) at tcp/" in said, said
     b = runs_up("b")
