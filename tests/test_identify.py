@@ -229,3 +229,26 @@ def test_the_twin_file_extends_the_scenario_without_hardware(tmp_path: Path) -> 
     assert j.server == "sim" and j.interface == "position" and j.drive is not None
     assert j.drive.max_velocity == 2.49 and math.isinf(j.drive.max_acceleration) and j.drive.period == 0.002
     assert "# The twin of" in path.read_text() and "dead_time" in path.read_text().splitlines()[3]
+
+
+def test_a_fit_from_a_starved_run_says_so() -> None:
+    """The way from the controller's step to the drive varied (a busy machine): the fit's summary and its
+    JSON say so in a warning; a steady way says nothing."""
+    from hilsim.tools.identify import fit_summary
+
+    drive = DriveConfig(dead_time=0.012, natural_frequency=31.0, damping_ratio=0.62, max_velocity=2.49,
+                        max_acceleration=float("inf"), resolution=7.67e-4, period=0.002)
+    names = ["dead_time", "natural_frequency", "damping_ratio", "max_velocity"]
+
+    def fit(way: tuple[float, float]) -> Fit:
+        return Fit("joint_1", "position", drive, dict.fromkeys(names, 0.01), 1e-3, 5e-3, 0.4, 1000,
+                   {"velocity": 2.5, "acceleration": 20.0}, {"max_velocity": True, "max_acceleration": False},
+                   own_dead_time=0.010, way=way)
+
+    steady, starved = fit((0.0008, 0.0021)), fit((0.0009, 0.0310))
+    assert steady.starved() is None and "warning" not in fit_summary(steady)
+    assert steady.as_json()["warning"] is None
+    said = fit_summary(starved).splitlines()[-1]
+    assert said == ("  warning: the way to the drive varied: median 0.9 ms, 95 % within 31 ms (a busy machine?); "
+                    "the twin's dead time takes the median: identified on a quiet machine, it fits closer"), said
+    assert starved.as_json()["warning"] == said.removeprefix("  warning: ")

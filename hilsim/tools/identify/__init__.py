@@ -82,6 +82,8 @@ def fit_summary(f: Fit) -> str:
     enc = f"quantum {d.resolution:.3g} rad" if d.resolution else "no quantum (exact to 1e-6 rad)"
     out.append(f"  encoder: {enc}, a report every {d.period * 1e3:.3g} ms; residual RMS {f.rms:.3g} "
                f"(max {f.residual_max:.3g}) over {f.n} reports, against a motion of RMS {f.motion_rms:.3g}")
+    if (why := f.starved()) is not None:
+        out.append(f"  warning: {why}")
     return "\n".join(out)
 
 
