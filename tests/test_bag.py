@@ -196,8 +196,8 @@ def test_a_bag_reads_back_with_rosbags_mcap_ros2_and_ours(tmp_path: Path) -> Non
 
 def test_play_orders_by_sim_time_as_the_samples_appeared(tmp_path: Path) -> None:
     """Stamped samples at their stamp; cmd_vel (no stamp) and a trajectory (stamped with its future
-    start) at the latest stamp received before them; --clock skips the recorded /clock; --keys by
-    topic glob or key expression; --domain moves the keys."""
+    start) at the latest stamp received before them, a trajectory no later than 20 ms before its start;
+    --clock skips the recorded /clock; --keys by topic glob or key expression; --domain moves the keys."""
     from hilsim.tools.play import Selector, schedule
 
     w = BagWriter(tmp_path / "bag")
@@ -206,21 +206,26 @@ def test_play_orders_by_sim_time_as_the_samples_appeared(tmp_path: Path) -> None
         t = k * 1_000_000
         w.add(KEYS.clock, msgs.encode(msgs.Clock(clock=msgs.stamp(t))), T0 + 3 * k)
         w.add(js, msgs.encode(_js(t, k)), T0 + 3 * k + 1)
-        if k == 10:  # planned at 10 ms to start at 20 ms
-            w.add(traj, msgs.encode(msgs.JointTrajectory(header=msgs.header(20_000_000), joint_names=JOINTS)),
+        if k == 10:  # planned at 10 ms to start at 30 ms (the planner's lead)
+            w.add(traj, msgs.encode(msgs.JointTrajectory(header=msgs.header(30_000_000), joint_names=JOINTS)),
                   T0 + 3 * k + 2)
         if k == 15:
             w.add(cmd, msgs.encode(msgs.Twist()), T0 + 3 * k + 2)
+        if k == 27:  # planned at 5 ms to start at 25 ms, received by a busy recorder only after 27 ms
+            w.add(traj, msgs.encode(msgs.JointTrajectory(header=msgs.header(25_000_000), joint_names=JOINTS)),
+                  T0 + 3 * k + 2)
     w.close()
     bag = open_bag(tmp_path / "bag")
     items = schedule(bag, Selector(None), None, skip_clock=False)
     order = [(it.topic, it.sim_ns) for it in items]
     assert order.index(("/arm/joint_trajectory", 10_000_000)) == order.index(("/arm/joint_states", 10_000_000)) + 1
     assert order.index(("/arm/cmd_vel", 15_000_000)) == order.index(("/arm/joint_states", 15_000_000)) + 1
-    assert [s for _, s in order] == sorted(s for _, s in order) and len(items) == 62
+    # …but never later than the planner's lead (20 ms) before its start
+    assert order.index(("/arm/joint_trajectory", 5_000_000)) == order.index(("/arm/joint_states", 5_000_000)) + 1
+    assert [s for _, s in order] == sorted(s for _, s in order) and len(items) == 63
     only = schedule(bag, Selector("/arm/joint_*,0/clock/**"), 7, skip_clock=True)
     assert {it.topic for it in only} == {"/arm/joint_states", "/arm/joint_trajectory"}
-    assert {it.key.split("/")[0] for it in only} == {"7"} and len(only) == 31
+    assert {it.key.split("/")[0] for it in only} == {"7"} and len(only) == 32
     assert {it.topic for it in schedule(bag, Selector("0/clock/**"), None, skip_clock=False)} == {"/clock"}
 
 
@@ -647,8 +652,9 @@ def test_the_played_sensor_stream_gives_the_controllers_commands_bit_for_bit(arm
         got[msgs.ns_of(msgs.decode(msgs.JointState, data).header.stamp)] = data
 
     sub = s.declare_subscriber(Keys.of(sc).topic("joint_commands"), on)
+    traj_key = Keys.of(sc).topic("joint_trajectory")
     try:
-        with run_service(instantiate("controller", sc)):
+        with run_service(instantiate("controller", sc)) as ctl:
             p = subprocess.run([sys.executable, "-m", "hilsim.cli", "play", str(run), "--rate", "0.1", "--keys",
                                 "/arm/joint_states,/arm/joint_trajectory", "--connect", ep],
                                capture_output=True, text=True, timeout=120, cwd=REPO)
@@ -656,6 +662,9 @@ def test_the_played_sensor_stream_gives_the_controllers_commands_bit_for_bit(arm
             end = time.monotonic() + 10
             while len(got) < 1001 and time.monotonic() < end:
                 time.sleep(0.05)
+            # what the controller made of the trajectory, said should the commands differ
+            seen = (f"trajectory: {ctl.counts_in[traj_key]} in, {ctl.rejected[traj_key]} rejected, taken "
+                    f"{dict(ctl._taken)}; last error {ctl.last_error!r}; play said {p.stderr[-600:]!r}")
     finally:
         sub.undeclare()
         s.close()
@@ -666,7 +675,7 @@ def test_the_played_sensor_stream_gives_the_controllers_commands_bit_for_bit(arm
     assert 0 < traj.pub_ns < 1_000_000_000  # the trajectory starts within the run: the commands follow it
     assert sorted(got) == sorted(recorded)
     differ = [t for t in sorted(recorded) if got[t] != recorded[t]]
-    assert not differ, f"{len(differ)} commands differ, the first at {differ[0] / 1e9:.3f} s"
+    assert not differ, f"{len(differ)} commands differ, the first at {differ[0] / 1e9:.3f} s; {seen}"
 
 
 @pytest.mark.e2e

@@ -13,7 +13,10 @@
   the recorder had received before them. So a trajectory reaches its controller as many steps
   before its start as it did in the run: played at its start stamp instead, it raced the joint
   states of that step (another key, another publisher: Zenoh keeps no order between them) and
-  lost, by up to 10 steps, in one play of three at ``--rate 1``.
+  lost, by up to 10 steps, in one play of three at ``--rate 1``. A trajectory is played no later
+  than ``TRAJECTORY_LEAD_NS`` before its start, the lead hilsim's planner gives it: a recorder on
+  a busy machine received one after the joint states of its start step (its controller had it in
+  time), and a play in that order gave other commands from that step on.
 - A writer of its own, as a ROS 2 node would be: node ``hilsim_play`` in the graph (``NN`` token), one
   publisher per key with its ``MP`` token and the gid derived from it (rmw_zenoh's rule), rmw_zenoh
   attachments with its own sequence numbers from 1, so receivers' provenance checks
@@ -64,6 +67,9 @@ from hilsim.record.bag_read import Bag, BagMessage, open_bag
 NODE = "hilsim_play"
 # types whose header.stamp says when they take effect, not when they were sent
 STARTS_AT_STAMP = frozenset({"trajectory_msgs/msg/JointTrajectory"})
+# a trajectory is played at least this long (sim) before its start: the lead hilsim's planner sends it
+# with (services/planner.py, START_DELAY_NS)
+TRAJECTORY_LEAD_NS = 20_000_000
 
 
 @dataclass
@@ -119,6 +125,8 @@ def schedule(bag: Bag, select: Selector, domain: int | None, skip_clock: bool) -
             t = m.pub_ns
         else:
             t = latest
+            if m.type in STARTS_AT_STAMP and m.pub_ns:  # stamp 0: "now", nothing to go by
+                t = min(t, max(m.pub_ns - TRAJECTORY_LEAD_NS, 0))
         if skip_clock and m.topic == "/clock":
             continue
         key = key_of(m, domain)
