@@ -126,9 +126,11 @@ def main() -> int:
 
     def tick():  # 20 Hz: the checks and the driving, as a lab's node does it in a timer
         now = time.monotonic()
-        if "clock" in last and len(seen["clock_checks"]) < 20:
-            # the node's own clock (use_sim_time) against the last /clock it was given
-            seen["clock_checks"].append([node.get_clock().now().nanoseconds, last["clock"]])
+        sim_now = node.get_clock().now().nanoseconds
+        # the node's own clock (use_sim_time) against the last /clock it was given; 0 until rclpy's own
+        # /clock subscription has taken its first one (on a loaded machine, after ours had)
+        if "clock" in last and sim_now and len(seen["clock_checks"]) < 20:
+            seen["clock_checks"].append([sim_now, last["clock"]])
         have_all = all(seen["counts"].get(w, 0) > 0 for w in wanted)
         drive_done = True
         if a.drive == "trajectory":
