@@ -195,16 +195,17 @@ class CanBridgeService(Service):
                 for j in self.joints.values():  # start over; a drive that had a fault says so when it is back
                     j.hb = None
                     j.status, j.since = WAITING, time.monotonic()
+                self._update_holds()  # before saying so: whoever reads the line finds the state it names
                 self._info(f"CAN bus {self.cfg.bus.describe()} up" + (f" again (was: {was})" if was else ""))
             else:
                 self.bus_down = reason
                 for j in self.joints.values():
                     j.status, j.fault, j.since = FAULT, f"CAN bus down: {reason}", time.monotonic()
                     j.faults += 1
+                self._update_holds()  # before saying so (above)
                 self.fault(f"CAN bus {self.cfg.bus.describe()} down: {reason}; "
                            f"{', '.join(self.joints)} faulted, held by physics at their last measured state; "
                            f"retrying every {self.cfg.reconnect_interval:g} s")
-            self._update_holds()
 
     def _on_frame(self, frame: can.Message) -> None:
         if self.profile.direction(frame) == "to_drive":
@@ -285,21 +286,21 @@ class CanBridgeService(Service):
         if others:
             what += "; " + ("its other joints are held" if self.cfg.on_fault == "hold_all"
                             else "its other joints go on")
+        self._update_holds()  # before saying so (_on_bus)
         self.fault(f"{j.name} (node {j.node}): {reason}; {what}; trying to recover every "
                    f"{self.cfg.recover_interval:g} s")
-        self._update_holds()
 
     def _ok(self, j: BridgedJoint) -> None:
         was = j.fault
         j.status, j.fault, j.since = OK, "", time.monotonic()
         if j.interface == "position":
             j.rejoin, j.sp, j.sp_t = True, j.pos, time.monotonic()
+        self._update_holds()  # before saying so (_on_bus)
         if was:
             self._info(f"{j.name} (node {j.node}) recovered ({was}): closed-loop control again; "
                        + ("rejoining its command" if j.interface == "position" else "following its command"))
         else:
             self.log.info("%s (node %d) in closed-loop control (%s)", j.name, j.node, j.interface)
-        self._update_holds()
 
     def _update_holds(self) -> None:
         """Service state, and (``on_fault: hold_all``) hold or release the healthy drives."""
