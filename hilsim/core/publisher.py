@@ -63,10 +63,11 @@ class Publisher:
             self.matching = self._pub.matching_status.matching
         self._token = service.session.liveliness().declare_token(token)
 
-    def _on_matching(self, _status: Any) -> None:
-        # the status now, not the event's: events of a route that moves (two peers' own link replacing
-        # the router's brokering) may come in any order, and the last one read would stop the key for good
-        self.matching = bool(self._zenoh_pub.matching_status.matching)
+    def _on_matching(self, status: Any) -> None:
+        # on if the event or the status now says so: events of a route that moves (two peers' own link
+        # replacing the router's brokering) may come in any order, and a stale "no" would stop the key for
+        # good; a stale "yes" costs puts that reach nobody until the next event
+        self.matching = bool(status.matching) or bool(self._zenoh_pub.matching_status.matching)
 
     def put(self, msg: Any) -> None:
         if self._batch is not None:

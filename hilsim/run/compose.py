@@ -61,8 +61,9 @@ class _LocalPublisher:
         except (AttributeError, zenoh.ZError):  # an older binding: always send
             self._listener = None
 
-    def _on_matching(self, _status: Any) -> None:
-        self.remote = bool(self.pub.matching_status.matching)  # the status now (hilsim.core.publisher)
+    def _on_matching(self, status: Any) -> None:
+        # the event's or the status now (hilsim.core.publisher)
+        self.remote = bool(status.matching) or bool(self.pub.matching_status.matching)
 
     def deliver(self, msg: Any, att: transport.Attachment) -> None:
         self.cs.deliver(self.key, msg, att)
