@@ -56,18 +56,13 @@ class Publisher:
         # sample is kept for later subscribers, so it is always put.
         self.matching = True
         self._matching = None
-        self._zenoh_pub = self._pub
         if not latched and self._local is None and isinstance(self._pub, zenoh.Publisher):
-            # the listener first, then the status: a change in between is not missed
-            self._matching = self._pub.declare_matching_listener(self._on_matching)
             self.matching = self._pub.matching_status.matching
+            self._matching = self._pub.declare_matching_listener(self._on_matching)
         self._token = service.session.liveliness().declare_token(token)
 
     def _on_matching(self, status: Any) -> None:
-        # on if the event or the status now says so: events of a route that moves (two peers' own link
-        # replacing the router's brokering) may come in any order, and a stale "no" would stop the key for
-        # good; a stale "yes" costs puts that reach nobody until the next event
-        self.matching = bool(status.matching) or bool(self._zenoh_pub.matching_status.matching)
+        self.matching = bool(status.matching)
 
     def put(self, msg: Any) -> None:
         if self._batch is not None:

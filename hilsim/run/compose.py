@@ -56,14 +56,13 @@ class _LocalPublisher:
         # physics' truth/imu goes to the sensors in the process and nowhere else)
         self.remote = True
         try:
-            self._listener = pub.declare_matching_listener(self._on_matching)
             self.remote = pub.matching_status.matching
+            self._listener = pub.declare_matching_listener(self._on_matching)
         except (AttributeError, zenoh.ZError):  # an older binding: always send
             self._listener = None
 
     def _on_matching(self, status: Any) -> None:
-        # the event's or the status now (hilsim.core.publisher)
-        self.remote = bool(status.matching) or bool(self.pub.matching_status.matching)
+        self.remote = bool(status.matching)
 
     def deliver(self, msg: Any, att: transport.Attachment) -> None:
         self.cs.deliver(self.key, msg, att)
