@@ -42,6 +42,7 @@ from rosbags.typesys.msg import get_types_from_msg
 from util import UpRun, wait_until
 from zenoh.ext import Int64, z_deserialize, z_serialize
 
+from hilsim.core import msgs
 from hilsim.core.keys import Keys
 from hilsim.core.ros2 import types as hilsim_types
 
@@ -301,7 +302,7 @@ class Truth:
     def _on(self, m: Any, _att: Any) -> None:
         with self.lock:
             self.last, self.count = m, self.count + 1
-            self.stamps.append(m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec)
+            self.stamps.append(msgs.ns_of(m.header.stamp))
             self.positions.append(np.array(m.position))
 
     def at(self, t_ns: int, timeout: float = 15.0) -> np.ndarray:
@@ -388,7 +389,7 @@ def test_follow_joint_trajectory(router: str, tmp_path: Path) -> None:
         # the result came at the step of the last feedback or within one feedback period (20 Hz) after
         # it: the truth of the step after that is at the target (task.tolerance 0.01, measured, + encoder
         # noise)
-        after = fb[-1].header.stamp.sec * 1_000_000_000 + fb[-1].header.stamp.nanosec + 50_000_000
+        after = msgs.ns_of(fb[-1].header.stamp) + 50_000_000
         assert np.max(np.abs(truth.at(after) - target)) < 0.012, truth.at(after)
         assert len(fb) >= 5, len(fb)
         assert list(fb[-1].joint_names) == ARM_JOINTS
@@ -456,7 +457,7 @@ def test_move_action(router: str, tmp_path: Path) -> None:
         result = result_of(pending, 90)
         assert result.status == SUCCEEDED and result.result.success and result.result.error_code == 1, result
         assert result.result.goal_id == str(uuid.UUID(bytes=gid))  # hilsim's id of the action goal
-        done = result.result.header.stamp.sec * 1_000_000_000 + result.result.header.stamp.nanosec
+        done = msgs.ns_of(result.result.header.stamp)
         assert np.max(np.abs(truth.at(done) - left)) < 0.012, truth.at(done)  # the truth of the result's step
         states = [f.state for f in client.feedback[gid]]
         assert "planning" in states and "executing" in states, states
