@@ -142,10 +142,14 @@ class PlannerService(Service):
         # one model for the query handlers (validation, IK), one for the planning worker
         self.arm = ArmModel(scenario.world.model, scenario.planner.clearance)
         self.plan_arm = ArmModel(scenario.world.model, scenario.planner.clearance, self.arm.joint_names)
+        self.auto_fallbacks = 0  # planner: auto plans that went to its fallback (a robot its model does not know)
         if hasattr(default, "prepare"):  # planner: auto builds its world's features now, not on the first goal
             default.prepare(self.plan_arm)
+            if hasattr(default, "unfit") and default.unfit(self.plan_arm):
+                self.log.warning("%s", default.fallback_text(self.plan_arm))
         self.n = self.arm.n
-        self.vmax, self.amax, self.jmax = self.library.joint_limits(self.n, self.arm.velocity_limits())
+        self.vmax, self.amax, self.jmax = self.library.joint_limits(self.n, self.arm.velocity_limits(),
+                                                                    self.arm.joint_names)
         self.q: np.ndarray | None = None  # latest measured joint positions (model order)
         self.last_target: np.ndarray | None = None  # target of the last goal reached
         self.active: Goal | None = None
@@ -216,6 +220,7 @@ class PlannerService(Service):
             "handovers": self.handovers,
             "trajectories_resent": self.resent,
             "handover_wait_max_s": round(self.handover_wait_max, 4),
+            "auto_fallbacks": self.auto_fallbacks,
         }
 
     # ------------------------------------------------------------------ goal validation
@@ -614,6 +619,8 @@ class PlannerService(Service):
             goal.planning_wall = wall
             goal.used = str(out.extra.get("planner", goal.planner))
             goal.choice = str(out.extra.get("choice", ""))
+            if out.extra.get("auto_fallback"):
+                self.auto_fallbacks += 1
             if out.wall_cap_hit:
                 self.warn(f"{goal.goal_id}: planning hit the wall-clock cap ({pb.time_limit:g} s): not deterministic")
             if goal.canceled or goal.state != "planning":

@@ -51,6 +51,7 @@ MODEL_DIR = MODELS_DIR / "planner_choice"
 MODEL_FILE = "model.pkl"
 MANIFEST_FILE = "manifest.json"
 DEFAULT_CRITERION = "weighted"
+DEFAULT_FALLBACK = "improved_rrtstar"  # auto's planner for an arm its model was not trained for
 # extremely randomised trees: chosen over random forests and other leaf sizes and feature fractions by
 # a five-fold cross-validation over the training scenes (grouped by scene), the held-out scenes unseen
 FOREST = {"n_estimators": 60, "min_samples_leaf": 1, "max_features": 1.0}
@@ -224,6 +225,27 @@ class Decision:
         return head + " < ".join(parts) + tail
 
 
+def robot_signature(arm: ArmModel) -> dict[str, Any]:
+    """What a model is trained for: the arm's joints and a hash of its kinematics (each joint's body place,
+    orientation and axis, and the tool site), the same in every scene built around the same arm."""
+    m = arm.model
+    h = hashlib.sha256()
+    for j in arm.joint_ids:
+        b = int(m.jnt_bodyid[j])
+        for v in (m.body_pos[b], m.body_quat[b], m.jnt_axis[j], m.jnt_pos[j]):
+            h.update(np.round(np.asarray(v, float), 6).tobytes())
+    tool = mujoco_site(arm, "tool")
+    if tool >= 0:
+        h.update(np.round(np.asarray(m.site_pos[tool], float), 6).tobytes())
+    return {"joints": list(arm.joint_names), "kinematics_sha256": h.hexdigest()[:16]}
+
+
+def mujoco_site(arm: ArmModel, name: str) -> int:
+    import mujoco
+
+    return int(mujoco.mj_name2id(arm.model, mujoco.mjtObj.mjOBJ_SITE, name))
+
+
 _FEATURES: weakref.WeakKeyDictionary[ArmModel, FeatureModel] = weakref.WeakKeyDictionary()
 _WARM: weakref.WeakSet[ArmModel] = weakref.WeakSet()  # collision models a decision was made for
 
@@ -243,10 +265,10 @@ class AutoPlanner:
 
     def __init__(self, name: str, params: dict[str, Any], library: PlannerLibrary, criterion: str | None = None
                  ) -> None:
-        unknown = set(params) - {"model", "fallbacks", "criterion"}
+        unknown = set(params) - {"model", "fallbacks", "criterion", "fallback"}
         if unknown:
             raise PlannerConfigError(f"planner {name!r}: unknown parameter(s) {sorted(unknown)}; "
-                                     "expected model, fallbacks, criterion")
+                                     "expected model, fallbacks, criterion, fallback")
         self.name = name
         self.library = library
         model = Path(str(params.get("model", MODEL_DIR)))
@@ -261,12 +283,38 @@ class AutoPlanner:
         if not self.candidates:
             raise PlannerConfigError(f"planner {name!r}: none of the model's planners {self.model.planners} "
                                      "is in the library")
+        # the planner for an arm the model was not trained for (it says so, once per arm, and plans)
+        self.fallback = str(params.get("fallback", DEFAULT_FALLBACK))
+        if self.fallback not in library.specs or library.specs[self.fallback].get("kind") == "auto":
+            raise PlannerConfigError(f"planner {name!r}: fallback {self.fallback!r} is not a planner of the library")
+        # arm -> why the model does not fit it ("" = it fits)
+        self._foreign: weakref.WeakKeyDictionary[ArmModel, str] = weakref.WeakKeyDictionary()
+
+    def unfit(self, arm: ArmModel) -> str:
+        """Why the model cannot choose for ``arm`` (trained for another robot), or "" when it can."""
+        key = arm
+        if key not in self._foreign:
+            want = self.model.manifest.get("robot")
+            have = robot_signature(arm)
+            why = ""
+            if not isinstance(want, dict):
+                why = f"{self.model_dir / MANIFEST_FILE} names no robot it was trained for"
+            elif want.get("joints") != have["joints"] or want.get("kinematics_sha256") != have["kinematics_sha256"]:
+                why = (f"its model ({self.model_dir}) was trained for the arm with joints "
+                       f"{', '.join(want.get('joints') or [])} ({want.get('model', '?')}), not "
+                       f"{arm.path.name} ({', '.join(have['joints'])})")
+            self._foreign[key] = why
+        return self._foreign[key]
+
+    def fallback_text(self, arm: ArmModel) -> str:
+        return (f"planner auto: {self.unfit(arm)}: planning with {self.fallback}; retrain it for this arm with "
+                "`hilsim plan learn --scenario FILE --out DIR` and name DIR in the library's auto params.model")
 
     def prepare(self, arm: ArmModel) -> None:
         """Before the first goal: build the world's feature model (its scene features take a few ms)
         and decide once, so that the first real decision is as quick as the others (the first call of
         every code path costs more). Once per collision model."""
-        if arm in _WARM:
+        if arm in _WARM or self.unfit(arm):
             return
         mid = (arm.lower + arm.upper) / 2
         self.decide(arm, mid, np.clip(mid + 0.5, arm.lower, arm.upper))
@@ -284,6 +332,13 @@ class AutoPlanner:
         return Decision(self.criterion, ranking, s, ok, time.thread_time() - t0)
 
     def solve(self, pb: Problem) -> PlanOutcome:
+        if self.unfit(pb.arm):  # never a choice for a robot the model has not seen: the default, said so
+            why = self.fallback_text(pb.arm)
+            if pb.report is not None:
+                pb.report(self.fallback, why)
+            out = self.library.create(self.fallback).solve(pb)
+            out.extra = dict(out.extra, planner=self.fallback, choice=why, auto_fallback="robot")
+            return out
         decision = self.decide(pb.arm, pb.start, pb.goal)
         if pb.report is not None:
             pb.report(decision.ranking[0], decision.text())

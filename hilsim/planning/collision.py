@@ -23,6 +23,7 @@ import mujoco
 import numpy as np
 
 VELOCITY_LIMIT_NUMERIC = "arm_joint_velocity_limit"
+UNLIMITED = 2 * np.pi  # the planning bounds of a continuous joint [rad]
 
 
 @dataclass
@@ -59,8 +60,11 @@ class ArmModel:
         self.qpos_adr = m.jnt_qposadr[self.joint_ids]
         self.dof_adr = m.jnt_dofadr[self.joint_ids]
         limited = m.jnt_limited[self.joint_ids].astype(bool)
-        self.lower = np.where(limited, m.jnt_range[self.joint_ids, 0], -np.pi)
-        self.upper = np.where(limited, m.jnt_range[self.joint_ids, 1], np.pi)
+        # a continuous (unlimited) joint plans within one turn either way of zero: any angle and the
+        # way to it the short way round from any start within a turn
+        self.continuous = ~limited
+        self.lower = np.where(limited, m.jnt_range[self.joint_ids, 0], -UNLIMITED)
+        self.upper = np.where(limited, m.jnt_range[self.joint_ids, 1], UNLIMITED)
         self.n = len(self.joint_names)
         self.clearance = float(clearance)
         m.geom_margin[:] = self.clearance
@@ -75,6 +79,25 @@ class ArmModel:
         self._reset = m.nq != len(a)
 
     # ------------------------------------------------------------------ limits
+    def home(self) -> np.ndarray:
+        """The arm's start pose: the model's ``home`` keyframe if it has one, else its ``qpos0``, within
+        the limits."""
+        m = self.model
+        k = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_KEY, "home")
+        q = (m.key_qpos[k] if k >= 0 else m.qpos0)[self.qpos_adr]
+        return np.clip(np.asarray(q, float), self.lower, self.upper)
+
+    def sampling_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Where random configurations of this arm are drawn: within the limits, and for a joint that turns
+        more than once (±2π, continuous) one turn centred on the home pose. Each physical pose once: a
+        joint range of two turns holds every pose twice, and the copies are often cut off from each
+        other (the UR5's shoulder would have to swing its arm through the table from one to the other)."""
+        home = self.home()
+        wide = (self.upper - self.lower) > 2 * np.pi + 1e-9
+        lo = np.where(wide, np.maximum(self.lower, home - np.pi), self.lower)
+        hi = np.where(wide, np.minimum(self.upper, home + np.pi), self.upper)
+        return lo, hi
+
     def velocity_limits(self) -> np.ndarray | None:
         """Per-joint velocity limits from the model's custom numeric, if it has one."""
         m = self.model
@@ -116,11 +139,21 @@ class ArmModel:
 
     def contacts(self, q: np.ndarray) -> list[Contact]:
         n = self._collide(q)
-        m = self.model
         out = []
         for c in self.data.contact[:n]:
-            out.append(Contact(m.geom(int(c.geom1)).name, m.geom(int(c.geom2)).name, float(c.dist)))
+            out.append(Contact(self.geom_label(int(c.geom1)), self.geom_label(int(c.geom2)), float(c.dist)))
         return out
+
+    def geom_label(self, g: int) -> str:
+        """How a collision message names a geom: its name, else its body's (a URDF's link: MuJoCo's
+        URDF reader leaves geoms unnamed), with the geom's index when the body has several."""
+        m = self.model
+        name = m.geom(g).name
+        if name:
+            return name
+        b = int(m.geom_bodyid[g])
+        body = m.body(b).name or ("world" if b == 0 else f"body {b}")
+        return body if m.body_geomnum[b] <= 1 else f"{body} (geom {g})"
 
     def why_invalid(self, q: np.ndarray) -> tuple[str, str] | None:
         """``None`` if valid, else (``limits`` | ``collision``, one-line reason)."""

@@ -29,6 +29,7 @@ on the seed and the budget (iteration count), not on what ran before in the proc
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -45,10 +46,20 @@ PARAMS = {"range": 0.6, "goal_bias": 0.1, "w_length": 1.0, "w_turn": 0.3, "rewir
 
 
 class ImprovedRRTStar:
-    def __init__(self, name: str = "improved_rrtstar", params: dict[str, Any] | None = None) -> None:
+    """``first_path``: a planner that finds a first path when this one has none after its budget
+    (``max_iterations``): its path goes into the tree, which then goes on improving it under this
+    planner's cost for another budget. In a large joint space (±2π and continuous joints) a
+    one-tree RRT* may find no path in 20,000 iterations where RRT-Connect's two trees meet in a few
+    hundred; where this planner finds its own path within the budget, nothing changes."""
+
+    def __init__(self, name: str = "improved_rrtstar", params: dict[str, Any] | None = None,
+                 first_path: Callable[[Problem], PlanOutcome] | None = None) -> None:
         self.name = name
+        self.first_path = first_path
         self.params = dict(PARAMS)
         for k, v in (params or {}).items():
+            if k == "first_path":
+                continue  # the library's: which planner (by name) gives first_path
             if k not in PARAMS:
                 raise PlannerConfigError(f"planner {name!r}: unknown parameter {k!r}; expected {sorted(PARAMS)}")
             self.params[k] = float(v)
@@ -163,7 +174,9 @@ class ImprovedRRTStar:
                     shift_subtree(ch, d)
             return k
 
-        while not budget.done(goal_node >= 0):
+        def iterate() -> None:
+            """One iteration of the RRT* loop: sample, extend, choose the parent, rewire, try the goal."""
+            nonlocal goal_node
             budget.iterations += 1
             # once the goal is in the tree, its parent improves through the direct connections
             # below; sampling the goal again would only add a duplicate goal node
@@ -179,10 +192,10 @@ class ImprovedRRTStar:
                 nearest = int(np.argmin(d2))
             dist = float(np.sqrt(d2[nearest]))
             if dist < 1e-9:
-                continue
+                return
             x_new = x_rand if dist <= rmax else X[nearest] + (x_rand - X[nearest]) * (rmax / dist)
             if not arm.is_valid(x_new) or not arm.motion_valid(X[nearest], x_new, res):
-                continue
+                return
             dn = np.sqrt(np.sum((X[:size] - x_new) ** 2, axis=1))
             k_near = k_nearest_count(size, n, rf)
             near = np.argsort(dn)[:k_near]
@@ -191,15 +204,15 @@ class ImprovedRRTStar:
             if np.array_equal(x_new, goal):
                 if goal_node < 0:
                     goal_node = k
-                continue
+                return
             # target orientation: a node that sees the goal within range connects to it directly
             dg = float(np.linalg.norm(goal - x_new))
             if dg > rmax:
-                continue
+                return
             c = cost[k] + edge(k, goal)
             # the cost first: a connection that would not improve the goal's is not worth checking
             if goal_node >= 0 and (c >= cost[goal_node] or children[goal_node]):
-                continue
+                return
             if arm.motion_valid(x_new, goal, res):
                 if goal_node < 0:
                     goal_node = add(goal.copy(), k, c)
@@ -208,6 +221,34 @@ class ImprovedRRTStar:
                     parent[goal_node] = k
                     children[k].append(goal_node)
                     cost[goal_node] = c
+
+        def seed_path(path: np.ndarray) -> None:
+            """Another planner's path into the tree, waypoint after waypoint (each segment is a checked
+            motion, so the previous waypoint is a valid parent; choose-parent and rewire as usual)."""
+            nonlocal goal_node
+            prev = 0
+            for x in path[1:]:
+                x = np.asarray(x, float)
+                if float(np.linalg.norm(x - X[prev])) < 1e-12:
+                    continue
+                dn = np.sqrt(np.sum((X[:size] - x) ** 2, axis=1))
+                near = np.argsort(dn)[: k_nearest_count(size, n, rf)]
+                near = near[dn[near] <= NEAR_RADIUS_FACTOR * rmax]
+                prev = insert(x, near, prev)
+            goal_node = prev
+
+        seeded = ""
+        while not budget.done(goal_node >= 0):
+            if (goal_node < 0 and self.first_path is not None and budget.max_it is not None and not seeded
+                    and budget.iterations >= budget.max_it):
+                first = self.first_path(pb)
+                budget.iterations += first.iterations
+                seeded = getattr(getattr(self.first_path, "__self__", None), "name", "another planner")
+                if first.path is not None and np.array_equal(first.path[-1], goal):
+                    seed_path(np.asarray(first.path, float))
+                    budget.max_it = budget.iterations + budget.max_it  # a budget more to improve it
+                    continue
+            iterate()
         elapsed = budget.elapsed()
         if goal_node < 0:
             return PlanOutcome(None, f"{self.name}: {budget.why_failed()}", budget.iterations, elapsed,
@@ -218,5 +259,9 @@ class ImprovedRRTStar:
             path.append(X[k].copy())
             k = parent[k]
         pts = np.array(path[::-1])
-        return PlanOutcome(pts, "ok", budget.iterations, elapsed, budget.wall_cap_hit,
-                           {"cost": cost[goal_node], "nodes": size})
+        extra: dict[str, Any] = {"cost": cost[goal_node], "nodes": size}
+        msg = "ok"
+        if seeded:
+            extra["first_path"] = seeded
+            msg = f"ok (first path by {seeded}, improved)"
+        return PlanOutcome(pts, msg, budget.iterations, elapsed, budget.wall_cap_hit, extra)

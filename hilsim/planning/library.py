@@ -195,7 +195,11 @@ class PlannerLibrary:
         if kind == "ompl":
             return OmplPlanner(name, str(spec["class"]), params)
         if kind == "improved_rrtstar":
-            return ImprovedRRTStar(name, params)
+            first = params.get("first_path")
+            if first is not None and (first == name or first not in self.specs):
+                raise PlannerConfigError(f"{self.path}: planners.{name}.params.first_path: expected another "
+                                         f"planner of the library, got {first!r}")
+            return ImprovedRRTStar(name, params, self.create(str(first)).solve if first else None)
         if kind == "auto":
             from hilsim.planning.choice import AutoPlanner
 
@@ -211,18 +215,47 @@ class PlannerLibrary:
             return factory(name, params)
         raise PlannerConfigError(f"planner {name!r}: unknown kind {kind!r} (ompl, improved_rrtstar, auto, plugin)")
 
-    def joint_limits(self, n: int, model_velocity: np.ndarray | None = None) -> tuple[np.ndarray, ...]:
-        """Per-joint (velocity, acceleration, jerk) limits for trajectories: from ``limits:`` in the
-        library, the velocity capped by the model's own limit when it has one."""
-        def vec(key: str, default: float) -> np.ndarray:
-            v = self.limits.get(key, default)
-            a = np.array(v if isinstance(v, list) else [v] * n, dtype=float)
+    def joint_limits(self, n: int, model_velocity: np.ndarray | None = None,
+                     joint_names: list[str] | None = None) -> tuple[np.ndarray, ...]:
+        """Per-joint (velocity, acceleration, jerk) limits for trajectories, sized to the arm's ``n`` joints.
+
+        Each of ``limits.velocity|acceleration|jerk`` in the library is a number (every joint), a list of
+        ``n`` numbers, or a mapping from joint names to numbers (``default:`` for the joints it does not
+        name; names of other robots' joints are ignored, so one library serves several arms). A joint
+        the entry does not cover gets its default: the velocity from the model's own limit
+        (``arm_joint_velocity_limit``, from the URDF) or 1 rad/s, the acceleration 2x and the jerk 10x
+        the velocity (per second). The velocity is always capped by the model's own limit."""
+        names = list(joint_names) if joint_names is not None else [f"joint_{i + 1}" for i in range(n)]
+        base_v = np.array(model_velocity, float) if model_velocity is not None else np.ones(n)
+        factors = {"velocity": 1.0, "acceleration": 2.0, "jerk": 10.0}
+
+        def vec(key: str) -> np.ndarray:
+            v = self.limits.get(key)
+            default = base_v * factors[key]
+            what = f"{self.path}: limits.{key}"
+            if v is None:
+                a = default
+            elif isinstance(v, dict):
+                d = v.get("default")
+                a = np.array([float(v.get(j, d)) if v.get(j, d) is not None else default[i]
+                              for i, j in enumerate(names)], dtype=float)
+            elif isinstance(v, list):
+                if len(v) != n:
+                    raise PlannerConfigError(f"{what}: expected a number, {n} numbers (one per joint of "
+                                             f"{', '.join(names)}) or a mapping joint: number, got {len(v)}")
+                a = np.array(v, dtype=float)
+            else:
+                a = np.full(n, float(v))
             if a.shape != (n,) or not np.all(np.isfinite(a)) or np.any(a <= 0):
-                raise PlannerConfigError(f"limits.{key}: expected a positive number or {n} positive numbers")
+                raise PlannerConfigError(f"{what}: expected positive numbers, got {a.tolist()}")
             return a
 
-        v = vec("velocity", 1.0)
+        try:
+            v, acc, jerk = vec("velocity"), vec("acceleration"), vec("jerk")
+        except (TypeError, ValueError) as e:
+            if isinstance(e, PlannerConfigError):
+                raise
+            raise PlannerConfigError(f"{self.path}: limits: expected numbers ({e})") from None
         if model_velocity is not None:
             v = np.minimum(v, model_velocity)
-        return v, vec("acceleration", 2.0), vec("jerk", 10.0)
-
+        return v, acc, jerk

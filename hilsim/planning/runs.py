@@ -93,7 +93,8 @@ class RunContext:
         self.criterion = criterion
         self.queries = queries
         self.arms = {name: ArmModel(path, clearance) for name, path in models.items()}
-        self.limits = {name: library.joint_limits(a.n, a.velocity_limits()) for name, a in self.arms.items()}
+        self.limits = {name: library.joint_limits(a.n, a.velocity_limits(), a.joint_names)
+                       for name, a in self.arms.items()}
         if warm is not None:  # e.g. the planner choice's model and scene features, loaded once for all children
             for a in self.arms.values():
                 warm(a)

@@ -94,7 +94,17 @@ def _relative(p: Path, base: Path) -> str:
 
 
 # ---------------------------------------------------------------------------------- random scenes
-def _box(name: str, x: float, y: float, z: float, sx: float, sy: float, sz: float, yaw: float = 0.0) -> str:
+# An obstacle box: name, centre x y z, half sizes, yaw about z. The built-in arm's scenes are written as MJCF
+# text including its arm.xml; another arm's are its world with the boxes added (MjSpec), scaled to its reach.
+Box = tuple[str, float, float, float, float, float, float, float]
+
+
+def _box(name: str, x: float, y: float, z: float, sx: float, sy: float, sz: float, yaw: float = 0.0) -> Box:
+    return (name, x, y, z, sx, sy, sz, yaw)
+
+
+def _box_xml(b: Box) -> str:
+    name, x, y, z, sx, sy, sz, yaw = b
     return (f'<geom name="{name}" type="box" pos="{x:.4f} {y:.4f} {z:.4f}" size="{sx:.4f} {sy:.4f} {sz:.4f}" '
             f'euler="0 0 {yaw:.4f}" rgba="0.8 0.3 0.2 1"/>')
 
@@ -105,41 +115,50 @@ def _on_table(rng: np.random.Generator, r_lo: float = 0.16, r_hi: float = 0.36) 
     return r * math.cos(th), r * math.sin(th), th
 
 
-def scene_geoms(kind: str, rng: np.random.Generator) -> list[str]:
-    """The obstacle geoms of a random scene of ``kind`` (the table is always there)."""
+def scene_boxes(kind: str, rng: np.random.Generator, scale: float = 1.0) -> list[Box]:
+    """The obstacle boxes of a random scene of ``kind`` around an arm at the origin on a table top at z = 0
+    (the table itself is always there); every length times ``scale`` (1: the built-in arm's reach)."""
+    k_ = scale
     if kind == "free":
         return []
     if kind == "boxes":
         out = []
         for k in range(int(rng.integers(1, 5))):
-            x, y, th = _on_table(rng)
-            sx, sy, sz = rng.uniform(0.015, 0.06), rng.uniform(0.015, 0.06), rng.uniform(0.04, 0.2)
+            x, y, th = _on_table(rng, 0.16 * k_, 0.36 * k_)
+            sx, sy, sz = (rng.uniform(0.015, 0.06) * k_, rng.uniform(0.015, 0.06) * k_, rng.uniform(0.04, 0.2) * k_)
             out.append(_box(f"obstacle_{k}", x, y, sz, sx, sy, sz, th))
         return out
     if kind == "window":
         # a wall across the bearing th at distance r: two posts and a bar leave a window of width w,
         # height h above a low block; the arm reaches through the window or around the posts
-        x, y, th = _on_table(rng, 0.2, 0.3)
-        w, h = rng.uniform(0.16, 0.3), rng.uniform(0.25, 0.42)
+        x, y, th = _on_table(rng, 0.2 * k_, 0.3 * k_)
+        w, h = rng.uniform(0.16, 0.3) * k_, rng.uniform(0.25, 0.42) * k_
         tx, ty = -math.sin(th), math.cos(th)  # along the wall
-        half = w / 2 + 0.03
-        post_h = h / 2 + 0.02
+        half = w / 2 + 0.03 * k_
+        post_h = h / 2 + 0.02 * k_
+        t = 0.03 * k_
         return [
-            _box("post_a", x + half * tx, y + half * ty, post_h, 0.03, 0.03, post_h, th),
-            _box("post_b", x - half * tx, y - half * ty, post_h, 0.03, 0.03, post_h, th),
-            _box("bar", x, y, h + 0.02, 0.03, half + 0.03, 0.02, th),
-            _box("block", x, y, rng.uniform(0.05, 0.13), 0.03, 0.03, rng.uniform(0.05, 0.13), th),
+            _box("post_a", x + half * tx, y + half * ty, post_h, t, t, post_h, th),
+            _box("post_b", x - half * tx, y - half * ty, post_h, t, t, post_h, th),
+            _box("bar", x, y, h + 0.02 * k_, t, half + t, 0.02 * k_, th),
+            _box("block", x, y, rng.uniform(0.05, 0.13) * k_, t, t, rng.uniform(0.05, 0.13) * k_, th),
         ]
     if kind == "shelf":
-        x, y, th = _on_table(rng, 0.2, 0.32)
-        z, half = rng.uniform(0.12, 0.3), rng.uniform(0.08, 0.18)
+        x, y, th = _on_table(rng, 0.2 * k_, 0.32 * k_)
+        z, half = rng.uniform(0.12, 0.3) * k_, rng.uniform(0.08, 0.18) * k_
         tx, ty = -math.sin(th), math.cos(th)
+        leg = 0.015 * k_
         return [
-            _box("board", x, y, z, rng.uniform(0.05, 0.1), half, 0.01, th),
-            _box("leg_a", x + half * tx, y + half * ty, z / 2, 0.015, 0.015, z / 2, th),
-            _box("leg_b", x - half * tx, y - half * ty, z / 2, 0.015, 0.015, z / 2, th),
+            _box("board", x, y, z, rng.uniform(0.05, 0.1) * k_, half, 0.01 * k_, th),
+            _box("leg_a", x + half * tx, y + half * ty, z / 2, leg, leg, z / 2, th),
+            _box("leg_b", x - half * tx, y - half * ty, z / 2, leg, leg, z / 2, th),
         ]
     raise ValueError(f"unknown scene kind {kind!r}; expected one of {KINDS}")
+
+
+def scene_geoms(kind: str, rng: np.random.Generator) -> list[str]:
+    """The built-in arm's obstacle geoms (MJCF text) of a random scene of ``kind``."""
+    return [_box_xml(b) for b in scene_boxes(kind, rng)]
 
 
 def scene_xml(name: str, kind: str, geoms: list[str], arm_xml: str) -> str:
@@ -151,14 +170,17 @@ def scene_xml(name: str, kind: str, geoms: list[str], arm_xml: str) -> str:
 
 def sample_queries(arm: ArmModel, n: int, rng: np.random.Generator, blocked: float = 0.5,
                    max_tries: int = 20000) -> list[tuple[np.ndarray, np.ndarray]]:
-    """``n`` queries: starts and goals drawn uniformly within the joint limits, valid (no contact
+    """``n`` queries: starts and goals drawn uniformly within the joint limits (one turn about the home
+    pose for joints that turn more: :meth:`ArmModel.sampling_bounds`), valid (no contact
     closer than the clearance), rounded to 1e-6 rad (as a scenes file keeps them), at least 0.5 rad
     apart (max-norm) so that there is something to plan. A fraction ``blocked`` of them (every
     second one at 0.5) must have a straight joint line that collides: drawn uniformly, most
     queries could go straight, which is not where planners differ."""
+    lo, hi = arm.sampling_bounds()
+
     def valid_q() -> np.ndarray:
         for _ in range(max_tries):
-            q = np.round(rng.uniform(arm.lower, arm.upper), 6)
+            q = np.round(rng.uniform(lo, hi), 6)
             if arm.is_valid(q):
                 return q
         raise ConfigError(f"{arm.path}: no valid configuration in {max_tries} random draws")
@@ -180,20 +202,83 @@ def sample_queries(arm: ArmModel, n: int, rng: np.random.Generator, blocked: flo
 
 
 def generate_scenes(out_dir: Path, count: int, seed: int, queries: int, clearance: float = 0.005,
-                    prefix: str = "gen") -> dict[str, Scene]:
+                    prefix: str = "gen", world: Path | None = None) -> dict[str, Scene]:
     """``count`` random scenes (kinds drawn with KIND_WEIGHTS), their MJCF files written into
-    ``out_dir``, each with ``queries`` sampled queries; everything from ``seed``."""
+    ``out_dir``, each with ``queries`` sampled queries; everything from ``seed``. ``world``: another arm's
+    world (a scenario's ``world.model``), the obstacles placed and sized for its reach
+    (:func:`world_scene_xml`); without it, the built-in arm on its table."""
     rng = np.random.default_rng(seed)
     out_dir.mkdir(parents=True, exist_ok=True)
+    frame = arm_frame(world, clearance) if world is not None else None
     scenes = {}
     for i in range(count):
         kind = str(rng.choice(KINDS, p=KIND_WEIGHTS))
         name = f"{prefix}{seed}_{i:03d}_{kind}"
         path = out_dir / f"{name}.xml"
-        path.write_text(scene_xml(name, kind, scene_geoms(kind, rng), _relative(ARM_XML, out_dir)))
+        if world is None or frame is None:
+            path.write_text(scene_xml(name, kind, scene_geoms(kind, rng), _relative(ARM_XML, out_dir)))
+        else:
+            path.write_text(world_scene_xml(world, name, kind, scene_boxes(kind, rng, frame[1]), frame[0], out_dir))
         arm = ArmModel(path, clearance)
         scenes[name] = Scene(name, path.resolve(), sample_queries(arm, queries, rng), kind)
     return scenes
+
+
+BUILTIN_REACH = 0.651  # m: the built-in arm's reach as arm_frame measures it (scale 1 of scene_boxes)
+REACH_SAMPLES = 256
+
+
+def arm_frame(world: Path, clearance: float = 0.005) -> tuple[np.ndarray, float]:
+    """(where the arm's base stands, its reach as a multiple of the built-in arm's) in a world: the base is
+    the arm's root body at the home pose, the reach the farthest the ``tool`` site gets from it over
+    random poses (a fixed seed)."""
+    import mujoco
+
+    arm = ArmModel(world, clearance)
+    m = arm.model
+    b = int(m.jnt_bodyid[arm.joint_ids[0]])
+    while int(m.body_parentid[b]) != 0:
+        b = int(m.body_parentid[b])
+    arm.set_q(arm.home())
+    base = arm.data.xpos[b].copy()
+    site = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, "tool")
+    if site < 0:
+        raise ConfigError(f"{world}: no site named 'tool' (where the arm's tool is: its reach sizes the scenes)")
+    lo, hi = arm.sampling_bounds()
+    rng = np.random.default_rng(12345)
+    reach = 0.0
+    for q in rng.uniform(lo, hi, size=(REACH_SAMPLES, arm.n)):
+        arm.set_q(q)
+        reach = max(reach, float(np.linalg.norm(arm.data.site_xpos[site] - base)))
+    return base, reach / BUILTIN_REACH
+
+
+def world_scene_xml(world: Path, name: str, kind: str, boxes: list[Box], base: np.ndarray, out_dir: Path) -> str:
+    """Another arm's world with the obstacle boxes standing around its base (MuJoCo's spec API), as MJCF
+    text for ``out_dir`` (its mesh and texture folders made relative to there)."""
+    import os
+
+    import mujoco
+
+    spec = mujoco.MjSpec.from_file(str(world))
+    spec.modelname = f"hilsim_scene_{name}"
+    for bname, x, y, z, sx, sy, sz, yaw in boxes:
+        g = spec.worldbody.add_geom()
+        g.name, g.type = bname, mujoco.mjtGeom.mjGEOM_BOX
+        g.pos = [base[0] + x, base[1] + y, base[2] + z]
+        g.size = [sx, sy, sz]
+        g.quat = [math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)]
+        g.rgba = [0.8, 0.3, 0.2, 1.0]
+    folders = {}
+    for attr in ("meshdir", "texturedir"):  # absolute for MuJoCo now, relative to out_dir in the text
+        d = getattr(spec, attr)
+        where = Path(d) if d and os.path.isabs(d) else Path(world).resolve().parent / (d or "")
+        setattr(spec, attr, str(where))
+        folders[attr] = (str(where), os.path.relpath(where, out_dir.resolve()))
+    xml = spec.to_xml()
+    for attr, (absolute, rel) in folders.items():
+        xml = xml.replace(f'{attr}="{absolute}"', f'{attr}="{rel}"')
+    return f"<!-- generated by hilsim plan learn / hilsim plan scenes: scene \"{name}\", kind {kind} -->\n" + xml
 
 
 def with_sampled_queries(scenes: dict[str, Scene], per_scene: int, seed: int, clearance: float = 0.005

@@ -48,6 +48,7 @@ from hilsim.planning.choice import (
     query_table,
     train_forest,
 )
+from hilsim.planning.collision import ArmModel
 from hilsim.planning.features import FEATURES, FeatureModel
 from hilsim.planning.library import PlannerLibrary
 from hilsim.planning.runs import MEASURED, RunContext, RunRecord, RunTask, run_all
@@ -177,6 +178,23 @@ def split_scenes(names: list[str], seed: int) -> tuple[list[str], list[str]]:
     return [n for n in names if n not in test], test
 
 
+def robot_of(scenes: dict[str, Scene]) -> dict[str, Any]:
+    """The arm every scene holds (the model is for it alone: ``planner: auto`` refuses another)."""
+    from hilsim.core.config import REPO_ROOT
+    from hilsim.planning.choice import robot_signature
+
+    sigs = {json.dumps(robot_signature(ArmModel(s.model, CLEARANCE)), sort_keys=True) for s in scenes.values()}
+    if len(sigs) != 1:
+        raise ConfigError(f"the scenes hold {len(sigs)} different arms: a planner-choice model is for one arm")
+    sig = json.loads(sigs.pop())
+    first = next(iter(scenes.values())).model
+    try:
+        where = str(first.resolve().relative_to(REPO_ROOT))
+    except ValueError:
+        where = str(first)
+    return dict(sig, model=where)
+
+
 def train_model(rows: list[dict[str, str]], scenes: dict[str, Scene], planners: list[str], seed: int,
                 extra: dict[str, Any] | None = None) -> tuple[ChoiceModel, dict[str, Any]]:
     table = query_table(rows, planners)
@@ -198,6 +216,7 @@ def train_model(rows: list[dict[str, str]], scenes: dict[str, Scene], planners: 
         "data": {"file": "data.csv", "rows": len(rows), "sha256_without_measured": data_hash(rows),
                  "measured_columns": list(MEASURED)},
         "seed": seed,
+        "robot": robot_of(scenes),
         "planners": planners,
         "features": list(FEATURES),
         "criteria": list(CRITERIA),

@@ -76,7 +76,7 @@ def evaluate(
 ) -> list[Evaluation]:
     lib = library or PlannerLibrary.load(sc.planner.library)
     arm = ArmModel(sc.world.model, sc.planner.clearance)
-    vmax, amax, jmax = lib.joint_limits(arm.n, arm.velocity_limits())
+    vmax, amax, jmax = lib.joint_limits(arm.n, arm.velocity_limits(), arm.joint_names)
     name = planner or sc.planner.planner
     out = []
     for k, (nm, q) in enumerate(zip(names, targets, strict=True)):
