@@ -197,6 +197,7 @@ class LoggerService(Service):
         self.stopped: str | None = None
         self.stopped_at: dict[str, Any] = {}
         self.after_stop: Counter[str] = Counter()  # samples that arrived (or were queued) after the stop
+        self.written_ns = -1  # the sim time up to which the .rrd holds every row (its last flush); -1: none yet
 
     # ------------------------------------------------------------------ setup
     def _choose_run_dir(self) -> Path:
@@ -538,6 +539,7 @@ class LoggerService(Service):
                 self.warn(f"the recording was not written to {self.rrd_path} within {FILE_FLUSH_TIMEOUT_S:g} s: {e}")
             with self.lock:
                 self.recorded.update(self._pending)
+                self.written_ns = self.rows.clock_ns  # every row up to this sim time is in the file now
         self._pending.clear()
         if self.bag is not None:
             try:
@@ -629,6 +631,7 @@ class LoggerService(Service):
             **({"duplicates": sum(self.duplicates.values()), "key_subscriptions": len(self.routes.key_subs)}
                if self.batching else {}),
             "rrd": str(self.rrd_path),
+            "written_sim_time": f"{self.written_ns / 1e9:.3f}" if self.written_ns >= 0 else "none",
             **({"bagged": sum(self.bagged.values()), "bag": str(self.bag.path), "bag_files": len(self.bag.files)}
                if self.bag is not None else {}),
             **({"recording_stopped": f"at sim time {self.stopped_at.get('sim_time', '?')} s: {self.stopped}"}

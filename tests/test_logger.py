@@ -328,7 +328,7 @@ def test_launcher_summary_reports_losses(scenario: Any, tmp_path: Path, capsys: 
     clock, imu, health = keys.clock, keys.truth("imu"), keys.health("physics")
     la = Launcher(sc, tmp_path)
     la.outcome.physics_done = True
-    la.outcome.health["physics"] = {"steps": "1000", "sim_time": "1.000", "real_time_factor": "1.000",
+    la.outcome.health["physics"] = {"steps": "1000", "sim_time": "1.000", "real_time_factor": "1.000", "final": "1",
                                     f"published:{clock}": "1001", f"published:{imu}": "1001"}
     counts = {
         clock: {"received": 700, "recorded": 700, "rejected": 0, "lost": 250, "dropped": 50, "before_first": 0},
@@ -344,6 +344,19 @@ def test_launcher_summary_reports_losses(scenario: Any, tmp_path: Path, capsys: 
     # every service's own per-key published count shows what left no gap (after the last sample seen)
     assert "51 published samples never reached the recorder: clock 51\n" in out, out
     assert rc == (0 if mode == "realtime" else 1) and out.rstrip().endswith("OK" if rc == 0 else "FAILED"), out
+    assert "not judged" not in out, out
+    # a service killed before its final health: what it counted as published and never sent (its unsent batch)
+    # is no loss of the recorder's; said, not judged
+    la.outcome.health["physics"].pop("final")
+    la.outcome.health["physics"][f"published:{clock}"] = "951"  # 1 unseen of its periodic count
+    counts[clock]["lost"], counts[clock]["dropped"], counts[imu]["lost"] = 0, 0, 0
+    (tmp_path / "record_summary.json").write_text(json.dumps(counts))
+    assert summarise(la) == 0
+    out = capsys.readouterr().out
+    assert "never reached the recorder" not in out and "lost" not in out, out
+    assert "not judged: 352 samples counted as published by physics (killed before its final health)" in out, out
+    la.outcome.health["physics"]["final"] = "1"
+    counts[clock]["lost"], counts[clock]["dropped"], counts[imu]["lost"] = 250, 50, 101
     # received but not recorded fails either way
     counts[clock]["recorded"] = 699
     (tmp_path / "record_summary.json").write_text(json.dumps(counts))

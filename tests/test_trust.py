@@ -23,7 +23,8 @@ from typing import Any
 import psutil
 import pytest
 import zenoh
-from util import REPO, alive, wait_until
+from test_restart import sim_now
+from util import REPO, Observer, alive, wait_until
 
 from hilsim.core import msgs, runs, transport
 from hilsim.core.config import ZenohConfig
@@ -352,22 +353,32 @@ def test_two_runs_each_admit_only_their_own_processes_and_never_cross_talk(tmp_p
 
 @pytest.mark.parametrize("policy", ["no", "on-failure"])
 def test_a_stopped_controller_ends_the_run_or_is_restarted(tmp_path: Path, policy: str) -> None:
-    """SIGSTOP on the controller in a lockstep run (clock.ack_timeout 3 s): without a restart policy a
+    """SIGSTOP on the controller in a lockstep run (clock.ack_timeout 6 s: the planner's first plan, capped at
+    0.5 s of wall time, took 3.1 s on a loaded machine): without a restart policy a
     fault names it, everything stops, the exit code is non-zero and the recording is whole, with no loss
     invented by stopping it (it is killed, not resumed); with ``restart: {services: {default:
     on-failure}}`` it is killed (SIGKILL: a stopped process cannot restart itself) and started again, and
     the target is reached."""
     run = tmp_path / "run"
-    r = Run("arm", "--out", str(run), "--set", "clock.ack_timeout=3", "--set", f"task.targets=[{TARGET_A}]",
+    r = Run("arm", "--out", str(run), "--set", "clock.ack_timeout=6", "--set", "planner.planning_time=0.5",
+            "--set", f"task.targets=[{TARGET_A}]",
             "--set", f"restart.services.default={policy}")
+    obs: Observer | None = None
     try:
+        ep = r.wait_line("zenoh router:", 60).split()[2]
         pid = r.pid_of("controller")
         procs = psutil.Process(r.proc.pid).children(recursive=True)
-        time.sleep(1.0)
+        obs = Observer(ep, run / "zenoh-client.json5")
+        # stopped at a sim time the test waits for (the arm moving), not after a wall-clock sleep
+        assert wait_until(lambda: sim_now(obs) >= 0.3e9, 60), r.out
         os.kill(pid, signal.SIGSTOP)
+        with obs.lock:
+            assert not obs.results, f"the task ended before the stop: {obs.results}"
         rc = r.finish(150)
     finally:
         r.kill()
+        if obs is not None:
+            obs.close()
     out = r.out
     if policy == "no":
         assert rc == 1, out
@@ -376,7 +387,7 @@ def test_a_stopped_controller_ends_the_run_or_is_restarted(tmp_path: Path, polic
         assert "result: FAILED" in out
     else:
         assert rc == 0, out
-        assert f"error: controller (pid {pid}) silent for clock.ack_timeout (3 s)" in out, out
+        assert f"error: controller (pid {pid}) silent for clock.ack_timeout (6 s)" in out, out
         assert "restarted controller" in out and "targets reached: 1/1" in out, out
     # the recording is whole, and the stop invented no loss
     counts = json.loads((run / "record_summary.json").read_text())

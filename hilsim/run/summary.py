@@ -175,17 +175,28 @@ def summarise(la: FinishedRun) -> int:
             # Samples sent after the last one of their writer that reached the recorder (dropped, or
             # still in flight when the run stopped) leave no gap it could count: compare with what
             # every service says it published per key (final health).
+            # Only a service that stopped by itself (its final health) is held to its count: one killed (SIGKILL,
+            # silent, crashed) never sent what it held (its unsent batch, its queue), which no recorder can get.
             published: dict[str, int] = {}
-            for h in o.health.values():
+            unfinal: dict[str, int] = {}  # the same, from the last health of services killed before their final
+            killed_before_final = []
+            for name, h in sorted(o.health.items()):
+                into = published if h.get("final") == "1" else unfinal
+                if into is unfinal and any(k.startswith("published:") for k in h):
+                    killed_before_final.append(name)
                 for k, v in h.items():
                     if k.startswith("published:"):
-                        published[k[10:]] = published.get(k[10:], 0) + _num(v)
-            unseen = {}
+                        into[k[10:]] = into.get(k[10:], 0) + _num(v)
+            unseen, unjudged = {}, 0
             for k, v in counts.items() if stopped is None else ():  # stopped: the rest was not recorded, on purpose
                 own = v["received"] - v.get("suspect", 0)  # a writer's early samples come before its token:
                 seen = own + v.get("lost", 0) + v.get("before_first", 0)  # unannounced, but its own
                 if published.get(k, 0) > seen:
                     unseen[k] = published[k] - seen
+                unjudged += max(0, published.get(k, 0) + unfinal.get(k, 0) - max(seen, published.get(k, 0)))
+            if unjudged:
+                print(f"  not judged: {unjudged} samples counted as published by {', '.join(killed_before_final)} "
+                      "(killed before its final health) that the recorder did not get: a killed process's unsent ones")
             if unseen:
                 top = sorted(unseen.items(), key=lambda kv: (-kv[1], kv[0]))
                 keys = ", ".join(f"{short(k)} {n}" for k, n in top[:8]) + (", …" if len(top) > 8 else "")
