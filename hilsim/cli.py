@@ -18,6 +18,7 @@
     hilsim report step ROBOT [--joints J,…] [--step RAD] [--speed RAD/S] [--hil FILE] [--json]
     hilsim identify SCENARIO|RUN_DIR --joints J[,…] [--write FILE] [--json]
     hilsim inertia FILE [--link NAME] [--urdf FILE] [--json]
+    hilsim robot import URDF [--package-path DIR]… [--name NAME] [--out DIR] [--tool LINK] [--srdf FILE]
     hilsim tune ROBOT JOINT|--all [--method ziegler-nichols|relay] [--write] [--json]
     hilsim router [--listen ENDPOINT] [--config FILE]
     hilsim compose SCENARIO [--hil FILE]… [--out docker/compose.yaml]
@@ -331,6 +332,27 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument("--write", action="store_true", help="write the gains into the scenario file")
     tune.add_argument("--json", action="store_true", help="print one JSON object")
     tune.set_defaults(func=_lazy("hilsim.tools.tuning", "cmd_tune"))
+
+    robot = sub.add_parser("robot", help="bring a lab's own arm in from its URDF (docs/robots.md)")
+    rosub = robot.add_subparsers(dest="robot_cmd", required=True)
+    ri = rosub.add_parser("import", help="URDF -> an MJCF with motors, a world, home and targets, tuned gains and "
+                          "a scenario that `hilsim up` runs")
+    ri.add_argument("urdf", help="the robot's URDF (a xacro must be expanded first: xacro FILE > robot.urdf)")
+    ri.add_argument("--package-path", action="append", metavar="DIR",
+                    help="a folder holding ROS packages, for package:// mesh URIs (repeatable; also searched: "
+                    "ROS_PACKAGE_PATH, and share/ of each AMENT_PREFIX_PATH prefix)")
+    ri.add_argument("--name", help="the robot's name: its scenario, files and key namespace (default: the URDF's "
+                    "<robot name>)")
+    ri.add_argument("--out", help="the folder to write (default: robots/NAME); refused if not empty, unless --force")
+    ri.add_argument("--tool", metavar="LINK", help="the link the tool site goes on (default: the SRDF's end "
+                    "effector, else the last link of the chain)")
+    ri.add_argument("--srdf", help="a MoveIt SRDF (default: one in the package's srdf/ folder naming the same robot)")
+    ri.add_argument("--no-tune", action="store_true", help="model-based PD gains instead of tuning each joint "
+                    "on the real services (tuning takes about 20 s a joint)")
+    ri.add_argument("--seed", type=int, default=0, help="seed of the sampled poses (collision matrix, home search, "
+                    "targets; default 0)")
+    ri.add_argument("--force", action="store_true", help="replace --out if it holds files")
+    ri.set_defaults(func=_lazy("hilsim.tools.robot", "cmd_robot_import"))
 
     report = sub.add_parser("report", help="measured reports (the arm paper's Table II; the rover's loops)")
     rsub = report.add_subparsers(dest="report_cmd", required=True)

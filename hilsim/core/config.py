@@ -128,6 +128,8 @@ class ClockConfig(_Model):
 class WorldConfig(_Model):
     model: Path = Field(description="MJCF world file (robot included)")
     urdf: Path | None = None
+    home: list[float] | None = Field(None, description="the pose physics starts in, one value per actuated joint "
+                                     "(default: the model's keyframe 'home' if it has one, else its zero pose)")
 
 
 Interface = Literal["effort", "position", "velocity"]

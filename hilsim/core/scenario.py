@@ -289,6 +289,9 @@ def check_model(sc: Scenario, where: str, field: str = "") -> None:
         if bare:  # as the controller words it
             raise ConfigError(f"{where}: {field}controller.gains: no gains for {bare[0]} and no 'default' entry "
                               f"(joints of {model.name}: {', '.join(names)})")
+    if sc.world.home is not None and len(sc.world.home) != len(names):
+        raise ConfigError(f"{where}: {field}world.home: expected {len(names)} values, one per joint of "
+                          f"{model.name} {listed}, got {len(sc.world.home)}")
     if "planner" in sc.services:
         for i, t in enumerate(sc.task.targets):
             if len(t) != len(names):

@@ -56,6 +56,7 @@ class Joint:
     xyz: tuple[float, float, float]
     rot: Quat
     axis: tuple[float, float, float]
+    mimic: tuple[str, float, float] | None = None  # (leader joint, multiplier, offset): URDF <mimic>
 
 
 def _floats(text: str | None, n: int, default: float) -> tuple[float, ...]:
@@ -65,7 +66,8 @@ def _floats(text: str | None, n: int, default: float) -> tuple[float, ...]:
 
 def read_joints(urdf: Path) -> list[Joint]:
     out = []
-    for j in ET.parse(urdf).getroot().iter("joint"):
+    # the robot's own joints only: <transmission> (ros_control) and <gazebo> blocks hold <joint> elements too
+    for j in ET.parse(urdf).getroot().findall("joint"):
         origin, axis = j.find("origin"), j.find("axis")
         xyz = _floats(origin.get("xyz") if origin is not None else None, 3, 0.0)
         rpy = _floats(origin.get("rpy") if origin is not None else None, 3, 0.0)
@@ -73,9 +75,12 @@ def read_joints(urdf: Path) -> list[Joint]:
         if not any(ax):
             ax = (1.0, 0.0, 0.0)  # URDF's default axis
         norm = math.sqrt(sum(a * a for a in ax))
+        m = j.find("mimic")
+        mimic = None if m is None else (m.get("joint", ""), float(m.get("multiplier", "1")),
+                                         float(m.get("offset", "0")))
         out.append(Joint(j.get("name", ""), j.get("type", "fixed"), j.find("parent").get("link", ""),  # type: ignore[union-attr]
                          j.find("child").get("link", ""), xyz, quat_rpy(*rpy),  # type: ignore[union-attr, arg-type]
-                         (ax[0] / norm, ax[1] / norm, ax[2] / norm)))
+                         (ax[0] / norm, ax[1] / norm, ax[2] / norm), mimic))
     return out
 
 
@@ -100,10 +105,13 @@ class UrdfFrames:
         return msgs.TFMessage(transforms=[self._stamped(stamp_ns, j, j.xyz, j.rot) for j in self.fixed])
 
     def moving_transforms(self, stamp_ns: int, position: dict[str, float]) -> list[msgs.TransformStamped]:
-        """The moving joints' transforms at the given joint values (joints without a value are left out)."""
+        """The moving joints' transforms at the given joint values (joints without a value are left out;
+        a mimic joint follows its leader, as robot_state_publisher has it)."""
         out = []
         for j in self.moving:
             q = position.get(j.name)
+            if q is None and j.mimic is not None and j.mimic[0] in position:
+                q = j.mimic[2] + j.mimic[1] * position[j.mimic[0]]
             if q is None:
                 continue
             if j.kind == "prismatic":

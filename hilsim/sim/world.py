@@ -45,7 +45,7 @@ class ModelError(ConfigError):
 def urdf_limits(urdf: Path) -> dict[str, tuple[float, float]]:
     """joint name -> (effort limit, velocity limit) from a URDF."""
     out: dict[str, tuple[float, float]] = {}
-    for j in ET.parse(urdf).getroot().iter("joint"):
+    for j in ET.parse(urdf).getroot().findall("joint"):  # not the <joint>s of <transmission> blocks
         lim = j.find("limit")
         if lim is not None and j.get("name"):
             out[j.get("name", "")] = (float(lim.get("effort", "inf")), float(lim.get("velocity", "inf")))
@@ -115,6 +115,7 @@ class World:
         self.joint_names = [m.joint(j).name[len(prefix):] for j in self.joint_ids]
         self.qpos_adr = np.array([m.jnt_qposadr[j] for j in self.joint_ids])
         self.dof_adr = np.array([m.jnt_dofadr[j] for j in self.joint_ids])
+        self._start_at_home(sc)
         self.effort_limit = np.array(
             [m.actuator_ctrlrange[i, 1] if m.actuator_ctrllimited[i] else math.inf for i in acts]
         )
@@ -185,6 +186,21 @@ class World:
                 (m.body(int(m.geom_bodyid[g])).name if m.geom_bodyid[g] else m.geom(g).name).startswith(prefix)
                 for g in range(m.ngeom)])
         mujoco.mj_forward(m, self.data)
+
+    def _start_at_home(self, sc: Scenario) -> None:
+        """Start where the scenario says (``world.home``), else at the model's keyframe ``home`` (a
+        fleet's copy: ``<robot>/home``), else at the model's zero pose."""
+        m, d = self.model, self.data
+        k = next((i for i in range(m.nkey) if m.key(i).name in (f"{self.prefix}home", "home")), None)
+        if k is not None:
+            if self.prefix:  # a shared world: this robot's joints only
+                d.qpos[self.qpos_adr] = m.key_qpos[k][self.qpos_adr]
+            else:  # the whole key: mimic joints and anything else the model poses there too
+                mujoco.mj_resetDataKeyframe(m, d, k)
+        if sc.world.home is not None:
+            d.qpos[self.qpos_adr] = sc.world.home
+        if k is not None or sc.world.home is not None:
+            mujoco.mj_forward(m, d)
 
     def _make_servo(self, i: int, interface: str, kp: float, kv: float) -> None:
         """Turn motor ``i`` into a position or velocity servo (MuJoCo's affine actuator form:
