@@ -359,8 +359,9 @@ def build_parser() -> argparse.ArgumentParser:
     rs = rsub.add_parser("step", help="step response per joint (the rover: per steering and traction loop) by "
                          "the real services in lockstep (Table II)")
     rs.add_argument("robot", help="scenario name in config/ (e.g. arm, rover) or a YAML path")
-    rs.add_argument("--joints", help="comma-separated (default: joint_1..joint_5, the paper's Table II; the rover: "
-                    "steering,traction, every wheel's loops; or one loop, e.g. fl_steering)")
+    rs.add_argument("--joints", help="comma-separated (default: the built-in arm's joint_1..joint_5, the paper's "
+                    "Table II; another arm: every joint; the rover: steering,traction, every wheel's loops; or one "
+                    "loop, e.g. fl_steering)")
     rs.add_argument("--step", type=float, default=0.2, help="step of the reference [rad] (default 0.2; the rover: "
                     "of its steering angles)")
     rs.add_argument("--speed", type=float, default=2.0, help="the rover's traction step [rad/s of wheel speed] "

@@ -41,7 +41,8 @@ def _context() -> dict[str, Any]:
 
 
 def _resolve_paths(data: dict[str, Any], base: Path) -> None:
-    for section, keys in (("world", ("model", "urdf")), ("planner", ("library",))):
+    for section, keys in (("world", ("model", "urdf")), ("planner", ("library",)),
+                          ("world" + REPLACE, ("model", "urdf")), ("planner" + REPLACE, ("library",))):
         d = data.get(section)
         if isinstance(d, dict):
             for k in keys:
@@ -100,8 +101,11 @@ def _read(path: Path, chain: tuple[Path, ...] = ()) -> dict[str, Any]:
         raise ConfigError(f"{path}: (top level): expected a mapping of scenario fields, got {type(data).__name__}")
     _resolve_paths(data, path.resolve().parent)
     bases = data.pop("extends", None)
+    unset = data.pop(UNSET, None)
     if bases is None:
-        return data
+        if unset is not None:
+            raise ConfigError(f"{path}: {UNSET}: only a scenario that extends another can take fields away")
+        return _merge({}, data)  # REPLACE keys of a file without a base: plain keys
     if isinstance(bases, str):
         bases = [bases]
     if not isinstance(bases, list) or not bases or not all(isinstance(b, str) for b in bases):
@@ -112,18 +116,43 @@ def _read(path: Path, chain: tuple[Path, ...] = ()) -> dict[str, Any]:
         if base_path in chain or base_path == path.resolve():
             raise ConfigError(f"{path}: extends: {base} extends itself (through {', '.join(map(str, chain))})")
         merged = _merge(merged, _read(base_path, (*chain, path.resolve())))
+    _unset(merged, unset, path)
     return _merge(merged, data)
 
 
+def _unset(data: dict[str, Any], fields: Any, path: Path) -> None:
+    """``unset: [controller.gains, task.targets]``: these fields of the scenarios extended are taken away
+    (the schema's defaults then apply, unless this file gives them anew)."""
+    if fields is None:
+        return
+    if not isinstance(fields, list) or not all(isinstance(f, str) and f for f in fields):
+        raise ConfigError(f"{path}: {UNSET}: expected a list of fields, e.g. [controller.gains, task.targets] "
+                          f"(got {fields!r})")
+    for f in fields:
+        d: Any = data
+        parts = f.split(".")
+        for p in parts[:-1]:
+            d = d.get(p) if isinstance(d, dict) else None
+        if not isinstance(d, dict) or parts[-1] not in d:
+            raise ConfigError(f"{path}: {UNSET}: {f}: no such field in the scenarios it extends")
+        del d[parts[-1]]
+
+
 APPEND = "+"  # ``services+: [bridge-ros2-dds]``: add to the list below instead of replacing it
+REPLACE = "!"  # ``gains!: {…}``: this section replaces the one below whole instead of merging into it
+UNSET = "unset"  # ``unset: [controller.gains]``: fields of the scenarios extended, taken away
 
 
 def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
     """``over`` on top of ``base``: sections merge key by key, anything else is replaced; a key
     ``name+`` adds the items of its list that ``name``'s list does not have yet (an overlay adds a
-    service to whatever services the scenario has, without restating them)."""
+    service to whatever services the scenario has, without restating them); a key ``name!`` replaces
+    ``name`` whole, a section included (a lab's arm does not inherit the Niryo's gains)."""
     out = dict(base)
     for k, v in over.items():
+        if k.endswith(REPLACE):
+            out[k[:-len(REPLACE)]] = _merge({}, v) if isinstance(v, dict) else v
+            continue
         if k.endswith(APPEND) and isinstance(v, list):
             name = k[:-len(APPEND)]
             if isinstance(out.get(name), list):
@@ -131,7 +160,10 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
             else:  # nothing below says it yet: added to the schema's default when the scenario is built
                 out[k] = [*out.get(k, []), *(x for x in v if x not in out.get(k, []))]
             continue
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+        if isinstance(v, dict):
+            out[k] = _merge(out[k] if isinstance(out.get(k), dict) else {}, v)
+        else:
+            out[k] = v
     return out
 
 

@@ -128,8 +128,15 @@ def is_rover(sc: Scenario) -> bool:
 
 
 def default_joints(robot: str, overrides: dict | None = None, overlays: Sequence[str] = ()) -> list[str]:
-    """The paper's Table II joints for the arm; every steering and traction loop for the rover."""
-    return list(ROVER_LOOPS if is_rover(loop_scenario(robot, overrides, overlays)) else DEFAULT_JOINTS)
+    """The paper's Table II joints for the built-in arm; every steering and traction loop for the rover; every
+    joint of any other robot (an imported arm has no joint_1 … joint_5)."""
+    sc = loop_scenario(robot, overrides, overlays)
+    if is_rover(sc):
+        return list(ROVER_LOOPS)
+    from hilsim.sim import control
+
+    names = list(control.joint_table(sc.world.model).names)
+    return list(DEFAULT_JOINTS) if all(j in names for j in DEFAULT_JOINTS) else names
 
 
 def _traction(name: str) -> bool:

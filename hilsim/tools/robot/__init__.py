@@ -87,8 +87,8 @@ def _compile(spec: mujoco.MjSpec, where: Path) -> mujoco.MjModel:
 
 
 def import_robot(urdf_path: Path, out: Path | None = None, *, package_paths: list[Path] | None = None,
-                 name: str | None = None, tool: str | None = None, srdf_path: Path | None = None, tune: bool = True, seed: int = 0,
-                 force: bool = False, say: Callable[[str], None] = print) -> Path:
+                 name: str | None = None, tool: str | None = None, srdf_path: Path | None = None,
+                 tune: bool = True, seed: int = 0, force: bool = False, say: Callable[[str], None] = print) -> Path:
     """Import; the scenario's path (``out/NAME.yaml``)."""
     t0 = time.monotonic()
     u = read(urdf_path)

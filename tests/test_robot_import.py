@@ -1,0 +1,248 @@
+"""``hilsim robot import``: real third-party URDFs (the ``example-robot-data`` package: Universal Robots' UR5, 6
+revolute joints of ±2π with ros_control transmissions and DAE visuals; Franka's Panda, 7 joints and a gripper
+whose second finger mimics the first; Kinova's Jaco, continuous joints and only DAE meshes), none written here,
+from the URDF to ``result: OK`` of ``hilsim up``, judged by the physics truth in the bag (read with the mcap
+ROS 2 reader); and the URDFs the import cannot take, refused in one line with nothing written."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+import sysconfig
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import mujoco
+import numpy as np
+import pytest
+
+from hilsim.core.scenario import load_scenario
+from hilsim.planning.collision import ArmModel
+from hilsim.sim.tf import UrdfFrames
+
+REPO = Path(__file__).resolve().parent.parent
+HILSIM = [sys.executable, "-m", "hilsim.cli"]
+# the package's share/ folder: what AMENT_PREFIX_PATH=<prefix> resolves package://example-robot-data/… through
+PREFIX = Path(sysconfig.get_paths()["purelib"]) / "cmeel.prefix"
+ROBOTS = PREFIX / "share" / "example-robot-data" / "robots"
+
+
+@pytest.fixture(scope="module")
+def robots() -> Path:
+    if not ROBOTS.is_dir():
+        msg = f"example-robot-data is not installed ({ROBOTS}): bash scripts/test.sh installs it with .[test]"
+        if os.environ.get("CI"):
+            pytest.fail(msg)
+        pytest.skip(msg)
+    return ROBOTS
+
+
+def hilsim(*args: str, cwd: Path = REPO, env: dict[str, str] | None = None, timeout: float = 600
+           ) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([*HILSIM, *args], capture_output=True, text=True, cwd=cwd, timeout=timeout,
+                          env={**os.environ, **(env or {})})
+
+
+def imported(robots: Path, tmp: Path, urdf: str, name: str, *extra: str, env: dict[str, str] | None = None) -> Path:
+    out = tmp / name
+    p = hilsim("robot", "import", str(robots / urdf), "--out", str(out), "--no-tune", *extra, env=env)
+    assert p.returncode == 0, p.stdout + p.stderr
+    assert f"run it: hilsim up {out / (name + '.yaml')}" in p.stdout
+    return out
+
+
+@pytest.fixture(scope="module")
+def ur5(robots: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    # package:// through AMENT_PREFIX_PATH's share/, as ROS 2 resolves it
+    return imported(robots, tmp_path_factory.mktemp("ur5"), "ur_description/urdf/ur5_robot.urdf", "ur5",
+                    env={"AMENT_PREFIX_PATH": str(PREFIX), "ROS_PACKAGE_PATH": ""})
+
+
+@pytest.fixture(scope="module")
+def panda(robots: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    # package:// through --package-path
+    return imported(robots, tmp_path_factory.mktemp("panda"), "panda_description/urdf/panda.urdf", "panda",
+                    "--package-path", str(PREFIX / "share"), env={"AMENT_PREFIX_PATH": "", "ROS_PACKAGE_PATH": ""})
+
+
+def test_the_ur5_becomes_a_model_with_everything_the_builtin_arm_has(ur5: Path, robots: Path) -> None:
+    m = mujoco.MjModel.from_xml_path(str(ur5 / "ur5.xml"))
+    urdf = ET.parse(robots / "ur_description/urdf/ur5_robot.urdf").getroot()
+    moving = [j for j in urdf.findall("joint") if j.get("type") != "fixed"]
+    # a motor per joint, named as the URDF's joint, its torque bounded by the URDF's effort limit
+    assert [m.actuator(i).name for i in range(m.nu)] == [j.get("name") for j in moving]
+    for i, j in enumerate(moving):
+        lim = j.find("limit")
+        assert m.actuator_ctrlrange[i].tolist() == [-float(lim.get("effort")), float(lim.get("effort"))]
+        jid = m.actuator_trnid[i, 0]
+        assert m.jnt_range[jid].tolist() == pytest.approx([float(lim.get("lower")), float(lim.get("upper"))])
+    # the sites the services need, a collision geom named after its link, the home keyframe, the velocity limits
+    for site in ("tool", "imu"):
+        assert mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, site) >= 0, site
+    links = {ln.get("name") for ln in urdf.findall("link")}
+    names = {m.geom(g).name for g in range(m.ngeom) if m.geom_contype[g]}
+    assert {"forearm_link", "upper_arm_link", "wrist_3_link", "pedestal"} <= names, names
+    assert all(n in links or n in ("pedestal", "floor") or n.rsplit("_", 1)[0] in links for n in names), names
+    assert m.nkey == 1 and m.key(0).name == "home"
+    # the SRDF's adjacent pair of the base and the shoulder (3 mm apart) is excluded
+    pairs = {frozenset((m.body(int(a)).name, m.body(int(b)).name)) for a, b in
+             (divmod(int(s), 1 << 16) for s in m.exclude_signature)}
+    assert frozenset(("base_link", "shoulder_link")) in pairs
+    # every target collision-free with the planner's clearance and within the limits; the scenario loads
+    sc = load_scenario(ur5 / "ur5.yaml")
+    arm = ArmModel(ur5 / "ur5.xml", clearance=sc.planner.clearance)
+    assert len(sc.task.targets) >= 3
+    for t in [sc.world.home, *sc.task.targets]:
+        assert arm.why_invalid(np.array(t)) is None, t
+    # the URDF beside it: the lab's joints, its ros_control <transmission> blocks read by nobody, meshes found
+    frames = UrdfFrames(ur5 / "ur5.urdf")
+    assert [j.name for j in frames.moving] == [j.get("name") for j in moving]
+    written = ET.parse(ur5 / "ur5.urdf").getroot()
+    assert written.findall("transmission")
+    for mesh in written.iter("mesh"):
+        assert (ur5 / mesh.get("filename")).is_file(), mesh.get("filename")
+    # a visual that was a Collada file is an STL now, with the same size
+    import trimesh
+
+    dae = trimesh.load(robots / "ur_description/meshes/ur5/visual/forearm.dae", force="mesh")
+    stl = trimesh.load(ur5 / "meshes" / "visual_forearm.stl")
+    assert np.allclose(dae.bounds, stl.bounds, atol=1e-5)
+
+
+def test_the_pandas_fingers_are_one_command_and_its_srdf_is_used(panda: Path, robots: Path) -> None:
+    m = mujoco.MjModel.from_xml_path(str(panda / "panda.xml"))
+    acts = [m.actuator(i).name for i in range(m.nu)]
+    assert acts == [f"panda_joint{i}" for i in range(1, 8)] + ["panda_finger_joint1"]
+    # home is the SRDF's group state, and physics starts there
+    sc = load_scenario(panda / "panda.yaml")
+    assert sc.world.home == pytest.approx([0, -0.785398, 0, -2.35619, 0, 1.5707, 0.785398, 0.001], abs=1e-4)
+    from hilsim.sim.world import World
+
+    w = World(sc)
+    assert np.allclose(w.positions(), sc.world.home, atol=1e-9)
+    # the second finger mimics the first: one command opens both (MuJoCo's own dynamics, no services)
+    f1 = w.index["panda_finger_joint1"]
+    f2 = m.jnt_qposadr[mujoco.mj_name2id(w.model, mujoco.mjtObj.mjOBJ_JOINT, "panda_finger_joint2")]
+    u = np.zeros(m.nu)
+    u[f1] = 0.1
+    q0, p0 = w.positions()[f1], w.data.qpos[f2]
+    for _ in range(50):  # the fingers open from 1 mm, still inside their 40 mm range
+        w.data.ctrl[:] = u
+        mujoco.mj_step(w.model, w.data)
+    q1, q2 = w.positions()[f1], w.data.qpos[f2]
+    assert 0.001 < q1 - q0 and q1 < 0.04 and abs((q1 - q0) - (q2 - p0)) < 0.1 * (q1 - q0), (q0, q1, p0, q2)
+    # the SRDF's "Never" pair (hand, link3) is excluded, so no collision between them is ever reported
+    pairs = {frozenset((m.body(int(a)).name, m.body(int(b)).name)) for a, b in
+             (divmod(int(s), 1 << 16) for s in m.exclude_signature)}
+    assert frozenset(("panda_hand", "panda_link3")) in pairs
+    # the tool on the SRDF's end effector
+    sid = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SITE, "tool")
+    assert m.body(m.site_bodyid[sid]).name == "panda_hand_tcp"
+
+
+def test_continuous_joints_and_collada_only_meshes(robots: Path, tmp_path: Path) -> None:
+    """Kinova's Jaco: every mesh a .dae, three continuous joints; no SRDF collision matrix, so it is sampled."""
+    out = imported(robots, tmp_path, "kinova_description/robots/kinova.urdf", "jaco", "--name", "jaco",
+                   "--package-path", str(PREFIX / "share"))
+    m = mujoco.MjModel.from_xml_path(str(out / "jaco.xml"))
+    cont = [j.get("name") for j in ET.parse(robots / "kinova_description/robots/kinova.urdf").getroot().findall("joint")
+            if j.get("type") == "continuous"]
+    assert len(cont) == 3
+    for n in cont:
+        assert not m.jnt_limited[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n)], n
+    assert not list(out.glob("meshes/*.dae")) and len(list(out.glob("meshes/*.stl"))) >= 10
+    assert m.nexclude > 0
+
+
+def _expect_refused(tmp: Path, urdf: Path, *needles: str, extra: tuple[str, ...] = ()) -> None:
+    out = tmp / "out"
+    p = hilsim("robot", "import", str(urdf), "--out", str(out), "--no-tune", *extra)
+    assert p.returncode == 2, p.stdout + p.stderr
+    err = p.stderr.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("error: "), err
+    for n in needles:
+        assert n in err, (n, err)
+    assert not out.exists() and not list(tmp.glob(".out*")), "an import that failed wrote something"
+
+
+def test_what_cannot_be_imported_is_said_in_one_line_and_nothing_is_written(robots: Path, tmp_path: Path) -> None:
+    src = (robots / "ur_description/urdf/ur5_robot.urdf").read_text()
+    share = ("--package-path", str(PREFIX / "share"))
+    # a closed chain: a second joint onto the forearm
+    closed = tmp_path / "closed.urdf"
+    closed.write_text(src.replace("</robot>", '<joint name="loop" type="revolute"><parent link="base_link"/>'
+                                  '<child link="forearm_link"/><limit lower="-1" upper="1" effort="1" velocity="1"/>'
+                                  "</joint></robot>"))
+    _expect_refused(tmp_path, closed, str(closed), "<joint name='loop'>", "closed chain", extra=share)
+    # nothing to drive
+    rigid = tmp_path / "rigid.urdf"
+    rigid.write_text(re.sub(r'type="(revolute|continuous)"', 'type="fixed"', src))
+    _expect_refused(tmp_path, rigid, str(rigid), "no movable joint", extra=share)
+    # a collision mesh that cannot be read, and one that is not there
+    junk = tmp_path / "junk.dae"
+    junk.write_text("not a mesh")
+    bad = tmp_path / "bad.urdf"
+    bad.write_text(src.replace("package://example-robot-data/robots/ur_description/meshes/ur5/collision/forearm.stl",
+                               str(junk)))
+    _expect_refused(tmp_path, bad, "<link name='forearm_link'> <collision>", "junk.dae", "cannot be read",
+                    extra=share)
+    _expect_refused(tmp_path, robots / "ur_description/urdf/ur5_robot.urdf", "file not found", "--package-path",
+                    extra=())
+
+
+def _truth_and_results(bag: Path, robot: str) -> tuple[np.ndarray, np.ndarray, list[str], str]:
+    """The physics truth (stamps, positions, joint names) and the robot description, from the bag, read with
+    the mcap ROS 2 reader (not hilsim's)."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    stamps, pos, names, desc = [], [], [], ""
+    for f in sorted(bag.glob("*.mcap")):
+        with f.open("rb") as fh:
+            for _s, ch, _m, msg in make_reader(fh, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
+                    topics=[f"/{robot}/truth/joint_states", f"/{robot}/robot_description"]):
+                if ch.topic.endswith("robot_description"):
+                    desc = msg.data
+                    continue
+                stamps.append(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)
+                pos.append(list(msg.position))
+                names = list(msg.name)
+    return np.array(stamps), np.array(pos), names, desc
+
+
+def _run_and_judge(scenario: Path, robot: str, tmp: Path, targets: list[list[float]]) -> None:
+    out = tmp / "run"
+    p = hilsim("up", str(scenario), "--out", str(out), "--set", f"task.targets={targets}", timeout=480)
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-2000:]
+    assert f"targets reached: {len(targets)}/{len(targets)}" in p.stdout and "result: OK" in p.stdout
+    sc = load_scenario(scenario)
+    stamps, pos, names, desc = _truth_and_results(out / "bag", robot)
+    urdf_joints = [j.name for j in UrdfFrames(scenario.parent / f"{robot}.urdf").moving
+                   if j.mimic is None]
+    assert names == urdf_joints
+    assert desc == (scenario.parent / f"{robot}.urdf").read_text()
+    # the truth visits every target in turn within the tolerance, and ends at the last
+    t = 0
+    for target in targets:
+        err = np.abs(pos[t:] - np.asarray(target)).max(axis=1)
+        hits = np.flatnonzero(err <= sc.task.tolerance + 0.002)
+        assert hits.size, f"the truth never came within {sc.task.tolerance} rad of {target}: closest {err.min():.4f}"
+        t += int(hits[0])
+    assert np.abs(pos[-1] - np.asarray(targets[-1])).max() <= sc.task.tolerance + 0.002
+    assert stamps[0] == 0 and np.allclose(pos[0], sc.world.home, atol=1e-6)  # it started at home
+
+
+@pytest.mark.e2e
+def test_the_ur5_runs_its_task_from_the_import(ur5: Path, tmp_path: Path) -> None:
+    sc = load_scenario(ur5 / "ur5.yaml")
+    _run_and_judge(ur5 / "ur5.yaml", "ur5", tmp_path, [list(t) for t in sc.task.targets])
+
+
+@pytest.mark.e2e
+def test_the_panda_with_its_gripper_runs_its_targets_in_another_order(panda: Path, tmp_path: Path) -> None:
+    sc = load_scenario(panda / "panda.yaml")
+    targets = [list(t) for t in sc.task.targets][::-1]
+    assert len(targets[0]) == 8  # seven joints and the gripper
+    _run_and_judge(panda / "panda.yaml", "panda", tmp_path, targets)
