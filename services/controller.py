@@ -2,7 +2,8 @@
 
 Reads (``<prefix>/<robot>/…``):
   ``joint_states`` (sensor_msgs/JointState, measured; one control step per message),
-  ``joint_trajectory`` (trajectory_msgs/JointTrajectory).
+  ``joint_trajectory`` (trajectory_msgs/JointTrajectory: a person's, a tool's or a ROS 2 node's),
+  ``planner/joint_trajectory`` (the same type: the planner's, written by the planner's identity only).
 Writes:
   ``joint_commands`` (sensor_msgs/JointState) stamped like the joint_states it answers, every
   joint in every message, so each joint's server (physics or an external one) reads the field of
@@ -17,7 +18,7 @@ Writes:
   controller its measurement and runs its PID; both messages are then built only while subscribed.
 Serves:
   ``controller/has_trajectory`` (builtin_interfaces/Time, a trajectory's start stamp → GoalResponse):
-  answered once this controller holds the ``joint_trajectory`` of that stamp (accepted, or not with
+  answered once this controller holds the planner's trajectory of that stamp (accepted, or not with
   the reason it was rejected), or after a third of ``clock.ack_timeout`` without it (not accepted). In
   lockstep the planner acknowledges its tick only then: Zenoh orders nothing between keys, so without
   it a trajectory taken late (a loaded machine) would act steps later than in another run of the seed;
@@ -28,24 +29,21 @@ Serves:
 Serves the ROS 2 action ``control_msgs/action/FollowJointTrajectory`` at
 ``/<robot>/<controller.params.action_ns>`` (default ``follow_joint_trajectory``, what MoveIt's
 controller manager calls with ``action_ns: follow_joint_trajectory``; ``""`` serves none), as a node on
-rmw_zenoh does (:mod:`hilsim.services.ros2_action`). A goal's trajectory is followed exactly as a
-``joint_trajectory`` message; feedback (desired, actual, error of the goal's joints) at
-``controller.params.action_feedback_hz`` of sim time; the result is SUCCESSFUL once every joint of the
-goal is within its goal tolerance (else ``task.tolerance``) of the last point after its time,
-GOAL_TOLERANCE_VIOLATED if that has not happened ``goal_time_tolerance`` (else
-``controller.params.goal_time_tolerance``) later, PATH_TOLERANCE_VIOLATED as soon as a joint with a
-path tolerance strays further from the reference (the arm then holds where it is), INVALID_JOINTS for
-joint names that are not the controller's, INVALID_GOAL for a trajectory it cannot follow (no points,
-times not increasing, outside the limits, multi-DOF), OLD_HEADER_TIMESTAMP for one that has ended before
-it arrived. Invalid goals are accepted and aborted with that code (so the client reads why); a cancel
-holds the current position; a new goal, or a trajectory on ``joint_trajectory``, aborts the goal
-being followed.
+rmw_zenoh does: :mod:`hilsim.services.controller_action` (goals, tolerances, results).
 
-Setpoint: the first measured position until a trajectory arrives; a trajectory replaces the
-current one at its start time (``header.stamp``; zero = on receipt) and its last point is held
-after its end; an empty trajectory means hold the current measured position. A stamped trajectory on
-``joint_trajectory`` that starts before the one being followed is rejected as out of date (a replay,
-e.g. of the planner's own: docs/security.md).
+Setpoint: the first measured position until a trajectory arrives. Which trajectory is taken and when
+it acts are ROS 2's joint_trajectory_controller's rules, in one place (:mod:`hilsim.sim.jtc`): stamp
+zero is now, a future stamp starts then, a newer trajectory replaces what was commanded from its own
+start, one that ended before it arrived is refused, as is one stamped more than
+``controller.params.max_start_ahead`` after sim time (wall-clock stamps: ``use_sim_time``); joint names
+in any order, a subset if ``allow_partial_joints_goal``; an empty trajectory holds the measured position.
+A refusal is said in the log (a rejected payload of its key), the health (``trajectories_refused``,
+``last_refused``) and, for a goal, the action's result. Whose command is followed is a matter of keys,
+not stamps: ``planner/joint_trajectory`` only the planner's identity may write (the router's access
+control, docs/security.md), so a replay of the planner's trajectory can come only on
+``joint_trajectory``, as any other person's command; the health says whose command the arm follows
+(``command_from``). The planner's own is taken even if it has ended: it hands a restarted controller
+the trajectory under way again, whose end is then held.
 """
 
 from __future__ import annotations
@@ -53,7 +51,6 @@ from __future__ import annotations
 import threading
 import time
 from collections import OrderedDict
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -62,13 +59,14 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from hilsim.core import msgs, registry
 from hilsim.core.config import ConfigError, Scenario, format_error
 from hilsim.core.keys import NOT_REACHED
-from hilsim.core.msgs import control as cm
 from hilsim.core.restart import keep, kept
 from hilsim.core.service import Publisher, Service
-from hilsim.services.ros2_action import ActionServer, goal_text
-from hilsim.sim import control
+from hilsim.services.controller_action import FollowJointTrajectory
+from hilsim.services.ros2_action import goal_text
+from hilsim.sim import control, jtc
 
-FOLLOW_JOINT_TRAJECTORY = "control_msgs/action/FollowJointTrajectory"
+PLANNER, JOINT_TRAJECTORY = "planner", "joint_trajectory"  # who sent a trajectory (health: command_from)
+PLANNER_TRAJECTORY = "planner/joint_trajectory"  # the planner's own key (hilsim.core.keys)
 HANDOFF_KEPT = 64  # the start stamps of the last trajectories taken, each with why it was rejected (or None)
 
 
@@ -81,22 +79,10 @@ class Params(BaseModel):
     action_feedback_hz: float = Field(20.0, gt=0, description="feedback rate of the action [1/s of sim time]")
     goal_time_tolerance: float = Field(1.0, gt=0, description="how long after a goal's last point the joints "
                                        "may take to be within tolerance, when the goal gives no time [s]")
-
-
-@dataclass
-class _FjtGoal:
-    """The FollowJointTrajectory goal being followed."""
-
-    goal_id: bytes
-    names: list[str]
-    cols: list[int]  # model index of each of the goal's joints
-    sampler: control.TrajectorySampler
-    target: np.ndarray  # the last point, the goal's joints
-    path_tol: np.ndarray  # position, per goal joint; inf: none
-    goal_tol: np.ndarray
-    goal_vel_tol: np.ndarray
-    deadline_ns: int  # the end plus the goal time tolerance
-    next_feedback_ns: int = 0
+    max_start_ahead: float = Field(30.0, gt=0, description="a trajectory stamped to start later than this after "
+                                   "sim time is refused (a sender not on sim time: use_sim_time) [s]")
+    allow_partial_joints_goal: bool = Field(True, description="take a trajectory that names only some of the "
+                                            "joints (the others keep their command), as ROS 2's JTC parameter")
 
 
 class ControllerService(Service):
@@ -151,11 +137,14 @@ class ControllerService(Service):
         self.hold_timeout_ns = round(scenario.controller.hold_timeout * 1e9)
         self._order: list[int] | None = None  # measured -> model order, when the names differ
         self._order_names: list[str] = list(self.names)
-        self.hold: np.ndarray | None = None  # setpoint without a trajectory
-        self.traj: control.TrajectorySampler | None = None  # being followed
-        self.next_traj: control.TrajectorySampler | None = None  # accepted, starts later
-        self._pending: tuple[msgs.JointTrajectory, str] | None = None  # arrived before any measurement
-        # the trajectories taken (start stamp -> why rejected, or None), for has_trajectory's waiters
+        # the command over sim time (None until the first measurement gives the position to hold)
+        self.timeline: jtc.Timeline | None = None
+        self._early: list[tuple[msgs.JointTrajectory, str, str]] = []  # arrived before any measurement
+        self.taken: control.TrajectorySampler | None = None  # the last trajectory take() took
+        self.command_from = ""  # who sent the command followed last (health)
+        self.refused = 0
+        self.last_refused = ""
+        # the planner's trajectories taken (start stamp -> why rejected, or None), for has_trajectory's waiters
         self._taken: OrderedDict[int, str | None] = OrderedDict()
         self._took = threading.Condition(self.lock)
         self.pos = np.zeros(self.n)
@@ -173,9 +162,8 @@ class ControllerService(Service):
             self.params = Params.model_validate(scenario.controller.params)
         except ValidationError as e:
             raise ConfigError(format_error(where or "scenario", e, prefix="controller.params")) from None
-        self.fjt: ActionServer | None = None
-        self.fjt_goal: _FjtGoal | None = None
-        self.fjt_goals = 0
+        self.rules = jtc.Rules(round(self.params.max_start_ahead * 1e9), self.params.allow_partial_joints_goal)
+        self.fjt: FollowJointTrajectory | None = None
         # live gain changes, kept for a restarted controller (hilsim.core.restart): scenario + these
         self.live_gains: dict[str, float] = dict(kept(scenario, self.name).get("gains", {}))
         if self.live_gains:
@@ -193,6 +181,13 @@ class ControllerService(Service):
         # No n_joints here: a trajectory may name a subset of the joints.
         # a trajectory is given once: late (a loaded machine) it is still the task's (stream=False)
         self.subscribe(self.keys.topic("joint_trajectory"), msgs.JointTrajectory, self.on_trajectory, stream=False)
+        if self.sc.zenoh.auth is not None or self.sc.zenoh.tls is not None:
+            # a run with credentials: every writer of a person's command announces itself (a ROS 2 node on
+            # rmw_zenoh, hilsim's tools, the DDS bridge), so a sample from one that has not is an impostor's,
+            # as on any key with an announced writer (hilsim.core.provenance); without them a test may drive it
+            self.provenance.restricted.add(self.keys.topic("joint_trajectory"))
+        self.subscribe(self.keys.topic(PLANNER_TRAJECTORY), msgs.JointTrajectory, self.on_planner_trajectory,
+                       stream=False)
         self.queryable(
             self.keys.topic("controller/set_parameters"),
             msgs.SetParameters,
@@ -202,8 +197,7 @@ class ControllerService(Service):
         self.queryable(self.keys.topic("controller/has_trajectory"), msgs.Time, self.on_has_trajectory,
                        reject=lambda reason: msgs.GoalResponse(accepted=False, reason=reason))
         if self.params.action_ns.strip("/"):
-            self.fjt = ActionServer(self, self.params.action_ns, FOLLOW_JOINT_TRAJECTORY,
-                                    self.on_fjt_goal, self.on_fjt_cancel)
+            self.fjt = FollowJointTrajectory(self, self)
 
     # ------------------------------------------------------------------ control step
     def _measure(self, msg: msgs.JointState, key: str, stamp: int) -> bool:
@@ -260,17 +254,18 @@ class ControllerService(Service):
             self.warn(f"no joint_states for {(stamp - self.last_ns) * 1e-9:.3f} s of sim time")
         self.last_ns = stamp
         self.sim_ns = stamp
-        if self.hold is None:
-            self.hold = self.pos.copy()  # hold where the arm is until told otherwise
-            if self._pending is not None:
-                self._accept(*self._pending)
-                self._pending = None
-        self._reference(stamp)
-        if self.fjt_goal is not None:
-            self._follow_goal(stamp)
+        if self.timeline is None:
+            self.timeline = jtc.Timeline(self.pos.copy())  # hold where the arm is until told otherwise
+            early, self._early = self._early, []
+            for msg, key, source in early:
+                self.take(msg, key, source)
+        self.timeline.advance(stamp)
+        self.ref_pos, self.ref_vel = self.timeline.sample(stamp, self._zero)
+        if self.fjt is not None and self.fjt.goal is not None:
+            self.fjt.step(stamp)
         err = self.ref_pos - self.pos
         self.tracking_error = float(np.abs(err).max())  # the method: np.max's Python wrapper costs more
-        if self.traj is not None or self.next_traj is not None:
+        if self.timeline.current is not None or self.timeline.pending:
             self.max_tracking_error = max(self.max_tracking_error, self.tracking_error)
 
     def velocity_command(self) -> np.ndarray:
@@ -304,46 +299,28 @@ class ControllerService(Service):
         else:
             self.ref_pub.skip()
 
-    def _reference(self, stamp: int) -> None:
-        if self.next_traj is not None and stamp >= self.next_traj.start_ns:
-            self.traj, self.next_traj = self.next_traj, None
-        if self.traj is not None:
-            self.ref_pos, self.ref_vel = self.traj.sample(stamp)
-        else:
-            assert self.hold is not None
-            self.ref_pos, self.ref_vel = self.hold, self._zero
-
     # ------------------------------------------------------------------ trajectories
     def on_trajectory(self, msg: msgs.JointTrajectory, key: str) -> None:
-        if self.hold is None:
-            self._pending = (msg, key)  # the setpoint to start from is not known yet: taken before any step
+        """``joint_trajectory``: a person's, a tool's or a ROS 2 node's command (anyone the router lets write it)."""
+        self._arrived(msg, key, JOINT_TRAJECTORY)
+
+    def on_planner_trajectory(self, msg: msgs.JointTrajectory, key: str) -> None:
+        """``planner/joint_trajectory``: the planner's own, a key only the planner's identity may write."""
+        self._arrived(msg, key, PLANNER)
+
+    def _arrived(self, msg: msgs.JointTrajectory, key: str, source: str) -> None:
+        if self.timeline is None:
+            # the setpoint to start from is not known yet: taken, in order, before the first step
+            self._early.append((msg, key, source))
             why = None
         else:
-            why = self._out_of_date(msg)
-            if why is not None:
-                self.reject(key, why)
-            else:
-                why = self._accept(msg, key)
-        self._taken[msgs.ns_of(msg.header.stamp)] = why
-        while len(self._taken) > HANDOFF_KEPT:
-            self._taken.popitem(last=False)
-        self._took.notify_all()
-
-    def _out_of_date(self, msg: msgs.JointTrajectory) -> str | None:
-        """Why a stamped trajectory comes too late to be followed, else None: one that starts before the
-        trajectory being followed (a newer one replaced it). Such a sample is a replay, most likely of the
-        planner's own (its writer's id and all: docs/security.md); followed, it would send the arm back
-        to an old target. One that ended before it arrived is still taken when nothing newer is followed:
-        the planner hands its trajectory again to a restarted controller, which then holds its end.
-        Stamp zero means "now": never late."""
-        stamp = msgs.ns_of(msg.header.stamp)
-        if not stamp or not msg.points:
-            return None
-        current = self.next_traj or self.traj
-        if current is not None and stamp < current.start_ns:
-            return (f"the trajectory starts at {stamp * 1e-9:.3f} s, before the one being followed "
-                    f"({current.start_ns * 1e-9:.3f} s): out of date (a replay?)")
-        return None
+            refused = self.take(msg, key, source)
+            why = refused[1] if refused is not None else None
+        if source == PLANNER:  # controller/has_trajectory answers the planner about its own
+            self._taken[msgs.ns_of(msg.header.stamp)] = why
+            while len(self._taken) > HANDOFF_KEPT:
+                self._taken.popitem(last=False)
+            self._took.notify_all()
 
     def on_has_trajectory(self, start: msgs.Time) -> msgs.GoalResponse:
         """``controller/has_trajectory`` (see the module docstring); runs under self.lock, which the wait
@@ -360,149 +337,41 @@ class ControllerService(Service):
         why = self._taken[ns]
         return msgs.GoalResponse(accepted=why is None, reason=why or "")
 
-    def _accept(self, msg: msgs.JointTrajectory, key: str) -> str | None:
-        """Follow ``msg`` from its start; None, or why it cannot be followed (a rejected payload of ``key``)."""
-        if not msg.points:
+    def take(self, msg: msgs.JointTrajectory, key: str, source: str) -> tuple[str, str] | None:
+        """Follow ``msg`` (from ``source``) under the rules of :mod:`hilsim.sim.jtc`; None, or (what, why)
+        it is refused (a rejected payload of ``key``, said in the log and the health). The planner's own
+        is taken even if it has ended: only it may write its key, and it hands a restarted controller
+        the trajectory under way again (whose end is then held)."""
+        assert self.timeline is not None
+        self.taken = None
+        refused = jtc.refusal(msg, self.sim_ns, self.names, self.rules, ended_ok=source == PLANNER)
+        if refused is None and not msg.points:
             # ROS convention: an empty trajectory stops the motion where the arm is now.
-            self.traj = self.next_traj = None
-            self.hold = self.pos.copy()
+            self.stop_here()
+            self.command_from = source
             return None
-        start = msgs.ns_of(msg.header.stamp) or self.sim_ns
-        # Continue from where the current reference will be when the new one starts.
-        base = self.traj.sample(start)[0] if self.traj is not None else self.hold
-        try:
-            t = control.TrajectorySampler(msg, self.names, start, base, self.joints.lower, self.joints.upper)
-        except control.TrajectoryError as e:
-            self.reject(key, str(e))
-            return str(e)
-        self.next_traj = t
-        self.max_tracking_error = 0.0
-        if self.traj is None:
-            # Before its start, hold the current setpoint; afterwards the last point (see _reference).
-            self.hold = np.array(base, float)
-        return None
-
-    # ------------------------------------------------------------------ FollowJointTrajectory (ROS 2 action)
-    def on_fjt_goal(self, goal_id: bytes, goal: cm.FollowJointTrajectoryGoal) -> bool:
-        """A goal is accepted; one that cannot be followed is aborted at once with its error code, and
-        leaves the motion under way alone."""
-        assert self.fjt is not None
-        self.fjt_goals += 1
-        tr = goal.trajectory
-        names = list(tr.joint_names)
-        why: tuple[int, str] | None = None
-        if len(set(names)) != len(names) or any(n not in self.names for n in names) or not names:
-            why = cm.FJT_INVALID_JOINTS, f"joint names {names} are not among the controller's joints {self.names}"
-        elif goal.multi_dof_trajectory.points or goal.multi_dof_trajectory.joint_names:
-            why = cm.FJT_INVALID_GOAL, "multi-DOF trajectories are not supported"
-        elif not tr.points:
-            why = cm.FJT_INVALID_GOAL, "the trajectory has no points"
-        elif self.hold is None:
-            why = cm.FJT_INVALID_GOAL, "no joint_states measured yet"
-        else:
+        if refused is None:
+            start = msgs.ns_of(msg.header.stamp) or self.sim_ns
+            # from where the command will be when the new one starts (joints it does not name keep it)
+            base = self.timeline.reference_at(start)
             try:
-                msgs.validate(tr)  # sizes, times strictly increasing, finite values
-            except msgs.BadMessage as e:
-                why = cm.FJT_INVALID_GOAL, str(e)
-        if why is None:
-            stamp = msgs.ns_of(tr.header.stamp)
-            if stamp and stamp + msgs.ns_of(tr.points[-1].time_from_start) < self.sim_ns:
-                why = cm.FJT_OLD_HEADER_TIMESTAMP, "the trajectory ended before it arrived"
-        if why is None:
-            strangers = [t.name for t in [*goal.path_tolerance, *goal.goal_tolerance] if t.name not in names]
-            if strangers:
-                why = cm.FJT_INVALID_JOINTS, f"tolerances for {strangers}, joints the goal does not move"
-        if why is None and (reason := self._accept(tr, self.fjt.keys.send_goal)) is not None:
-            why = cm.FJT_INVALID_GOAL, reason
-        if why is not None:
-            self.warn(f"{self.fjt.name}: goal {goal_text(goal_id)} aborted: {why[1]}")
-            self.fjt.finish(goal_id, cm.FollowJointTrajectoryResult(error_code=why[0], error_string=why[1]), False)
-            return True
-        sampler = self.next_traj
-        assert sampler is not None
-        if self.fjt_goal is not None:
-            self._end_goal(False, cm.FJT_INVALID_GOAL, f"preempted by goal {goal_text(goal_id)}")
-        cols = [self.names.index(n) for n in names]
-        gtt = msgs.ns_of(goal.goal_time_tolerance) or round(self.params.goal_time_tolerance * 1e9)
-        self.fjt_goal = _FjtGoal(goal_id, names, cols, sampler, sampler.pos[-1][cols],
-                                 *self._tolerances(names, goal), deadline_ns=sampler.end_ns + gtt,
-                                 next_feedback_ns=sampler.start_ns)
-        return True
+                t = control.TrajectorySampler(msg, self.names, start, base, self.joints.lower, self.joints.upper)
+            except control.TrajectoryError as e:
+                refused = jtc.JOINTS if "joint" in str(e) else "invalid", str(e)
+            else:
+                self.timeline.replace(jtc.Segment(t, source))
+                self.taken = t
+                self.max_tracking_error = 0.0
+                return None
+        self.refused += 1
+        self.last_refused = f"{source}: {refused[1]}"
+        self.reject(key, refused[1])
+        return refused
 
-    def _tolerances(self, names: list[str], goal: cm.FollowJointTrajectoryGoal) -> tuple[np.ndarray, ...]:
-        """(path position, goal position, goal velocity) tolerance per goal joint. In a JointTolerance 0
-        means the default (none on the path, ``task.tolerance`` at the goal, none for the velocity) and a
-        negative value none."""
-        path = np.full(len(names), np.inf)
-        pos = np.full(len(names), float(self.sc.task.tolerance))
-        vel = np.full(len(names), np.inf)
-
-        def put(into: np.ndarray, name: str, value: float) -> None:
-            if value:
-                into[names.index(name)] = np.inf if value < 0 else value
-
-        for t in goal.path_tolerance:
-            put(path, t.name, t.position)
-        for t in goal.goal_tolerance:
-            put(pos, t.name, t.position)
-            put(vel, t.name, t.velocity)
-        return path, pos, vel
-
-    def on_fjt_cancel(self, goal_id: bytes) -> bool:
-        g = self.fjt_goal
-        if g is None or g.goal_id != goal_id:
-            return False
-        self._accept(msgs.JointTrajectory(), "")  # hold where the arm is now
-        self._end_goal(False, cm.FJT_SUCCESSFUL, "canceled")
-        return True
-
-    def _end_goal(self, success: bool, code: int, text: str) -> None:
-        g, self.fjt_goal = self.fjt_goal, None
-        if g is not None and self.fjt is not None:
-            self.fjt.finish(g.goal_id, cm.FollowJointTrajectoryResult(error_code=code, error_string=text), success)
-
-    def _follow_goal(self, now: int) -> None:
-        """Once per control step, after the reference: tolerances, feedback, the end of the goal."""
-        g = self.fjt_goal
-        assert g is not None and self.fjt is not None
-        if g.sampler is not self.traj and g.sampler is not self.next_traj:
-            self._end_goal(False, cm.FJT_INVALID_GOAL, "replaced by a trajectory on joint_trajectory")
-            return
-        if now < g.sampler.start_ns:
-            return
-        desired, actual = self.ref_pos[g.cols], self.pos[g.cols]
-        error = desired - actual
-        if now >= g.next_feedback_ns:
-            g.next_feedback_ns = now + round(1e9 / self.params.action_feedback_hz)
-            elapsed = now - g.sampler.start_ns
-
-            def point(p: np.ndarray, v: np.ndarray) -> msgs.JointTrajectoryPoint:
-                return msgs.JointTrajectoryPoint(positions=p.tolist(), velocities=v.tolist(),
-                                                 time_from_start=msgs.Duration(sec=elapsed // 1_000_000_000,
-                                                                               nanosec=elapsed % 1_000_000_000))
-
-            desired_vel, actual_vel = self.ref_vel[g.cols], self.vel[g.cols]
-            self.fjt.feedback(g.goal_id, cm.FollowJointTrajectoryFeedback(
-                header=msgs.header(now), joint_names=g.names, desired=point(desired, desired_vel),
-                actual=point(actual, actual_vel), error=point(error, desired_vel - actual_vel)))
-        if now < g.sampler.end_ns:
-            bad = np.nonzero(np.abs(error) > g.path_tol)[0]
-            if bad.size:
-                j = int(bad[0])
-                self._accept(msgs.JointTrajectory(), "")  # hold where the arm is
-                self._end_goal(False, cm.FJT_PATH_TOLERANCE_VIOLATED,
-                               f"{g.names[j]} is {abs(error[j]):.4f} from its reference (path tolerance "
-                               f"{g.path_tol[j]:g})")
-            return
-        off = np.abs(actual - g.target)
-        if np.all(off <= g.goal_tol) and np.all(np.abs(self.vel[g.cols]) <= g.goal_vel_tol):
-            self._end_goal(True, cm.FJT_SUCCESSFUL, "")
-        elif now > g.deadline_ns:
-            j = int(np.argmax(off - g.goal_tol))
-            self._accept(msgs.JointTrajectory(), "")
-            self._end_goal(False, cm.FJT_GOAL_TOLERANCE_VIOLATED,
-                           f"{g.names[j]} is {off[j]:.4f} from the goal (tolerance {g.goal_tol[j]:g}) "
-                           f"{(now - g.sampler.end_ns) * 1e-9:.3f} s after the trajectory's end")
+    def stop_here(self) -> None:
+        """Hold the measured position: nothing followed or pending."""
+        assert self.timeline is not None
+        self.timeline.stop(self.pos.copy())
 
     # ------------------------------------------------------------------ live gains
     def on_set_parameters(self, req: msgs.SetParameters) -> msgs.SetParametersResult:
@@ -518,17 +387,25 @@ class ControllerService(Service):
 
     # ------------------------------------------------------------------ reporting
     def health_values(self) -> dict[str, Any]:
-        t = self.next_traj or self.traj
-        active = t is not None and not t.done(self.sim_ns)
-        progress = self.traj.progress(self.sim_ns) if self.traj is not None else 0.0
+        tl = self.timeline
+        last = tl.last() if tl is not None else None
+        current = tl.current if tl is not None else None
+        active = last is not None and not last.sampler.done(self.sim_ns)
+        progress = current.sampler.progress(self.sim_ns) if current is not None else 0.0
         return {
             "trajectory_active": "yes" if active else "no",
             "trajectory_progress": f"{progress:.3f}",
+            # whose command the arm follows (planner, joint_trajectory, the action's goal; empty: its first
+            # position), and whose starts later
+            "command_from": current.source if current is not None else "",
+            "command_pending": ",".join(s.source for s in tl.pending) if tl is not None else "",
+            "trajectories_refused": self.refused,
+            "last_refused": self.last_refused,
             "tracking_error": f"{self.tracking_error:.6f}",
             "max_tracking_error": f"{self.max_tracking_error:.6f}",
             "control_steps": self.steps,
-            "fjt_goals": self.fjt_goals,
-            "fjt_goal": goal_text(self.fjt_goal.goal_id) if self.fjt_goal is not None else "",
+            "fjt_goals": self.fjt.goals if self.fjt is not None else 0,
+            "fjt_goal": goal_text(self.fjt.goal.goal_id) if self.fjt is not None and self.fjt.goal is not None else "",
             "joint_states_gaps": self.gaps,
             "interfaces": ",".join(sorted(set(self.interfaces))),
             # the gains in force (scenario + live changes), so a client (the panel) reads what it set

@@ -13,8 +13,10 @@ Reads:
   ``fleet/joint_states_throttle`` instead (the same message, its ticks and acknowledgements unchanged).
 
 Writes:
-- ``joint_trajectory`` (trajectory_msgs/JointTrajectory) for the joint trajectory controller,
-  stamped to start ``START_DELAY`` after the tick it was planned on; never dropped on a congested link
+- ``planner/joint_trajectory`` (trajectory_msgs/JointTrajectory) for the joint trajectory controller
+  (a key only the planner's identity may write, so the controller knows its trajectories from a
+  person's on ``joint_trajectory``), stamped to start ``START_DELAY`` after the tick it was planned
+  on; never dropped on a congested link
   (a sample given once: hilsim.core.keys), and in realtime sent again, up to ``HANDOVER_TRIES`` times
   in all, while the controller answers ``controller/has_trajectory`` that it did not reach it;
 - ``planner/path`` (the geometric path, for the logger), ``planner/feedback`` (state ``planning`` /
@@ -179,7 +181,7 @@ class PlannerService(Service):
     # ------------------------------------------------------------------ setup
     def setup(self) -> None:
         k = self.keys
-        self.pub_traj = self.publisher(k.topic("joint_trajectory"))
+        self.pub_traj = self.publisher(k.topic("planner/joint_trajectory"))
         self.pub_path = self.publisher(k.topic("planner/path"))
         self.pub_feedback = self.publisher(k.topic("planner/feedback"))
         self.pub_result = self.publisher(k.topic("planner/result"))

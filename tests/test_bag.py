@@ -652,11 +652,11 @@ def test_the_played_sensor_stream_gives_the_controllers_commands_bit_for_bit(arm
         got[msgs.ns_of(msgs.decode(msgs.JointState, data).header.stamp)] = data
 
     sub = s.declare_subscriber(Keys.of(sc).topic("joint_commands"), on)
-    traj_key = Keys.of(sc).topic("joint_trajectory")
+    traj_key = Keys.of(sc).topic("planner/joint_trajectory")  # the planner's, recorded
     try:
         with run_service(instantiate("controller", sc)) as ctl:
             p = subprocess.run([sys.executable, "-m", "hilsim.cli", "play", str(run), "--rate", "0.1", "--keys",
-                                "/arm/joint_states,/arm/joint_trajectory", "--connect", ep],
+                                "/arm/joint_states,/arm/planner/joint_trajectory", "--connect", ep],
                                capture_output=True, text=True, timeout=120, cwd=REPO)
             assert p.returncode == 0, p.stderr
             end = time.monotonic() + 10
@@ -671,7 +671,7 @@ def test_the_played_sensor_stream_gives_the_controllers_commands_bit_for_bit(arm
         router.close()
     recorded = {m.pub_ns: m.data for m in open_bag(run).messages() if m.topic == "/arm/joint_commands"}
     assert len(recorded) == 1001
-    (traj,) = [m for m in open_bag(run).messages() if m.topic == "/arm/joint_trajectory"]
+    (traj,) = [m for m in open_bag(run).messages() if m.topic == "/arm/planner/joint_trajectory"]
     assert 0 < traj.pub_ns < 1_000_000_000  # the trajectory starts within the run: the commands follow it
     assert sorted(got) == sorted(recorded)
     differ = [t for t in sorted(recorded) if got[t] != recorded[t]]

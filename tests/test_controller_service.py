@@ -146,37 +146,88 @@ def test_reference_follows_a_trajectory(rig: Rig) -> None:
     assert rig.refs[-1].position == pytest.approx([0.05] * 6)
 
 
-def test_a_replayed_trajectory_cannot_send_the_arm_back(rig: Rig) -> None:
-    """A stamped trajectory that starts before the one being followed (ended or not) is refused with its
-    reason (a replay of the planner's own, as an insider or a wrong bag sends it): the
-    arm keeps following the newest. Stamp zero ("now") is never late."""
+def to(target: float, start_step: int, seconds: float = 0.02, joint: str = "joint_1") -> msgs.JointTrajectory:
+    """joint_1 (alone) to ``target`` in ``seconds``, stamped to start at ``start_step`` (0: now)."""
+    return msgs.JointTrajectory(header=msgs.header(start_step * DT_NS), joint_names=[joint], points=[
+        msgs.JointTrajectoryPoint(positions=[target], time_from_start=msgs.duration(seconds))])
+
+
+def test_a_trajectory_is_timed_as_ros2s_joint_trajectory_controller_times_it(rig: Rig) -> None:
+    """A future stamp starts then; a newer trajectory replaces what was commanded from its own start (an
+    earlier-stamped one is never refused for being earlier, so one far-stamped message cannot lock the
+    next out); one that ended before it arrived is refused; stamp zero is now."""
     key = rig.keys.topic("joint_trajectory")
-
-    def to(target: float, start_step: int, seconds: float = 0.02) -> msgs.JointTrajectory:
-        return msgs.JointTrajectory(header=msgs.header(start_step * DT_NS), joint_names=["joint_1"], points=[
-            msgs.JointTrajectoryPoint(positions=[target], time_from_start=msgs.duration(seconds))])
-
     rig.step(js(0))
-    old = to(0.3, 2)  # ends at step 22
-    rig.trajectory(old)
+    rig.trajectory(to(0.3, 2))  # ends at step 22
     for k in range(1, 30):
         rig.step(js(k))
     assert rig.refs[-1].position[0] == pytest.approx(0.3)
-    rig.trajectory(to(-0.2, 30, 0.1))  # the newer one: to -0.2 by step 130
+    rig.trajectory(to(-0.2, 60, 0.1))  # pending: starts at step 60
+    rig.trajectory(to(0.1, 40, 0.01))  # newer, starts earlier: replaces the pending one from step 40 on
     for k in range(30, 40):
         rig.step(js(k))
-    rig.trajectory(old)  # ended at step 22, and older than the one followed
-    rig.trajectory(to(0.3, 25, 1.0))  # not ended, but starts before the one being followed
-    assert rig.svc.rejected[key] == 2, dict(rig.svc.rejected)
-    for k in range(40, 140):
+    assert rig.refs[-1].position[0] == pytest.approx(0.3)  # before step 40 the old command went on
+    for k in range(40, 200):
         rig.step(js(k))
-    assert rig.refs[-1].position[0] == pytest.approx(-0.2)  # the newest, followed to its end
-    nows = msgs.JointTrajectory(joint_names=["joint_1"], points=[
-        msgs.JointTrajectoryPoint(positions=[0.1], time_from_start=msgs.duration(0.01))])
-    rig.trajectory(nows)
-    for k in range(140, 160):
+    assert rig.refs[-1].position[0] == pytest.approx(0.1), "the earlier-stamped newer one was not followed"
+    assert rig.svc.rejected[key] == 0, dict(rig.svc.rejected)
+    # one that starts later replaces only from its start: until then the current command goes on
+    rig.trajectory(to(0.25, 250, 0.01))
+    rig.trajectory(to(-0.1, 220, 0.01))  # newer, earlier: the 250 one is dropped (it started after 220)
+    for k in range(200, 300):
         rig.step(js(k))
-    assert rig.svc.rejected[key] == 2 and rig.refs[-1].position[0] == pytest.approx(0.1)
+    assert rig.refs[-1].position[0] == pytest.approx(-0.1)
+    # ended before it arrived: refused, said in the health
+    rig.trajectory(to(0.3, 100, 0.02))
+    assert rig.svc.rejected[key] == 1
+    h = {kv.key: kv.value for kv in rig.svc.health().status[0].values}
+    assert "ended at 0.120 s, before it arrived" in h["last_refused"], h
+    assert h["command_from"] == "joint_trajectory" and h["trajectories_refused"] == "1"
+    rig.trajectory(to(0.05, 0, 0.01))  # stamp zero: now
+    for k in range(300, 320):
+        rig.step(js(k))
+    assert rig.svc.rejected[key] == 1 and rig.refs[-1].position[0] == pytest.approx(0.05)
+
+
+def test_a_stamp_far_ahead_or_on_the_wall_clock_is_refused_naming_use_sim_time(rig: Rig) -> None:
+    """A node not on sim time stamps with the wall clock (1.7e9 s ahead): refused with a reason naming
+    use_sim_time, as is any stamp beyond controller.params.max_start_ahead; the next trajectory is taken."""
+    key = rig.keys.topic("joint_trajectory")
+    rig.step(js(0))
+    wall = msgs.JointTrajectory(header=msgs.header(time.time_ns()), joint_names=["joint_1"], points=[
+        msgs.JointTrajectoryPoint(positions=[0.3], time_from_start=msgs.duration(0.01))])
+    rig.trajectory(wall)
+    assert rig.svc.rejected[key] == 1
+    assert "wall-clock time" in rig.svc.last_refused and "use_sim_time" in rig.svc.last_refused, rig.svc.last_refused
+    ahead = rig.svc.params.max_start_ahead
+    rig.trajectory(to(0.3, round((ahead + 1) * 1000)))  # an hour ahead would be the same
+    assert rig.svc.rejected[key] == 2
+    assert "max_start_ahead" in rig.svc.last_refused and "use_sim_time" in rig.svc.last_refused
+    rig.trajectory(to(0.2, 5))
+    for k in range(1, 40):
+        rig.step(js(k))
+    assert rig.svc.rejected[key] == 2 and rig.refs[-1].position[0] == pytest.approx(0.2)
+
+
+def test_partial_joints_only_where_allowed(scenario: Callable[..., Any], session: Any,
+                                           run_service: Callable[[Any], Any]) -> None:
+    """allow_partial_joints_goal: false refuses a subset (and says so), takes all joints in any order."""
+    sc = scenario(overrides={"controller.params": {"allow_partial_joints_goal": False}})
+    with run_service(ControllerService(sc)) as svc:
+        r = Rig(svc, session)
+        try:
+            key = r.keys.topic("joint_trajectory")
+            r.step(js(0))
+            r.trajectory(to(0.2, 0))
+            assert svc.rejected[key] == 1 and "allow_partial_joints_goal" in svc.last_refused
+            names = list(reversed(NAMES))
+            r.trajectory(msgs.JointTrajectory(joint_names=names, points=[msgs.JointTrajectoryPoint(
+                positions=[0.0, 0.0, 0.0, 0.0, 0.0, 0.2], time_from_start=msgs.duration(0.01))]))
+            for k in range(1, 20):
+                r.step(js(k))
+            assert svc.rejected[key] == 1 and r.refs[-1].position[0] == pytest.approx(0.2)
+        finally:
+            r.close()
 
 
 def test_live_gain_change_changes_the_output(rig: Rig) -> None:
@@ -323,7 +374,7 @@ def test_lockstep_chain_with_sensors_and_mujoco(
                             )
                         )
                     )
-                    assert wait_until(lambda: ctl.next_traj is not None)
+                    assert wait_until(lambda: ctl.taken is not None)
                 pub_imu.put(msgs.encode(msgs.Imu(header=msgs.header(t))))
                 pub_js.put(
                     msgs.encode(
@@ -381,6 +432,6 @@ def test_realtime_drops_a_stale_joint_state_but_never_a_trajectory(
             assert wait_until(lambda: svc.counts_in[k_tr] == 1, 5.0)
             with svc.lock:
                 assert svc.stale[k_tr] == 0 and svc.rejected[k_tr] == 0
-                assert svc.next_traj is not None or svc.traj is not None, "the trajectory was not taken"
+                assert svc.taken is not None, "the trajectory was not taken"
         finally:
             rig.close()

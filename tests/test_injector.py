@@ -154,18 +154,20 @@ def test_the_arm_reaches_its_targets_while_every_key_is_attacked(tmp_path: Path)
             keys.topic("task/result")} <= set(not_theirs), not_theirs
     for k in not_theirs:
         assert counts[k]["received"] == published[k] and counts[k]["rejected"] == 0, (k, counts[k], published[k])
-    # on the trajectory, which a person may send, the injected samples arrived (the control): refused or
-    # suspect at the controller, which still followed the planner's own (3/3 above)
+    # on the trajectory a person may send, the injected samples arrived (the control; the planner hands its own
+    # on planner/joint_trajectory, refused above): the controller refused them (a writer that announced
+    # nothing, in a run with credentials), and still followed the planner's own (3/3 above)
     t = counts[trajectory]
-    assert t["received"] > published[trajectory] and t["unannounced"] > 0, t
+    assert t["received"] > published.get(trajectory, 0), t
     found = re.finditer(r"^  (\w+): (\d+) rejected, (\d+) errors", out, re.M)
     rejected = {m[1]: (int(m[2]), int(m[3])) for m in found}
     assert "controller" in rejected and "planner" in rejected, out  # the trajectory; garbage goals and gains
     assert "physics" not in rejected and "sensors" not in rejected, out  # nothing reached them
     assert all(errors == 0 for _, errors in rejected.values()), out
-    assert re.search(r"^  controller: \d+ suspect samples", out, re.M), out  # forged numbers, said
     log = (run / "controller.log").read_text()
-    assert "has not announced itself for this key" in log and "no attachment" in log and "suspect sample" in log
+    # a forged number with the planner's gid is no longer believed on the trajectory: only the router's
+    # identities keep the planner's key, and on joint_trajectory its gid is not an announced writer's
+    assert "has not announced itself for this key" in log and "no attachment" in log
     # "recorded" means in the file: the rows match the recorder's counts, what it could not decode kept too
     rows = recording.entity_rows(run / "recording.rrd")
     assert all(v["received"] == v["recorded"] == v["bagged"] for v in counts.values()), counts

@@ -58,7 +58,7 @@ class FakeSim:
         self.pub_clock = session.declare_publisher(keys.clock)
         self.subs = [
             session.declare_subscriber(keys.sync("planner"), self._on_ack),
-            session.declare_subscriber(keys.topic("joint_trajectory"), self._on_traj),
+            session.declare_subscriber(keys.topic("planner/joint_trajectory"), self._on_traj),
         ]
 
     def _on_ack(self, s: zenoh.Sample) -> None:

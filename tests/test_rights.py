@@ -51,6 +51,11 @@ def test_each_identity_may_write_what_the_key_table_gives_it(scenario: Any) -> N
     composed = rights.unit_rights(sc, "physics+sensors+controller")
     assert composed.may_put(k.clock) and composed.may_put(k.topic("joint_commands"))
     assert not composed.may_put(k.topic("joint_trajectory"))
+    # the planner hands its trajectory on a key only it may write; a person's command goes on joint_trajectory
+    planner = rights.unit_rights(sc, "planner")
+    assert planner.may_put(k.topic("planner/joint_trajectory"))
+    assert not tools.may_put(k.topic("planner/joint_trajectory"))
+    assert not planner.may_put(k.topic("joint_trajectory"))
     # a run without the sensors: their joint states are the tools' to write (played from a bag)
     assert rights.tools_rights(scenario("arm", {"services": ["physics", "controller", "logger"]})).may_put(
         k.topic("joint_states"))

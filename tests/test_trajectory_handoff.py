@@ -36,11 +36,11 @@ from hilsim.services.controller import ControllerService
 
 
 class SlowTrajectoryController(ControllerService):
-    def on_trajectory(self, msg, key):
+    def on_planner_trajectory(self, msg, key):
         def late():
             time.sleep(0.08)
             with self.lock:
-                ControllerService.on_trajectory(self, msg, key)
+                ControllerService.on_planner_trajectory(self, msg, key)
 
         threading.Thread(target=late, daemon=True).start()
 '''
@@ -65,8 +65,8 @@ def test_a_trajectory_that_reaches_the_controller_late_changes_nothing(tmp_path:
     for i, law in enumerate(["joint_trajectory", "slow"]):
         env = {"PYTHONPATH": os.pathsep.join([str(plugin), os.environ.get("PYTHONPATH", "")])}
         rc, stdout, cap = up_captured(
-            tmp_path / f"run{i}", {"truth": keys.topic("truth/joint_states"), "trajs": keys.topic("joint_trajectory"),
-                                   "health": keys.health("planner")},
+            tmp_path / f"run{i}", {"truth": keys.topic("truth/joint_states"),
+                                   "trajs": keys.topic("planner/joint_trajectory"), "health": keys.health("planner")},
             "arm", "--duration", "1.2", "--seed", "7", "--no-logger", "--set", f"controller.type={law}", env=env)
         assert rc == 3 and "result: STOPPED (duration)" in stdout, stdout
         truth, trajs, health = cap["truth"], cap["trajs"], cap["health"]
@@ -96,11 +96,11 @@ from hilsim.services.controller import ControllerService
 class LossyTrajectoryController(ControllerService):
     lost = 0
 
-    def on_trajectory(self, msg, key):
+    def on_planner_trajectory(self, msg, key):
         if not self.lost:
             self.lost += 1
             return
-        ControllerService.on_trajectory(self, msg, key)
+        ControllerService.on_planner_trajectory(self, msg, key)
 '''
 
 
@@ -113,7 +113,7 @@ def test_realtime_a_trajectory_lost_on_the_way_is_sent_again(tmp_path: Path) -> 
     plugin = _plugin(tmp_path / "plugin", "lossy", "lossy_law", LOSSY_LAW, "LossyTrajectoryController")
     env = {"PYTHONPATH": os.pathsep.join([str(plugin), os.environ.get("PYTHONPATH", "")])}
     rc, stdout, cap = up_captured(
-        tmp_path / "run", {"truth": keys.topic("truth/joint_states"), "trajs": keys.topic("joint_trajectory"),
+        tmp_path / "run", {"truth": keys.topic("truth/joint_states"), "trajs": keys.topic("planner/joint_trajectory"),
                            "health": keys.health("planner")},
         "arm", "--clock", "realtime", "--duration", "8", "--no-logger", "--set", "controller.type=lossy",
         # the controller answers "not reached" after a third of this: a second, not ten

@@ -65,7 +65,11 @@ TOPIC_TABLE: dict[str, Topic] = {
     # the drive emulator in simulation mode commands its joints in the controller's place
     "joint_commands": _row(msgs.JointState, "controller", "drive-emulator"),
     # given once: dropped on a congested link (a loaded machine), the arm would never move to its target
-    "joint_trajectory": _row(msgs.JointTrajectory, "planner", "bridge-ros2-dds", USER, once=True),
+    # a person's, a tool's, a ROS 2 node's command (the planner hands its own on planner/joint_trajectory)
+    "joint_trajectory": _row(msgs.JointTrajectory, "bridge-ros2-dds", USER, once=True),
+    # the planner's trajectory, on a key only its identity may write: a replay of it by anyone else can
+    # come only on joint_trajectory, where it is a person's command like any other (docs/security.md)
+    "planner/joint_trajectory": _row(msgs.JointTrajectory, "planner", once=True),
     "controller/reference": _row(msgs.JointState, "controller"),
     "imu": _row(msgs.Imu, "sensors"),
     "gps/fix": _row(msgs.NavSatFix, "sensors", "bridge-mavlink"),  # a real GPS in the loop, in its place

@@ -35,8 +35,8 @@ QUANTITIES = ("position", "velocity", "effort")
 OVERVIEW_RADIUS = 15.0  # [m] a mobile robot's 3D view frames the static geometry this close to its start
 # what the 3D view shows (entities of hilsim.record.rows)
 SPATIAL_CONTENTS = [
-    "/world/**", "/robot/**", "/joint_trajectory/tool_path", "/planner/path/tool_path",
-    "/scan", "/paths/**", "/odom/estimate", "/map", "/plan",
+    "/world/**", "/robot/**", "/joint_trajectory/tool_path", "/planner/joint_trajectory/tool_path",
+    "/planner/path/tool_path", "/scan", "/paths/**", "/odom/estimate", "/map", "/plan",
 ]
 
 

@@ -111,6 +111,8 @@ def summarise(la: FinishedRun) -> int:
         if bad:
             last = f" (last: {h['last_error']})" if h.get("last_error") else ""  # none: no empty "(last: )"
             print(f"  {name}: {h.get('rejected')} rejected, {h.get('errors')} errors{last}")
+        if h.get("last_refused"):  # a command the controller did not take, and why (use_sim_time, ended, …)
+            print(f"  {name}: {h.get('trajectories_refused')} trajectories refused (last: {h['last_refused']})")
         if _num(h.get("suspect")):
             print(f"  {name}: {h['suspect']} suspect samples (a writer's id in samples out of its order: delivered, "
                   "its gaps not counted as lost; docs/keys.md)")

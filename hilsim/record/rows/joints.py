@@ -22,7 +22,9 @@ from hilsim.core import msgs
 from hilsim.record.rows.common import MODEL_PERIOD_NS, TIMELINE, RowsBase, part, rr
 from hilsim.sim.kinematics import RobotModel
 
-TRAJECTORY_TOPICS = ("joint_trajectory", "planner/path")
+# timed trajectories (a person's, the planner's) and the planner's geometric path
+TIMED_TRAJECTORIES = ("joint_trajectory", "planner/joint_trajectory")
+TRAJECTORY_TOPICS = (*TIMED_TRAJECTORIES, "planner/path")
 
 
 class JointRows(RowsBase):
@@ -88,8 +90,8 @@ class JointRows(RowsBase):
             f"start {q[0].round(4).tolist()} end {q[-1].round(4).tolist()}",
         )
         # Path waypoints have no meaningful timing: plot them against their index.
-        x = tfs * 1e-9 if topic == "joint_trajectory" else np.arange(len(pts), dtype=float)
-        if topic == "joint_trajectory":
+        x = tfs * 1e-9 if topic in TIMED_TRAJECTORIES else np.arange(len(pts), dtype=float)
+        if topic in TIMED_TRAJECTORIES:
             for i, name in enumerate(msg.joint_names):
                 for tf, v in zip(tfs.tolist(), q[:, i].tolist(), strict=True):
                     self._scalar(f"{root}joints/{part(name)}/position/planned", t0 + tf, v)

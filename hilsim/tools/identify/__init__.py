@@ -191,7 +191,8 @@ def record_keys(sc: Scenario) -> list[str]:
     """What the drive's run records: what the fit and the proof read, and the services' health and logs
     (the recorder's load kept small: on a busy machine it would delay the drive's reports)."""
     k = Keys.of(sc)
-    names = ("joint_commands", "truth/joint_states", "controller/reference", "joint_trajectory", "hw", "health", "log")
+    names = ("joint_commands", "truth/joint_states", "controller/reference", "joint_trajectory",
+             "planner/joint_trajectory", "hw", "health", "log")
     return [f"{k.topic_name(n).strip('/')}/**" for n in names]
 
 
