@@ -122,6 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--ui", action="store_true", help="start the browser control panel with this run (docs/panel.md)")
     up.add_argument("--ui-host", default="127.0.0.1", help="with --ui: the panel's address (default loopback)")
     up.add_argument("--ui-port", type=int, default=8080, help="with --ui: the panel's port (default 8080)")
+    up.add_argument("--ui-no-token", action="store_true", help="with --ui: serve the panel without a token")
     up.set_defaults(func=_up)
 
     run = sub.add_parser("run", help="run one service alone (what docker compose uses)")
@@ -407,8 +408,10 @@ def build_parser() -> argparse.ArgumentParser:
     router.set_defaults(func=_lazy("hilsim.run.launcher", "cmd_router"))
 
     ui = sub.add_parser("ui", help="the browser control panel: choose, start, command and watch a run")
-    ui.add_argument("--host", default="127.0.0.1", help="address to listen on (default loopback; the panel has "
-                    "no authentication)")
+    ui.add_argument("--host", default="127.0.0.1", help="address to listen on (default loopback; anyone who "
+                    "reaches it needs the token)")
+    ui.add_argument("--no-token", action="store_true", help="serve without a token (docs/panel.md): any "
+                    "process or user of this machine that reaches the port may command the robot")
     ui.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080)")
     ui.add_argument("--connect", help="join this Zenoh router instead of opening one (runs started from the "
                     "panel use it too)")

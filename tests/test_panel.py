@@ -36,12 +36,21 @@ from hilsim.core import msgs, transport
 pytestmark = pytest.mark.e2e
 
 
+# each panel's token (hilsim.ui.guard), by its base URL: every request of this test carries it
+TOKENS: dict[str, str] = {}
+
+
 def _http(url: str, body: Any = None, *, raw: bytes | None = None, method: str | None = None,
-          timeout: float = 30.0) -> tuple[int, Any]:
-    """(status, JSON) of a request; errors are answers too."""
+          timeout: float = 30.0, headers: dict[str, str] | None = None, token: bool = True) -> tuple[int, Any]:
+    """(status, JSON) of a request, with the panel's token unless ``token`` is False; errors are answers too."""
     data = raw if raw is not None else (json.dumps(body).encode() if body is not None else None)
+    h = {"Content-Type": "application/json"}
+    secret = next((t for base, t in TOKENS.items() if url.startswith(base + "/")), None)
+    if token and secret:
+        h["Authorization"] = f"token {secret}"
+    h.update(headers or {})
     req = urllib.request.Request(url, data=data, method=method or ("POST" if data is not None else "GET"),
-                                 headers={"Content-Type": "application/json"})
+                                 headers=h)
     try:
         with urllib.request.urlopen(req, timeout=timeout) as r:
             return r.status, json.loads(r.read() or b"null")
@@ -66,8 +75,13 @@ class PanelProc:
         threading.Thread(target=self._read, daemon=True).start()
         self.url = f"http://127.0.0.1:{self.port}"
         assert wait_until(lambda: any(ln.startswith("hilsim panel: http") for ln in self.lines), 60), self.out()
-        # the panel says its Zenoh endpoint (its own router on a free port when 7447 is taken)
-        self.endpoint = re.search(r"\(zenoh (\S+)\)", next(ln for ln in self.lines if "panel: http" in ln))[1]
+        # the panel says its Zenoh endpoint (its own router on a free port when 7447 is taken) and its URL with
+        # the token, which the page keeps (hilsim.ui.guard)
+        said = next(ln for ln in self.lines if "panel: http" in ln)
+        self.endpoint = re.search(r"\(zenoh (\S+)\)", said)[1]
+        self.page_url = said.split()[2]
+        self.token = self.page_url.split("?token=")[1]
+        TOKENS[self.url] = self.token
         assert wait_until(self._answers, 20), self.out()
 
     def _read(self) -> None:
@@ -158,7 +172,7 @@ def test_bad_requests_get_a_message_and_the_server_keeps_answering(idle_panel: P
     status, data = _http(url + "/api/goal", {"kind": "joints", "positions": [0, 0, 0, 0, 0, 0]})
     assert status == 409 and "no run" in data["error"], data
     # after all that it still serves the page and its state, and started nothing
-    with urllib.request.urlopen(url + "/", timeout=10) as r:
+    with urllib.request.urlopen(idle_panel.page_url, timeout=10) as r:
         assert r.status == 200 and b"<title>hilsim control panel</title>" in r.read()
     st = idle_panel.state()
     assert st["run"]["state"] == "idle" and idle_panel.proc.poll() is None
@@ -211,7 +225,7 @@ def test_browser_start_run_goal_gain_stop(tmp_path: Path, router: str) -> None:
         with sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path=exe, args=["--no-sandbox"], headless=True)
             page = browser.new_page(viewport={"width": 1500, "height": 1000})
-            page.goto(panel.url)
+            page.goto(panel.page_url)
             page.wait_for_selector("#scenario option[value='arm-lean']", state="attached")
             page.select_option("#scenario", "arm-lean")
             page.select_option("#clock", "realtime")
@@ -443,7 +457,8 @@ def test_hilsim_ui_finds_a_run_of_a_terminal_and_its_sliders_follow_the_joints(t
             run.wait("ready:", 90)
             ui = Lines(subprocess.Popen([*here, "ui", "--port", "8080"], cwd=REPO, text=True, stdout=subprocess.PIPE,
                                         stderr=subprocess.STDOUT, start_new_session=True))
-            assert "(zenoh tcp/127.0.0.1:7447)" in ui.wait("hilsim panel: http", 60)
+            said = ui.wait("hilsim panel: http", 60)
+            assert "(zenoh tcp/127.0.0.1:7447)" in said
             # it names the run it joined (directory, scenario, endpoint)
             assert any(ln.startswith("hilsim ui: joined run ") and "(scenario arm) at tcp/127.0.0.1:7447" in ln
                        for ln in ui.lines), ui.lines
@@ -453,7 +468,7 @@ def test_hilsim_ui_finds_a_run_of_a_terminal_and_its_sliders_follow_the_joints(t
             with sync_playwright() as pw:
                 browser = pw.chromium.launch(executable_path=str(browser_in_ns), args=["--no-sandbox"], headless=True)
                 page = browser.new_page(viewport={"width": 1500, "height": 1000})
-                assert wait_until(lambda: _goto(page, "http://127.0.0.1:8080/"), 30)
+                assert wait_until(lambda: _goto(page, said.split()[2]), 30)
 
                 def until(js: str, timeout_s: float) -> None:
                     """``js`` holds on the page within ``timeout_s``; else what the panel and the run said."""
@@ -517,7 +532,7 @@ def test_up_ui_prints_the_runs_progress_and_a_normal_end_is_no_fault(tmp_path: P
         with sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path=exe, args=["--no-sandbox"], headless=True)
             page = browser.new_page(viewport={"width": 1500, "height": 1000})
-            page.goto(panel.url)
+            page.goto(panel.page_url)
             page.wait_for_function("document.getElementById('run-banner').textContent.startsWith('Finished')",
                                    timeout=90_000)
             assert panel.state()["run"]["rc"] == 0, panel.state()["run"]["output"]
@@ -546,3 +561,150 @@ def test_a_many_robot_run_shows_its_first_robot_with_every_service() -> None:
     two = load_scenario(REPO / "config" / "arm.yaml", {"robots": 2})
     robot, services = shown_robot(two)
     assert robot == "arm0" and sorted(services) == sorted(one.processes()), (robot, services)
+
+
+def test_the_panel_takes_commands_only_with_its_token_from_its_own_origin_and_host(idle_panel: PanelProc) -> None:
+    """As Jupyter guards its server (hilsim.ui.guard): a token by default, in the URL it prints; a request
+    without it, with a wrong one, from another origin or site, under a foreign Host (DNS rebinding), or a
+    command that is not application/json is refused, and each refusal is said in one line."""
+    url = idle_panel.url
+    goal = {"kind": "joints", "positions": [0, 0, 0, 0, 0, 0]}
+    assert re.fullmatch(r"http://127\.0\.0\.1:\d+/\?token=[\w-]{40,}", idle_panel.page_url), idle_panel.page_url
+    for path in ("/", "/api/state", "/api/events", "/static/app.js"):
+        status, data = _http(url + path, token=False)
+        assert status == 403 and "token" in data["error"], (path, status, data)
+    assert _http(url + "/api/goal", goal, token=False)[0] == 403
+    assert _http(url + "/api/state", headers={"Authorization": "token nope"})[0] == 403
+    refusals = {
+        "Host": {"Host": f"evil.example:{idle_panel.port}"},
+        "Origin": {"Origin": "http://evil.example"},
+        "another port": {"Origin": "http://127.0.0.1:1"},
+        "Sec-Fetch-Site": {"Sec-Fetch-Site": "cross-site"},
+    }
+    for why, h in refusals.items():
+        status, data = _http(url + "/api/goal", goal, headers=h)
+        assert status == 403 and ("panel" in data["error"] or "site" in data["error"]), (why, status, data)
+        assert _http(url + "/api/state", headers=h)[0] == 403, why
+    status, data = _http(url + "/api/goal", raw=json.dumps(goal).encode(), headers={"Content-Type": "text/plain"})
+    assert status == 415 and "application/json" in data["error"], data
+    # the control: the same goal with the token, as JSON, from the panel's own origin reaches the panel (no run)
+    status, data = _http(url + "/api/goal", goal, headers={"Origin": url, "Sec-Fetch-Site": "same-origin"})
+    assert status == 409 and "no run" in data["error"], data
+    # the page opened with the token gets a cookie for this port only, which later requests carry
+    req = urllib.request.Request(idle_panel.page_url)
+    with urllib.request.urlopen(req, timeout=10) as r:
+        cookie = r.headers["Set-Cookie"]
+    assert cookie.startswith(f"hilsim-panel-{idle_panel.port}=") and "HttpOnly" in cookie
+    assert "SameSite=Strict" in cookie
+    assert _http(url + "/api/state", token=False, headers={"Cookie": cookie.split(";")[0]})[0] == 200
+    assert sum("hilsim panel: refused " in ln for ln in idle_panel.lines) >= 14, idle_panel.out()
+    # --no-token: says so in one line; the origin and host checks stay
+    port = transport.free_port()
+    p = subprocess.Popen([sys.executable, "-m", "hilsim.cli", "ui", "--port", str(port), "--no-token", "--connect",
+                          idle_panel.endpoint], cwd=REPO, text=True, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                         start_new_session=True)
+    try:
+        lines = Lines(p)
+        said = lines.wait("hilsim panel: http", 60)
+        assert "token" not in said.split()[2], said
+        assert [ln for ln in lines.lines if "--no-token" in ln] == [
+            "hilsim panel: --no-token: any process or user of this machine that reaches the port may command the "
+            "robot"], lines.lines
+        base = f"http://127.0.0.1:{port}"
+
+        def answers() -> bool:
+            try:
+                return _http(base + "/api/state", token=False, timeout=2)[0] == 200
+            except OSError:
+                return False
+
+        assert wait_until(answers, 30)
+        assert _http(base + "/api/state", token=False, headers={"Origin": "http://evil.example"})[0] == 403
+    finally:
+        p.send_signal(signal.SIGTERM)
+        try:
+            p.wait(90)
+        except subprocess.TimeoutExpired:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+
+
+EVIL_PAGE = """<!doctype html><title>another site</title><body>
+<form id=f method=POST action="{panel}/api/goal" enctype="text/plain">
+<input name='{{"kind":"joints","positions":{goal},"x":"' value='"}}'></form>
+<script>
+const goal = JSON.stringify({{kind: "joints", positions: {goal}}});
+const url = "{panel}/api/goal";
+window.tried = Promise.allSettled([
+  fetch(url, {{method: "POST", mode: "no-cors", credentials: "include", headers: {{"Content-Type": "text/plain"}},
+              body: goal}}),
+  fetch(url, {{method: "POST", credentials: "include", headers: {{"Content-Type": "application/json"}},
+              body: goal}}),
+  fetch(url + "?token=guess", {{method: "POST", mode: "no-cors", body: goal}}),
+]).then((r) => r.map((x) => x.status));
+</script></body>"""
+
+
+def test_a_page_of_another_origin_cannot_move_the_arm_through_the_panel(tmp_path: Path, router: str) -> None:
+    """A real browser holding the panel's page (and its cookie) opens a page of another origin (another port
+    of 127.0.0.1: the same site to a cookie) that posts a goal to /api/goal as a form, as text/plain and as
+    JSON: all refused, and the arm does not move (the physics truth); the panel's own page still commands."""
+    import functools
+    import http.server
+
+    sync_playwright, exe = _browser()
+    run = up(LEAN, "--clock", "realtime", "--set", "task.targets=[]", "--router", router, "--wait", "60")
+    panel: PanelProc | None = None
+    obs: Observer | None = None
+    evil_server: http.server.ThreadingHTTPServer | None = None
+    try:
+        panel = PanelProc("--connect", router)
+        obs = Observer(router)
+        assert wait_until(lambda: panel.state()["external"] and panel.state()["scenario"] is not None, 60)
+        target = [-0.4, -0.2, 0.1, 0.0, -0.4, 0.0]
+        (tmp_path / "evil.html").write_text(EVIL_PAGE.format(panel=panel.url, goal=json.dumps(target)))
+        handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(tmp_path))
+        evil_server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+        threading.Thread(target=evil_server.serve_forever, daemon=True).start()
+        evil = f"http://127.0.0.1:{evil_server.server_address[1]}/evil.html"
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=exe, args=["--no-sandbox"], headless=True)
+            ctx = browser.new_context(viewport={"width": 1500, "height": 1000})
+            page = ctx.new_page()
+            page.goto(panel.page_url)  # the lab's panel, open in the same browser: its cookie is set
+            page.wait_for_selector("#joint-joint_1")
+            # at rest first: the arm settles under gravity in its first second
+            assert wait_until(lambda: bool(obs.truth) and obs.truth[-1][0] >= 2_000_000_000, 30)
+            before = obs.truth[-1]
+            attacker = ctx.new_page()
+            attacker.goto(evil)
+            attacker.evaluate("window.tried")  # every fetch settled (refused, or opaque)
+            attacker.evaluate("document.getElementById('f').submit()")
+            attacker.wait_for_load_state()
+            assert wait_until(lambda: sum("refused POST /api/goal" in ln for ln in panel.lines) >= 3, 20), panel.out()
+            assert any("refused OPTIONS /api/goal" in ln for ln in panel.lines), panel.out()  # the JSON's preflight
+            # a second of sim time later the arm is where it was: nothing was sent to the planner
+            assert wait_until(lambda: obs.truth[-1][0] >= before[0] + 1_000_000_000, 30)
+            moved = max(abs(a - b) for a, b in zip(obs.truth[-1][1], before[1], strict=True))
+            assert moved < 0.005, f"the arm moved {moved:.4f} rad"  # the goal is 0.4 rad away
+            assert panel.state()["goals"] == [], panel.state()["goals"]
+            # the control: the panel's own page sends the same goal, and the arm gets there
+            for name, q in zip(panel.state()["scenario"]["joints"], target, strict=True):
+                page.fill(f"#joint-{name}", str(q))
+            page.click("#send-joints")
+            page.wait_for_selector("#goals tbody tr[data-state='reached']", timeout=60_000)
+            browser.close()
+        goal = panel.state()["goals"][0]
+        done_ns = round(goal["sim"] * 1e9)
+        assert wait_until(lambda: bool(obs.truth) and obs.truth[-1][0] >= done_ns, 20)
+        err = max(abs(a - b) for a, b in zip(obs.truth_at(done_ns).tolist(), target, strict=True))
+        assert err < 0.01, err
+    finally:
+        if evil_server is not None:
+            evil_server.shutdown()
+        if obs is not None:
+            obs.close()
+        if panel is not None:
+            assert panel.close() == 0, panel.out()
+        run.send_signal(signal.SIGINT)
+        finish(run, 90)

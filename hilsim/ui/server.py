@@ -12,6 +12,7 @@ a ``hilsim up`` already holds that port, ``hilsim ui`` joins its router and show
 This module builds the app and serves it (``hilsim ui``, ``hilsim up … --ui``); the parts, one
 concern each, with the Zenoh keys each reads or queries in its own docstring:
 
+- :mod:`hilsim.ui.guard`: who may command through it (a token, its own origin and host, JSON commands);
 - :mod:`hilsim.ui.routes`: the HTTP interface (the Starlette app, its routes and handlers);
 - :mod:`hilsim.ui.events`: the event stream (the state as server-sent events);
 - :mod:`hilsim.ui.panel`: the panel object wiring the parts, and the state the page is sent;
@@ -36,6 +37,7 @@ from pathlib import Path
 import zenoh
 
 from hilsim.core import runs
+from hilsim.ui.guard import Guard, new_token
 from hilsim.ui.jsonio import BadInput
 from hilsim.ui.panel import Panel
 from hilsim.ui.routes import make_app
@@ -45,8 +47,9 @@ __all__ = ["BadInput", "Panel", "RunRequest", "cmd_ui", "cmd_up_ui", "make_app",
 
 
 def serve(host: str, port: int, *, connect: str | None = None, prefix: str | None = None,
-          first: RunRequest | None = None, runs_dir: Path = Path("runs")) -> int:
-    """Run the panel until SIGINT/SIGTERM; the run it started is stopped before it exits."""
+          first: RunRequest | None = None, runs_dir: Path = Path("runs"), token: bool = True) -> int:
+    """Run the panel until SIGINT/SIGTERM; the run it started is stopped before it exits. ``token``
+    False: ``--no-token`` (:mod:`hilsim.ui.guard`: the host, origin and JSON checks stay)."""
     import uvicorn
 
     # uvicorn shuts down on SIGINT/SIGTERM, then raises the signal again for the handler it found:
@@ -55,9 +58,14 @@ def serve(host: str, port: int, *, connect: str | None = None, prefix: str | Non
     stopped: list[int] = []
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda signum, _frame: stopped.append(signum))
+    secret = new_token() if token else None
+    if secret is None:
+        print("hilsim panel: --no-token: any process or user of this machine that reaches the port may command "
+              "the robot", file=sys.stderr, flush=True)
     if host not in ("127.0.0.1", "localhost", "::1"):
-        print(f"warning: the panel listens on {host}: anyone who reaches it can start runs and move the robot "
-              "(it has no authentication); keep it on a trusted network", file=sys.stderr, flush=True)
+        print(f"warning: the panel listens on {host}: anyone who reaches it "
+              + ("and holds the token " if secret else "") + "can start runs and move the robot (plain HTTP: "
+              "the token travels in clear); keep it on a trusted network", file=sys.stderr, flush=True)
     try:  # a taken port is said before anything starts (not after a run was started for nothing)
         with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as s:
             s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -81,10 +89,12 @@ def serve(host: str, port: int, *, connect: str | None = None, prefix: str | Non
                 print(f"hilsim ui: {e}", file=sys.stderr)
                 return 2
             print(f"started: {info['command']} (pid {info['pid']})", flush=True)
-        print(f"hilsim panel: http://{host if ':' not in host else f'[{host}]'}:{port}/ (zenoh {panel.endpoint})",
-              flush=True)
-        config = uvicorn.Config(make_app(panel), host=host, port=port, log_level="warning",
-                                timeout_graceful_shutdown=2)
+        query = f"?token={secret}" if secret else ""
+        print(f"hilsim panel: http://{host if ':' not in host else f'[{host}]'}:{port}/{query} "
+              f"(zenoh {panel.endpoint})", flush=True)
+        app = Guard(make_app(panel), host=host, port=port, token=secret,
+                    say=lambda line: print(line, flush=True))
+        config = uvicorn.Config(app, host=host, port=port, log_level="warning", timeout_graceful_shutdown=2)
         server = uvicorn.Server(config)
         if stopped:  # asked to stop while starting
             return 0
@@ -99,7 +109,7 @@ def cmd_ui(args: argparse.Namespace) -> int:
     connect = args.connect
     if getattr(args, "run", None):  # the run's router (hilsim.core.runs.tool_target)
         connect = ",".join(runs.tool_target(run=args.run, tool="hilsim ui").zenoh.connect)
-    return serve(args.host, args.port, connect=connect, prefix=args.prefix)
+    return serve(args.host, args.port, connect=connect, prefix=args.prefix, token=not args.no_token)
 
 
 def cmd_up_ui(args: argparse.Namespace) -> int:
@@ -122,4 +132,4 @@ def cmd_up_ui(args: argparse.Namespace) -> int:
         return 2
     mode = "interactive" if getattr(args, "interactive", False) else "task"
     req = RunRequest(args.scenario, args.world or "", "", args.clock or "realtime", mode, extra, args.out or "")
-    return serve(args.ui_host, args.ui_port, first=req)
+    return serve(args.ui_host, args.ui_port, first=req, token=not getattr(args, "ui_no_token", False))
