@@ -407,6 +407,22 @@ def build_parser() -> argparse.ArgumentParser:
                         "control), e.g. config/security/router.json5")
     router.set_defaults(func=_lazy("hilsim.run.launcher", "cmd_router"))
 
+    creds = sub.add_parser("creds", help="identities a lab hands out: one node or tool, only the rights given "
+                           "(docs/security.md)")
+    csub = creds.add_subparsers(dest="creds_cmd", required=True)
+    cadd = csub.add_parser("add", help="write a credential (a Zenoh client config) that runs started afterwards admit")
+    cadd.add_argument("name")
+    cadd.add_argument("--may-write", metavar="TOPIC[,…]", help="topics it may put, of what a person commands "
+                      "(cmd_vel, joint_trajectory)")
+    cadd.add_argument("--may-ask", metavar="NAME[,…]", help="queryables it may ask (planner/goal, planner/cancel, "
+                      "controller/set_parameters, …; actions: the services' ROS 2 actions)")
+    cadd.add_argument("--read-only", action="store_true", help="it reads, nothing else")
+    cadd.add_argument("--connect", default="tcp/127.0.0.1:7447", help="the router its config names")
+    csub.add_parser("list", help="the lab's credentials and what each may do")
+    crm = csub.add_parser("rm", help="remove a credential (runs started afterwards no longer admit it)")
+    crm.add_argument("name")
+    creds.set_defaults(func=_lazy("hilsim.run.creds", "cmd_creds"))
+
     ui = sub.add_parser("ui", help="the browser control panel: choose, start, command and watch a run")
     ui.add_argument("--host", default="127.0.0.1", help="address to listen on (default loopback; anyone who "
                     "reaches it needs the token)")

@@ -180,8 +180,10 @@ def tools_rights(sc: Scenario) -> Rights:
     puts = []
     for t, row in keyscheme.TOPIC_TABLE.items():
         services = set(row.writers) - {keyscheme.USER}
-        if keyscheme.USER in row.writers or not services & here:
-            puts.append(k.topic(t))  # what a person commands, or what nobody in this run writes
+        # what a person commands, or what nobody in this run writes (joint_states played from a bag into a run
+        # without the sensors); never a result: what ends a goal or the run is its service's word only
+        if keyscheme.USER in row.writers or (not services & here and not t.endswith("result")):
+            puts.append(k.topic(t))
     for t, row in keyscheme.GLOBAL_TABLE.items():
         if not set(row.writers) & here:
             puts.append(getattr(k, t))
@@ -189,6 +191,61 @@ def tools_rights(sc: Scenario) -> Rights:
     r.ask |= {k.service(n) for n, row in keyscheme.SERVED_TABLE.items() if keyscheme.USER in row.askers}
     for action_type in keyscheme.ACTION_SERVERS:
         r.ask |= set(_action_keys(sc, action_type)[0])
+    return r
+
+
+def play_rights(sc: Scenario) -> Rights:
+    """``hilsim play``'s own identity: the tools' puts (what a person commands, what no service of the run
+    writes), and no query: it replays a bag, it sends no goals nor gains."""
+    r = tools_rights(sc)
+    r.ask = _common(sc).ask
+    return r
+
+
+def panel_rights(sc: Scenario) -> Rights:
+    """The panel's own identity (``hilsim ui``): the tools' queries (goals, cancels, gains, the services'
+    ROS 2 actions), and no put: it commands through the services' queryables only."""
+    r = tools_rights(sc)
+    return Rights(ask=r.ask, tokens=_common(sc).tokens)
+
+
+# what a lab may hand out: "--may-ask actions" for the services' ROS 2 actions (goals, cancels, results)
+ACTIONS = "actions"
+
+
+def grantable() -> tuple[list[str], list[str]]:
+    """(topics a person may command, queryables a person may ask, with ``actions``): what a lab's
+    credential may be given (``hilsim creds add``), from the key table."""
+    topics = [t for t, row in keyscheme.TOPIC_TABLE.items() if keyscheme.USER in row.writers]
+    asks = [n for n, row in keyscheme.SERVED_TABLE.items() if keyscheme.USER in row.askers]
+    return topics, [*asks, ACTIONS]
+
+
+def check_grant(may_write: list[str], may_ask: list[str], where: str = "hilsim creds") -> None:
+    """ConfigError (one line) for a topic or queryable a person may not be given (the key table's)."""
+    topics, asks = grantable()
+    for t in may_write:
+        if t not in topics:
+            row = keyscheme.TOPIC_TABLE.get(t) or keyscheme.GLOBAL_TABLE.get(t)
+            who = f"written by {', '.join(row.writers)} only" if row is not None else "not in the key table"
+            raise ConfigError(f"{where}: --may-write {t}: {who} (docs/keys.md); a credential may write "
+                              + ", ".join(topics))
+    for n in may_ask:
+        if n not in asks:
+            raise ConfigError(f"{where}: --may-ask {n}: not a queryable a person may ask; one of " + ", ".join(asks))
+
+
+def grant_rights(sc: Scenario, may_write: list[str], may_ask: list[str]) -> Rights:
+    """The rights of a lab's credential (``hilsim creds add``): put only ``may_write`` (every robot's), ask
+    only ``may_ask`` (and the services' actions with ``actions``), declare ROS 2 graph tokens."""
+    check_grant(may_write, may_ask)
+    k = every_robot(sc)
+    r = _common(sc)
+    _writable(r, [k.topic(t) for t in may_write])
+    r.ask |= {k.service(n) for n in may_ask if n != ACTIONS}
+    if ACTIONS in may_ask:
+        for action_type in keyscheme.ACTION_SERVERS:
+            r.ask |= set(_action_keys(sc, action_type)[0])
     return r
 
 

@@ -23,7 +23,7 @@ import zenoh
 
 from hilsim.core.config import ConfigError, TlsConfig, ZenohConfig, tls_from_env
 from hilsim.core.keys import DEFAULT_PREFIX, Keys
-from hilsim.core.transport import AUTH_ENV, DEFAULT_ROUTER_PORT, connected, open_session, write_private
+from hilsim.core.transport import AUTH_ENV, DEFAULT_ROUTER_PORT, IDENTITIES_DIR, connected, open_session, write_private
 
 
 def _net_namespace() -> str:
@@ -222,6 +222,18 @@ def choose_run(runs: list[RunPointer], tool: str) -> RunPointer:
             return runs[int(answer) - 1]
 
 
+# tools that get an identity of their own in a run, only what they do (hilsim.core.rights: play_rights,
+# panel_rights): <run dir>/identities/<name>.json5, written by the run's router
+TOOL_IDENTITIES = {"hilsim play": "play", "hilsim ui": "panel"}
+
+
+def _tool_identity(ptr: RunPointer, tool: str) -> Path:
+    """The run's identity for ``tool``: its own if the run made one (:data:`TOOL_IDENTITIES`), else the tools'."""
+    own = TOOL_IDENTITIES.get(tool)
+    path = ptr.run_dir / IDENTITIES_DIR / f"{own}.json5" if own else None
+    return path if path is not None and path.is_file() else ptr.client_config
+
+
 def tool_target(connect: str | None = None, run: str | Path | None = None, tool: str = "hilsim") -> ToolTarget:
     """Where a tool connects and with what (docs/tools.md):
 
@@ -254,7 +266,7 @@ def tool_target(connect: str | None = None, run: str | Path | None = None, tool:
         ptr = up[0] if len(up) == 1 else choose_run(up, tool) if up else None
         endpoints = [ptr.endpoint] if ptr is not None else tool_endpoints()
     env_auth = os.environ.get(AUTH_ENV, "").strip()
-    auth = None if tls else Path(env_auth) if env_auth else ptr.client_config if ptr is not None else None
+    auth = None if tls else Path(env_auth) if env_auth else _tool_identity(ptr, tool) if ptr is not None else None
     try:
         # a client of the router, as rmw_zenoh has a remote tool (rviz) be: its samples take one path, through
         # the router, in the order sent. A peer's path moves once gossip gives it its own link to a service

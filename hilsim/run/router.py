@@ -26,8 +26,18 @@ import zenoh
 
 from hilsim.core import runs, transport
 from hilsim.core.config import Scenario
-from hilsim.core.rights import EVERY, Rights, access_control, tools_rights, unit_rights
+from hilsim.core.rights import (
+    EVERY,
+    Rights,
+    access_control,
+    grant_rights,
+    panel_rights,
+    play_rights,
+    tools_rights,
+    unit_rights,
+)
 from hilsim.core.transport import Credentials, RouterUsers
+from hilsim.run import creds
 
 
 def open_default_router(users: RouterUsers | None = None) -> tuple[str, zenoh.Session]:
@@ -53,6 +63,10 @@ class RunRouter(NamedTuple):
     pointer: Path | None  # where this user's tools find client_config (runs.pointer_path)
     identities: dict[str, Path]  # launch unit -> its identity's client config (<run dir>/identities/, 0600)
     launcher_config: Path  # the launcher's own identity: it reads, and writes nothing
+
+
+# the tools with an identity of their own in a run (<run dir>/identities/<name>.json5; runs.tool_target)
+PLAY, PANEL = runs.TOOL_IDENTITIES["hilsim play"], runs.TOOL_IDENTITIES["hilsim ui"]
 
 
 def identity_file(run_dir: Path, unit: str) -> Path:
@@ -93,6 +107,13 @@ def open_run_router(run_dir: Path, sc: Scenario, *, per_service: bool = True) ->
             user(u, unit_rights(sc, u))
         user("launcher", None)
         user("tools", tools_rights(sc))
+        # hilsim play and the panel: each its own, with only what it does (runs.tool_target hands them out)
+        user(PLAY, play_rights(sc))
+        user(PANEL, panel_rights(sc))
+        # the lab's own (hilsim creds add): their fixed user and password, only what each was given
+        for g in creds.load_all():
+            cred[f"lab:{g.name}"], rights[g.user] = g.credentials, grant_rights(sc, list(g.may_write),
+                                                                                 list(g.may_ask))
     else:  # one identity for every process, with every right: the baseline of `hilsim bench loop`
         user("tools", Rights(put={*EVERY}, serve={*EVERY}, ask={*EVERY}, tokens={*EVERY}))
     if sc.zenoh.guests == "read":
@@ -108,6 +129,9 @@ def open_run_router(run_dir: Path, sc: Scenario, *, per_service: bool = True) ->
     client = config("tools", (run_dir / transport.CLIENT_CONFIG).resolve())
     identities = {u: config(u, identity_file(run_dir, u)) if per_service else client for u in units}
     launcher = config("launcher", identity_file(run_dir, "launcher")) if per_service else client
+    if per_service:
+        for name in (PLAY, PANEL):
+            config(name, identity_file(run_dir, name))
     guest_config = None
     if "guest" in cred:  # meant to be handed out: readable by anyone who can reach the run directory
         guest_config = config("guest", (run_dir / transport.GUEST_CONFIG).resolve(), 0o644)
