@@ -10,6 +10,7 @@ router enforces: every cell holds, and every probed key not in a cell is refused
 from __future__ import annotations
 
 import itertools
+import os
 import re
 import threading
 import time
@@ -21,7 +22,7 @@ import pytest
 import zenoh
 from util import REPO, wait_until
 
-from hilsim.core import transport
+from hilsim.core import runs, transport
 from hilsim.core.config import ConfigError, ZenohConfig
 from hilsim.core.keys import Keys
 from hilsim.core.scenario import load_scenario
@@ -81,6 +82,10 @@ def run_router(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[tupl
 def test_each_identity_may_put_serve_and_query_exactly_what_this_table_says(
         run_router: tuple[RunRouter, dict[str, Path]]) -> None:
     rr, files = run_router
+    # hilsim play and the panel find their own identity through the run's pointer, the other tools theirs
+    ptr = runs.RunPointer(rr.endpoint, rr.client_config.parent, "arm", rr.client_config, os.getpid())
+    for tool, own in (("hilsim play", files["play"]), ("hilsim ui", files["panel"]), ("hilsim topic", files["tools"])):
+        assert runs.tool_identity(ptr, tool) == own, tool
     table = _table()
     assert set(table) == set(files), (sorted(table), sorted(files))  # the doc names every identity of the run
     puts, served = _probes(Keys())

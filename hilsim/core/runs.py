@@ -227,7 +227,7 @@ def choose_run(runs: list[RunPointer], tool: str) -> RunPointer:
 TOOL_IDENTITIES = {"hilsim play": "play", "hilsim ui": "panel"}
 
 
-def _tool_identity(ptr: RunPointer, tool: str) -> Path:
+def tool_identity(ptr: RunPointer, tool: str) -> Path:
     """The run's identity for ``tool``: its own if the run made one (:data:`TOOL_IDENTITIES`), else the tools'."""
     own = TOOL_IDENTITIES.get(tool)
     path = ptr.run_dir / IDENTITIES_DIR / f"{own}.json5" if own else None
@@ -266,7 +266,7 @@ def tool_target(connect: str | None = None, run: str | Path | None = None, tool:
         ptr = up[0] if len(up) == 1 else choose_run(up, tool) if up else None
         endpoints = [ptr.endpoint] if ptr is not None else tool_endpoints()
     env_auth = os.environ.get(AUTH_ENV, "").strip()
-    auth = None if tls else Path(env_auth) if env_auth else _tool_identity(ptr, tool) if ptr is not None else None
+    auth = None if tls else Path(env_auth) if env_auth else tool_identity(ptr, tool) if ptr is not None else None
     try:
         # a client of the router, as rmw_zenoh has a remote tool (rviz) be: its samples take one path, through
         # the router, in the order sent. A peer's path moves once gossip gives it its own link to a service
