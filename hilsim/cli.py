@@ -181,6 +181,15 @@ def build_parser() -> argparse.ArgumentParser:
         b = bsub_.add_parser(name, help=text)
         b.add_argument("bag", help="a run directory, its bag/ directory or an .mcap file")
         b.set_defaults(func=_lazy("hilsim.tools.bagtool", f"cmd_{name}"))
+    d = bsub_.add_parser("diff", help="where two bags first differ (topic, sim time, field): exit 0 the same, "
+                         "1 different, 2 unreadable")
+    d.add_argument("a", help="a run directory, its bag/ directory or an .mcap file")
+    d.add_argument("b", help="the other one")
+    d.add_argument("--all", action="store_true", help="compare health, logs and wall-clock fields too (left out "
+                   "by default: they differ between any two runs)")
+    d.add_argument("--ignore", action="append", metavar="GLOB", help="leave out the topics matching this glob "
+                   "(e.g. '/arm/planner/*'); repeatable")
+    d.set_defaults(func=_lazy("hilsim.tools.bagtool", "cmd_diff"))
 
     export = sub.add_parser("export", help="a run's Rerun recording as an MCAP bag or CSV files (runs recorded "
                             "before the bag existed)")

@@ -103,9 +103,9 @@ from typing import Any
 
 import zenoh
 
-from hilsim.core import batch, msgs, transport
+from hilsim.core import batch, fleet, msgs, transport
 from hilsim.core.config import Scenario
-from hilsim.core.keys import UnknownKey, message_type
+from hilsim.core.keys import Keys, UnknownKey, message_type
 from hilsim.core.provenance import DUPLICATE, TAKEN, Sequence, digest_of
 from hilsim.core.recording import RECORDING_NAME, SUMMARY_NAME, disable_analytics, part_name
 from hilsim.core.restart import restarted
@@ -384,6 +384,8 @@ class LoggerService(Service):
                 return
             self.counts_in[k] += 1
             self._queue.append((k, payload, att, time.time_ns()))
+        if k in self.routes.latched:
+            self.routes.got(k)  # its publisher's cache need not be asked again
         if self._say_suspect:
             said, self._say_suspect = self._say_suspect, ""
             self.warn(said)
@@ -644,7 +646,19 @@ class LoggerService(Service):
         while not self.stop_event.wait(0.2):
             if self._worker is not None and not self._worker.is_alive() and self.stopped is None:
                 raise RuntimeError("the recording worker stopped unexpectedly")
+            for key in self.routes.ask_again():
+                self.log.info("latched %s: nothing from its publisher's cache yet, asked again", key)
         self._finish()
+
+    def expected(self) -> set[str]:
+        """The latched keys this run publishes once each at its start, which must be in the recording: physics'
+        ``/tf_static`` and every robot's ``robot_description`` (a robot with a URDF). Not every transient-local
+        writer's: an action's status is latched too, and says nothing until a goal comes."""
+        sc, out = self.sc, set()
+        if "physics" in sc.services and sc.world.urdf is not None:
+            robots = [Keys.of(sc, r) for r in fleet.robot_names(sc)]
+            out.update([self.keys.tf_static, *(k.topic("robot_description") for k in robots)])
+        return {k for k in out if self.routes.covers(k)}
 
     def teardown(self) -> None:
         self._finish()
@@ -708,6 +722,7 @@ class LoggerService(Service):
                 duplicates=Counter(self.duplicates), after_stop=Counter(self.after_stop),
                 suspect=Counter(self.suspect), contested=Counter())
         c.plain = self.routes.plain_keys()
+        c.expected = self.expected() if self.stopped is None else set()
         gaps = self.lost()
         c.lost = self._judged_lost(gaps, c.received)
         c.contested = self.contested()

@@ -6,6 +6,8 @@ Reads:
   ``<prefix>/<robot>/hw/<server>/joint_states`` sensor_msgs/JointState measured by an external
                                              joint server; the joints it serves follow it
   ``<prefix>/<robot>/sync/<service>``        rosgraph_msgs/Clock, lockstep acknowledgements
+  ``<prefix>/<robot>/task/result``           lockstep with a task: sim time stops ``TASK_END_MARGIN_NS``
+                                             after every robot's result (a run ends on a step the task sets)
   ``<prefix>/<robot>/alive/*``, ``lockstep/**`` liveliness: who is running, who is a lockstep
                                              participant (period, how it acknowledges, its writer id)
 Writes (every step, stamped with the step's sim time):
@@ -70,6 +72,10 @@ REALTIME_PRIORITY = 10
 # realtime: without these the joint commands stop coming (the control law, whatever its type, is
 # named controller; it acts on the sensors' joint_states) and the last one would be held
 COMMAND_PATH = ("controller", "sensors")
+# lockstep: sim time stops this long after the task's result stamp (every robot's), so that a run ends on a
+# step set by the task, not by when hilsim up stopped it; longer than physics can run past that stamp before
+# the result reaches it (the result host's decision period and lockstep lag: 20 steps of the arm)
+TASK_END_MARGIN_NS = 100_000_000
 STEP_BINS = 200_000  # lockstep: wall time per step, 1 µs bins (last bin: 200 ms or more)
 JITTER_BINS = 20_000  # SCHED_FIFO priority of physics in realtime mode (if permitted)
 
@@ -193,6 +199,12 @@ class PhysicsService(Service):
         self.server_silent: set[str] = set()
         if self.servers:
             self.subscribe(self.keys.all_server_states, msgs.JointState, self._on_server_state)
+        # lockstep with a task: the run ends on a step set by it (TASK_END_MARGIN_NS after every robot's result)
+        self.task_ends: dict[str, int] = {}
+        self.ended_by = "the scenario duration"
+        if sc.clock.mode == "lockstep" and sc.task.targets:
+            for r in self.robots:
+                self.subscribe(r.keys.topic("task/result"), msgs.MoveResult, self._on_task_result, stream=False)
         live = self.session.liveliness()
         self._declared.append(live.declare_subscriber(ns.all_alive, self._on_alive, history=True))
         if sc.clock.mode == "lockstep":
@@ -445,8 +457,28 @@ class PhysicsService(Service):
         if not self.done:
             self.done = True
             self.state = "done"
-            self.log.info("reached the scenario duration (%.3f s sim)", self.world.time_ns / 1e9)
+            self.log.info("reached the end of %s (%.3f s sim)", self.ended_by, self.world.time_ns / 1e9)
             self.publish_health_async()
+
+    def _on_task_result(self, msg: msgs.MoveResult, key: str) -> None:
+        """Lockstep: a robot's task ended; once every robot's did, sim time stops ``TASK_END_MARGIN_NS`` after
+        the latest result's stamp, on that step in every run with the same seed."""
+        with self.lock:
+            self.task_ends[key] = msgs.ns_of(msg.header.stamp)
+            if len(self.task_ends) < len(self.robots) or self.done:
+                return
+            dt = self.sc.dt_ns
+            end = -(-(max(self.task_ends.values()) + TASK_END_MARGIN_NS) // dt) * dt  # on a step
+            if self.end_ns is not None and self.end_ns <= end:
+                return  # the duration comes first
+            now = self.world.time_ns
+            self.end_ns, self.ended_by = end, "the task"
+            if now > end:  # the result came later than the margin allows: this end depends on the machine
+                self.warn(f"the task's result (t={max(self.task_ends.values()) / 1e9:.3f} s) reached physics at "
+                          f"t={now / 1e9:.3f} s, past the end it sets (t={end / 1e9:.3f} s): this run's end is "
+                          "not the same as another's with the same seed")
+            else:
+                self.log.info("the task ended: sim time stops at t=%.3f s", end / 1e9)
 
     def publish_health_async(self) -> None:
         threading.Thread(target=self.publish_health, daemon=True).start()

@@ -3,7 +3,7 @@
 Built from the recorder's counts (services/logger.py, which writes the file and prints the lines):
 per key ``received``, ``recorded``, ``bagged`` (with a bag), ``rejected``, ``lost``, ``dropped``,
 ``before_first``, ``unannounced``, and where they apply ``duplicates``, ``after_stop``, ``key_subscribed``,
-``suspect``, ``contested`` (docs/recording.md says what each means); a stopped recording's entry under
+``suspect``, ``contested``, ``expected`` (docs/recording.md says what each means); a stopped recording's entry under
 ``hilsim.core.recording.STOPPED_ENTRY``. Reads and writes no key.
 """
 
@@ -34,9 +34,14 @@ class Counts:
     suspect: Counter[str]
     contested: Counter[str]
     plain: set[str] = field(default_factory=set)  # keys subscribed one by one (batching)
+    expected: set[str] = field(default_factory=set)  # latched keys the run publishes: each must come
 
     def keys(self) -> list[str]:
-        return sorted(set(self.received) | set(self.recorded) | set(self.lost))
+        return sorted(set(self.received) | set(self.recorded) | set(self.lost) | self.expected)
+
+    def missing(self) -> list[str]:
+        """Expected keys of which nothing was recorded."""
+        return sorted(k for k in self.expected if not self.recorded[k])
 
 
 def summary(c: Counts, *, bag: bool, batching: bool, stopped_at: dict[str, Any] | None) -> dict[str, Any]:
@@ -59,6 +64,8 @@ def summary(c: Counts, *, bag: bool, batching: bool, stopped_at: dict[str, Any] 
             # samples that do not fit their writer's sequence, and gaps not counted as lost for it
             **({"suspect": c.suspect[k]} if c.suspect[k] else {}),
             **({"contested": c.contested[k]} if c.contested[k] else {}),
+            # a latched key the run publishes once (/tf_static, robot_description): the summary says if it is missing
+            **({"expected": True} if k in c.expected else {}),
         }
         for k in c.keys()
     }
@@ -88,6 +95,8 @@ def lines(c: Counts, *, rrd: Path, bag_dir: Path | None, clock: str, stopped_at:
     if stopped_at is not None:
         out.append(f"recording stopped at sim time {stopped_at.get('sim_time')} s: {stopped_at.get('reason')}; "
                    f"{sum(c.after_stop.values())} samples after it not recorded")
+    if c.missing():
+        out.append(f"expected but never received: {', '.join(c.missing())} (latched: put once at its writer's start)")
     if total_lost:
         n_drop = sum(c.dropped.values())
         out.append(f"lost {total_lost} samples ({clock}: the recorder could not keep up): "

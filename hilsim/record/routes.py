@@ -5,6 +5,11 @@ and it subscribes key by key only for the writers no batch covers (ROS 2 nodes, 
 runs) and for transient-local writers (a late-joiner subscription asks the publisher's cache). Without
 batches ``**`` takes every key and only the transient-local writers get a subscription of their own.
 
+A transient-local key keeps its subscription even once a batch covers its writer (a latched sample is put
+once, at its writer's start: a batch sent before the recorder listened is gone, the cache is not; a
+batching token seen after the writer's own once dropped it, and the bag had no ``/tf_static``), and its
+cache is asked again every ``LATCHED_RETRY_S`` until its sample came (:meth:`KeyRoutes.ask_again`).
+
 Reads (liveliness): the batching services' tokens (``Keys.batch``: which nodes batch) and the ROS 2
 graph's publisher tokens (``@ros2_lv/<domain>/…/MP/…``: who writes what, hilsim.core.provenance).
 Writes: nothing; declares the key subscriptions and hands their samples to the recorder's callback.
@@ -13,6 +18,7 @@ Writes: nothing; declares the key subscriptions and hands their samples to the r
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -22,6 +28,7 @@ import zenoh.ext as zenoh_ext
 from hilsim.core.keys import Keys
 from hilsim.core.ros2 import wire
 
+LATCHED_RETRY_S = 1.0  # wall seconds between asks of a transient-local publisher's cache that gave nothing yet
 Node = tuple[str, str]  # (zid, node id) of a ROS 2 node (hilsim's services are nodes too)
 
 
@@ -44,6 +51,10 @@ class KeyRoutes:
         self._composed = False
         self._on_sample: Callable[[zenoh.Sample], None] = lambda sample: None
         self._on_twice: Callable[[str], None] = lambda key: None
+        # transient-local keys: their subscription stays whoever else covers them (a batch sent before this
+        # recorder listened is gone; the publisher's cache is not), asked again until a sample came
+        self.latched: dict[str, float] = {}  # key -> when (monotonic) its cache was last asked
+        self.latched_got: set[str] = set()
 
     def start(self, session: Any, real: zenoh.Session | None, zid: str, *, composed: bool,
               on_sample: Callable[[zenoh.Sample], None], on_twice: Callable[[str], None]) -> list[Any]:
@@ -99,6 +110,8 @@ class KeyRoutes:
             # its publishers seen before its token (a race): their keys need no subscription of ours
             # unless another writer does (the batch brings what the subscription did, duplicates dropped)
             for key, writers in list(self.plain.items()):
+                if key in self.latched:
+                    continue  # its batch may have gone out before we listened: the cache still has it
                 for gid in [g for g, n in writers.items() if n == node]:
                     del writers[gid]
                 if not writers:
@@ -134,10 +147,46 @@ class KeyRoutes:
             if self.closed or (node in self.batching_nodes and not latched):
                 return
             self.plain.setdefault(key, {})[tok.gid] = node
+            if latched:
+                self.latched.setdefault(key, time.monotonic())
             if key not in self.key_subs:
                 if not self.batching:
                     self._on_twice(key)
                 self.key_subs[key] = [self._subscribe_key(key, latched)]
+
+    def got(self, key: str) -> None:
+        """A sample of ``key`` was taken in (any way): a transient-local key's cache need not be asked again."""
+        if key in self.latched and key not in self.latched_got:
+            with self.lock:
+                self.latched_got.add(key)
+
+    def missing_latched(self) -> list[str]:
+        """Transient-local keys whose writer announced itself and whose sample has not come (yet)."""
+        with self.lock:
+            return sorted(k for k in self.latched if k not in self.latched_got)
+
+    def ask_again(self, period: float = LATCHED_RETRY_S) -> list[str]:
+        """Ask the cache of each transient-local key without a sample again (a new late-joiner subscription,
+        the old one undeclared), at most once per ``period``; the keys asked. A late joiner's one query can
+        cross the publisher's put (the put before our subscription reached it, the query before the put)."""
+        now = time.monotonic()
+        asked, old = [], []
+        with self.lock:
+            if self.closed:
+                return []
+            for key, at in self.latched.items():
+                if key in self.latched_got or now - at < period:
+                    continue
+                self.latched[key] = now
+                old.extend(self.key_subs.get(key, []))
+                self.key_subs[key] = [self._subscribe_key(key, True)]
+                asked.append(key)
+        for d in old:
+            try:
+                d.undeclare()
+            except zenoh.ZError:
+                pass
+        return asked
 
     def _subscribe_key(self, key: str, latched: bool) -> Any:
         if latched and self._real is not None:

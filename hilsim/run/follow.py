@@ -19,6 +19,7 @@ every robot's (``<domain>/*/…``). Writes nothing.
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -30,6 +31,8 @@ from hilsim.core.config import Scenario
 from hilsim.core.keys import Keys, topic_name
 from hilsim.core.provenance import Provenance
 from hilsim.core.rights import owners
+
+TASK_END_WAIT_S = 60.0  # lockstep: wall seconds the end of a task waits for physics to stop on its step
 
 
 @dataclass
@@ -84,6 +87,7 @@ class Follower:
         self.stalled_for: set[str] = set()  # lockstep: services physics waited for in vain (the run ends)
         # per service, the writer of its final health (published at its exit): the summary's figures
         self.final: dict[str, bytes] = {}
+        self._task_at: float | None = None  # lockstep: when the task ended (wall), physics then stops on its step
 
     def subscribe(self, session: zenoh.Session) -> list[Any]:
         """Declare its subscribers on ``session`` (the caller undeclares them)."""
@@ -103,10 +107,21 @@ class Follower:
         """The run is over as far as its services say: the task (of every robot) ended, physics is
         done (the duration), or the lockstep stalled (said here)."""
         with self.lock:
-            if self.outcome.task is not None or self.outcome.physics_done:
+            task_over = self.outcome.task is not None or (len(self.robots) > 1
+                                                           and len(self.outcome.tasks) == len(self.robots))
+            if self.outcome.physics_done:
                 return True
-            if len(self.robots) > 1 and len(self.outcome.tasks) == len(self.robots):
-                return True  # every robot's task ended
+            if task_over and self.sc.clock.mode == "lockstep" and "physics" in self.sc.services \
+                    and not self.outcome.stalled:
+                # physics stops sim time on a step the task sets (hilsim.services.physics): the run ends there,
+                # the same in every run with the same seed, not when this process heard of the task's end
+                if self._task_at is None:
+                    self._task_at = time.monotonic()
+                if time.monotonic() - self._task_at < TASK_END_WAIT_S:
+                    return False
+                self.say(f"warning: physics did not stop within {TASK_END_WAIT_S:g} s of the task's end; stopping")
+            if task_over:
+                return True
             if self.outcome.stalled:
                 self.say(f"error: the simulation stalled: {self.outcome.stalled}; stopping")
                 return True

@@ -154,6 +154,11 @@ def summarise(la: FinishedRun) -> int:
             if mismatch:
                 line += f"; MISMATCH (received but not recorded) on {mismatch}"
             print(line)
+            # the latched keys the run publishes once (/tf_static, robot_description): a viewer cannot draw without
+            missing = sorted(short(k) for k, v in counts.items() if v.get("expected") and not v.get("recorded"))
+            if missing:
+                print(f"  expected but never recorded: {', '.join(missing)} (latched, put once at its writer's start"
+                      + (")" if realtime else "; lockstep promises every sample)"))
             # batches: a writer outside them (a ROS 2 node) is subscribed once its publisher token is seen; what
             # it put before that subscription reached it is not in the recording (said, not a failure)
             early = {k: v.get("before_first", 0) for k, v in counts.items() if v.get("key_subscribed")}
@@ -212,7 +217,7 @@ def summarise(la: FinishedRun) -> int:
                       "one had not written yet are lost)")
                 n_lost = 0
             # realtime: a loss is reported, not a failure; lockstep promises that nothing is lost
-            ok = ok and not mismatch and (realtime or not n_lost)
+            ok = ok and not mismatch and (realtime or not n_lost) and (realtime or not missing)
         elif "logger" in o.killed:  # by a second stop signal: its counts died with it
             print("  recording summary missing (the recorder was killed)")
         else:

@@ -1,8 +1,10 @@
-"""``hilsim bag info BAG`` and ``hilsim bag recover BAG``: a recorded bag's contents, and making the bag
-of a killed recorder whole (:mod:`hilsim.record.bag_read`).
+"""``hilsim bag info [BAG]``, ``hilsim bag recover BAG`` and ``hilsim bag diff A B``: a recorded bag's
+contents, making the bag of a killed recorder whole (:mod:`hilsim.record.bag_read`), and where two bags
+first differ (:mod:`hilsim.record.bag_diff`).
 
-``BAG`` is a run directory, its ``bag/`` directory or one ``.mcap`` file. A missing or unreadable bag
-is one line on standard error and exit code 1.
+``BAG`` is a run directory, its ``bag/`` directory or one ``.mcap`` file; ``bag info`` without one takes
+the latest run under ``runs/``. A missing or unreadable bag is one line on standard error and exit code 1
+(``diff``: 2, as diff(1) does; 1 there means the bags differ).
 """
 
 from __future__ import annotations
@@ -12,6 +14,8 @@ import sys
 
 from hilsim.record.bag import BagError
 from hilsim.record.bag_read import info, recover_bag
+
+DIFF_SHOWN = 20  # topics listed by bag diff at most
 
 
 def cmd_info(args: argparse.Namespace) -> int:
@@ -37,3 +41,25 @@ def cmd_recover(args: argparse.Namespace) -> int:
             print(f"{r.path}: complete, {r.messages} messages (left as it was)")
     print(f"{done[0].path.parent / 'metadata.yaml'}: written")
     return 0
+
+
+def cmd_diff(args: argparse.Namespace) -> int:
+    """0: the bags hold the same messages (wall-clock topics and fields aside); 1: they differ (the first
+    difference first, then each topic's first); 2: a bag cannot be read."""
+    from hilsim.record.bag_diff import diff
+
+    try:
+        found = diff(args.a, args.b, everything=args.all, ignore=args.ignore or ())
+    except BagError as e:
+        print(f"hilsim bag diff: {str(e).splitlines()[0]}", file=sys.stderr)
+        return 2
+    if not found:
+        left = "" if args.all else " (health and logs, wall-clock by nature, left out: --all compares them)"
+        print(f"the bags hold the same messages{left}")
+        return 0
+    print(f"the bags differ on {len(found)} topics; first at t={found[0].sim_ns / 1e9:.3f} s sim:")
+    for d in found[:DIFF_SHOWN]:
+        print(f"  {d.line()}")
+    if len(found) > DIFF_SHOWN:
+        print(f"  … and {len(found) - DIFF_SHOWN} more topics")
+    return 1

@@ -1,0 +1,123 @@
+"""Latched (transient-local) topics are recorded every time, whatever the order in which the recorder
+and their publisher come up: ``/tf_static`` and ``/<robot>/robot_description`` are put once, at the
+publisher's start, and a recorder that comes before, after or while it starts still gets them
+(rmw_zenoh's transient-local: a Zenoh advanced publisher's cache, queried again by the recorder until
+the sample came: :mod:`hilsim.record.routes`). One it was told to expect and never got is said."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+import zenoh
+
+from hilsim.core import msgs
+from hilsim.core.keys import Keys
+from hilsim.core.service import Service
+from hilsim.record.routes import KeyRoutes
+
+
+class LatchedWriter(Service):
+    """Physics' latched part alone: puts /tf_static and robot_description once in its setup."""
+
+    name = "physics"
+
+    def setup(self) -> None:
+        t = msgs.TransformStamped(header=msgs.header(0, "world"), child_frame_id="base_link")
+        self.publisher(self.keys.tf_static, latched=True).put(msgs.TFMessage(transforms=[t]))
+        self.publisher(self.keys.topic("robot_description"), latched=True).put(msgs.String(data="<robot name='arm'/>"))
+
+
+def _counts(run_dir: Path) -> dict[str, Any]:
+    return json.loads((run_dir / "record_summary.json").read_text())
+
+
+class _Token:
+    """What the routes read of a liveliness sample."""
+
+    def __init__(self, key: str, kind: zenoh.SampleKind = zenoh.SampleKind.PUT) -> None:
+        self.key_expr, self.kind = key, kind
+
+
+def test_a_batching_token_seen_after_the_latched_writers_keeps_their_subscription(
+        scenario: Any, run_service: Any, session: zenoh.Session) -> None:
+    """The race that lost /tf_static: the recorder saw physics' latched publishers (and asked their caches)
+    before the token saying physics batches; dropping those subscriptions then, as for any key a batch
+    covers, lost the sample whenever the batch had gone out before the recorder listened."""
+    sc = scenario("arm", {"logger.batch": 256})
+    keys = Keys.of(sc)
+    writer = LatchedWriter(sc)
+    got: list[str] = []
+    with run_service(writer):
+        tokens = [str(r.ok.key_expr) for r in session.liveliness().get("@ros2_lv/**", timeout=2.0) if r.ok]
+        latched = [t for t in tokens if "/MP/" in t and ("tf_static" in t or "robot_description" in t)]
+        assert len(latched) == 2, tokens
+        routes = KeyRoutes(keys, ["**"], batching=True)
+        routes._session, routes._real = session, session
+        routes._on_sample = lambda s: got.append(str(s.key_expr))
+        for t in latched:
+            routes._on_writer_token(_Token(t))
+        routes._on_batch_token(_Token(writer.keys.batch(writer._zid, writer._node_id)))
+        wanted = {keys.tf_static, keys.topic("robot_description")}
+        assert set(routes.key_subs) == wanted and set(routes.latched) == wanted
+        deadline = time.monotonic() + 10
+        while set(got) != wanted and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert set(got) == wanted, got
+        # asked again only while nothing came
+        for k in got:
+            routes.got(k)
+        routes.latched = dict.fromkeys(routes.latched, 0.0)
+        assert routes.ask_again() == [] and routes.missing_latched() == []
+        for d in routes.close():
+            d.undeclare()
+
+
+def test_an_expected_latched_topic_that_never_came_is_said(scenario: Any, run_service: Any, tmp_path: Path,
+                                                           capsys: Any) -> None:
+    """A run whose physics has a URDF publishes /tf_static and robot_description: a recorder that got neither
+    lists both as expected with nothing received, and says so."""
+    from hilsim.services.logger import LoggerService
+
+    run_dir = tmp_path / "run"
+    sc = scenario("arm", {"logger.run_dir": str(run_dir)})
+    keys = Keys.of(sc)
+    with run_service(LoggerService(sc)):
+        time.sleep(0.3)
+    counts = _counts(run_dir)
+    for key in (keys.tf_static, keys.topic("robot_description")):
+        assert counts[key]["expected"] is True and counts[key]["received"] == 0, counts.get(key)
+    assert "expected but never received: " in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("batch", [256, 0], ids=["batches", "per-key"])
+def test_latched_topics_are_recorded_whatever_the_order(scenario: Any, run_service: Any, tmp_path: Path,
+                                                         batch: int) -> None:
+    from hilsim.services.logger import LoggerService
+
+    # the recorder's start against the publisher's: long before, just before, together, just after, long after
+    offsets = [-1.0, -0.05, -0.01, 0.0, 0.0, 0.01, 0.05, 1.0]
+    missing = []
+    for i, lead in enumerate(offsets):
+        run_dir = tmp_path / f"run{i}"
+        sc = scenario("arm", {"logger.run_dir": str(run_dir), "logger.batch": batch})
+        keys = Keys.of(sc)
+        logger, writer = LoggerService(sc), LatchedWriter(sc)
+        first, second = (run_service(logger), run_service(writer)) if lead <= 0 else \
+            (run_service(writer), run_service(logger))
+        started = threading.Event()
+        with first:
+            time.sleep(abs(lead))
+            with second:
+                started.set()
+                time.sleep(0.5)  # long enough for a cache query, short of the recorder's retries
+            # the writer stopped first: its cache is gone, what the recorder has is all it gets
+        counts = _counts(run_dir)
+        for key in (keys.tf_static, keys.topic("robot_description")):
+            if counts.get(key, {}).get("received") != 1 or not counts[key].get("expected"):
+                missing.append((lead, key, counts.get(key)))
+    assert not missing, missing
