@@ -179,7 +179,12 @@ def build_parser() -> argparse.ArgumentParser:
                        ("recover", "rewrite the bag of a killed recorder from what reached the disk whole, and "
                                    "its metadata.yaml")):
         b = bsub_.add_parser(name, help=text)
-        b.add_argument("bag", help="a run directory, its bag/ directory or an .mcap file")
+        if name == "info":
+            b.add_argument("bag", nargs="?", help="a run directory, its bag/ directory or an .mcap file (default: "
+                           "the latest run under --runs)")
+            b.add_argument("--runs", default="runs", help="where runs are, for the latest (default: runs)")
+        else:
+            b.add_argument("bag", help="a run directory, its bag/ directory or an .mcap file")
         b.set_defaults(func=_lazy("hilsim.tools.bagtool", f"cmd_{name}"))
     d = bsub_.add_parser("diff", help="where two bags first differ (topic, sim time, field): exit 0 the same, "
                          "1 different, 2 unreadable")
@@ -193,8 +198,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     export = sub.add_parser("export", help="a run's Rerun recording as an MCAP bag or CSV files (runs recorded "
                             "before the bag existed)")
-    export.add_argument("run", help="a run directory or its recording.rrd")
-    export.add_argument("--to", choices=["mcap", "csv"], required=True)
+    export.add_argument("run", nargs="?", help="a run directory or its recording.rrd (default: the latest run under "
+                        "--runs)")
+    export.add_argument("--runs", default="runs", help="where runs are, for the latest (default: runs)")
+    export.add_argument("--to", choices=["mcap", "csv"], required=True, help="mcap: a rosbag2 directory of ROS 2 "
+                        "messages rebuilt from the rows; csv: one file per entity and component")
     export.add_argument("--out", help="output directory (default: <run>/export-mcap or <run>/export-csv)")
     export.set_defaults(func=_lazy("hilsim.tools.export", "cmd_export"))
 

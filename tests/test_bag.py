@@ -755,6 +755,9 @@ def test_export_of_the_rrd_gives_the_bags_values(arm_run: tuple[Path, str], tmp_
     assert cli(["export", str(run), "--to", "csv", "--out", str(tmp_path / "csv")]) == 0
     assert cli(["export", str(run), "--to", "csv"]) == 0 and (run / "export-csv" / "clock").is_dir()
     assert cli(["export", str(run), "--to", "csv"]) == 1  # not over an earlier export
+    # no run named: the latest under --runs
+    assert cli(["export", "--runs", str(run.parent), "--to", "csv", "--out", str(tmp_path / "latest")]) == 0
+    assert (tmp_path / "latest" / "clock").is_dir() and f"the latest run, {run}" in capsys.readouterr().err
     capsys.readouterr()
     orig = {(m.topic, m.pub_ns): m.data for m in open_bag(run).messages()}
     exported = _rosbags_read(tmp_path / "mcap")
@@ -803,3 +806,13 @@ def test_bag_info_lists_topics_like_ros2_bag_info(arm_run: tuple[Path, str], cap
     n = sum(json.loads((run / "record_summary.json").read_text())[k]["bagged"]
             for k in json.loads((run / "record_summary.json").read_text()))
     assert f"Messages:          {n}\n" in out and "INCOMPLETE" not in out
+    # no bag named: the latest run under --runs (as hilsim view takes it), said on standard error
+    assert cli(["bag", "info", "--runs", str(run.parent)]) == 0
+    latest = capsys.readouterr()
+    assert latest.out == out and f"the latest run, {run}" in latest.err
+    assert cli(["bag", "info", "--runs", str(run.parent / "none")]) == 1
+    assert "no recordings" in capsys.readouterr().err
+    # a bag against itself: the same; against nothing readable: 2, as diff(1) says trouble
+    assert cli(["bag", "diff", str(run), str(run)]) == 0
+    assert "the bags hold the same messages" in capsys.readouterr().out
+    assert cli(["bag", "diff", str(run), str(run.parent / "none")]) == 2

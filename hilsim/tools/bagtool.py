@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 
 from hilsim.record.bag import BagError
 from hilsim.record.bag_read import info, recover_bag
@@ -18,10 +19,24 @@ from hilsim.record.bag_read import info, recover_bag
 DIFF_SHOWN = 20  # topics listed by bag diff at most
 
 
+def latest_run(runs: str) -> Path:
+    """The newest run directory under ``runs`` (by its recording's time, as ``hilsim view`` takes it); raises
+    :class:`hilsim.core.recording.RecordingError` if there is none."""
+    from hilsim.core.recording import latest_recording
+
+    return latest_recording(runs).parent
+
+
 def cmd_info(args: argparse.Namespace) -> int:
+    from hilsim.core.recording import RecordingError
+
     try:
-        print(info(args.bag))
-    except BagError as e:
+        bag = args.bag
+        if bag is None:
+            bag = latest_run(args.runs)
+            print(f"hilsim bag info: the latest run, {bag}", file=sys.stderr)
+        print(info(bag))
+    except (BagError, RecordingError) as e:
         print(f"hilsim bag info: {str(e).splitlines()[0]}", file=sys.stderr)
         return 1
     return 0

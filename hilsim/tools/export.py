@@ -1,4 +1,5 @@
-"""``hilsim export RUN --to mcap|csv``: a run's Rerun recording as CSV files or as an MCAP bag.
+"""``hilsim export [RUN] --to mcap|csv``: a run's Rerun recording as CSV files or as an MCAP bag (``RUN``
+defaults to the latest run under ``--runs``, ``runs/``).
 
 For runs recorded before the recorder wrote its bag (``<run>/bag/``): the ``.rrd`` holds the rows the
 recorder made of the messages (decoded values, ``hilsim.record.rows``), not the messages, so what
@@ -41,7 +42,7 @@ from typing import Any
 
 from hilsim.core import msgs
 from hilsim.core.keys import Keys
-from hilsim.core.recording import RECORDING_NAME, RecordingError, disable_analytics
+from hilsim.core.recording import RECORDING_NAME, RecordingError, disable_analytics, latest_recording
 from hilsim.record.bag import BagError, BagWriter
 from hilsim.record.bag_read import write_metadata
 
@@ -191,7 +192,11 @@ def export_mcap(rows: dict[str, list[Row]], out: Path, robot: str, keys: Keys) -
 
 def cmd_export(args: argparse.Namespace) -> int:
     try:
-        rrd = _find_rrd(args.run)
+        if args.run is None:
+            rrd = latest_recording(args.runs)
+            print(f"hilsim export: the latest run, {rrd.parent}", file=sys.stderr)
+        else:
+            rrd = _find_rrd(args.run)
         run_dir = rrd.parent
         out = Path(args.out) if args.out else run_dir / f"export-{args.to}"
         if out.exists() and any(out.iterdir()):
