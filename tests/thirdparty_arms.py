@@ -11,11 +11,14 @@ from __future__ import annotations
 import itertools
 import os
 import re
+import sysconfig
 from pathlib import Path
 
 import numpy as np
 
-ERD_CANDIDATES = [os.environ.get("ERD_ROOT", ""), "/tmp/erd/x/cmeel.prefix/share/example-robot-data/robots"]
+# the package as the test extras install it (pyproject.toml), or unpacked elsewhere (ERD_ROOT)
+ERD_CANDIDATES = [os.environ.get("ERD_ROOT", ""),
+                  str(Path(sysconfig.get_paths()["purelib"]) / "cmeel.prefix/share/example-robot-data/robots")]
 
 
 def erd_root() -> Path | None:

@@ -28,7 +28,6 @@ RANGE_USED = 0.8  # targets keep to this middle part of each joint's range
 N_TARGETS = 3
 CANDIDATES = 300  # collision-free poses drawn before the spread-out ones are picked
 MAX_MOVE = 1.5  # [rad] (or m) a target's joints at most this far from home: runs of seconds, not minutes
-PLAN_ITERATIONS = 4000
 
 
 def zero_pose(joints: list[Joint]) -> np.ndarray:
@@ -69,7 +68,8 @@ def choose_home(arm: ArmModel, joints: list[Joint], states: dict[str, dict[str, 
 
 def _plan_ok(lib: PlannerLibrary, planner: str, arm: ArmModel, a: np.ndarray, b: np.ndarray, seed: int) -> bool:
     pl = lib.create(planner)
-    out = pl.solve(Problem(arm, a, b, seed=seed, max_iterations=PLAN_ITERATIONS, time_limit=20.0,
+    # the budget the planner service has in lockstep: what is planned here is planned there
+    out = pl.solve(Problem(arm, a, b, seed=seed, max_iterations=lib.iterations, time_limit=20.0,
                            resolution=lib.resolution))
     return out.success
 

@@ -17,7 +17,7 @@ from hilsim.core.config import CONFIG_DIR
 from hilsim.tools.robot.urdf import Joint
 
 BANDWIDTH_HZ = 2.0  # the model-based starting gains: a critically damped loop of this natural frequency
-DEFAULT_PLANNER = "rrtconnect"
+DEFAULT_PLANNER = "improved_rrtstar"  # the paper's, as the built-in arm (RRT-Connect's path when it has none)
 
 
 @dataclass
