@@ -246,3 +246,47 @@ def test_the_panda_with_its_gripper_runs_its_targets_in_another_order(panda: Pat
     targets = [list(t) for t in sc.task.targets][::-1]
     assert len(targets[0]) == 8  # seven joints and the gripper
     _run_and_judge(panda / "panda.yaml", "panda", tmp_path, targets)
+
+
+def test_tools_default_to_the_imported_arms_joints(ur5: Path) -> None:
+    """No Niryo default: ``hilsim report step`` steps every joint of another arm."""
+    from hilsim.tools.step_report import DEFAULT_JOINTS, default_joints
+
+    assert default_joints(str(ur5 / "ur5.yaml")) == [j.name for j in UrdfFrames(ur5 / "ur5.urdf").moving]
+    assert default_joints("arm") == list(DEFAULT_JOINTS)
+
+
+@pytest.mark.e2e
+def test_an_imported_arm_is_bit_identical_run_to_run_in_lockstep(ur5: Path, tmp_path: Path) -> None:
+    """Same seed, same physics truth, sample for sample (the first 1.5 s of the UR5's first move)."""
+    runs = []
+    for k in range(2):
+        out = tmp_path / f"run{k}"
+        p = hilsim("up", str(ur5 / "ur5.yaml"), "--out", str(out), "--duration", "1.5", timeout=300)
+        assert p.returncode in (0, 3), p.stdout[-2000:] + p.stderr[-2000:]  # 3: the duration ended the task
+        stamps, pos, _names, _ = _truth_and_results(out / "bag", "ur5")
+        runs.append((stamps, pos))
+    (s0, p0), (s1, p1) = runs
+    n = min(len(s0), len(s1))
+    assert n > 1000 and np.array_equal(s0[:n], s1[:n]) and np.array_equal(p0[:n], p1[:n])
+    assert np.abs(p0[n - 1] - p0[0]).max() > 0.01  # it moved: the comparison is of a motion, not of a rest
+
+
+@pytest.mark.e2e
+def test_the_import_tunes_a_joint_with_the_projects_tuner(ur5: Path, tmp_path: Path) -> None:
+    """The import's tuning step on one joint (all of them take minutes): the project's tuner, on the real
+    services, writes gains that meet its target into the imported scenario."""
+    import shutil
+
+    from hilsim.tools.robot import _tune
+    from hilsim.tools.robot.urdf import read
+
+    work = tmp_path / "ur5"
+    shutil.copytree(ur5, work)
+    before = load_scenario(work / "ur5.yaml").controller.gains["wrist_3_joint"]
+    lines: list[str] = []
+    joint = next(j for j in read(ROBOTS / "ur_description/urdf/ur5_robot.urdf").actuated if j.name == "wrist_3_joint")
+    _tune(work / "ur5.yaml", [joint], lines.append)
+    after = load_scenario(work / "ur5.yaml").controller.gains["wrist_3_joint"]
+    assert (after.kp, after.kd) != (before.kp, before.kd)
+    assert len(lines) == 1 and lines[0].startswith("  wrist_3_joint: kp ") and "target missed" not in lines[0], lines

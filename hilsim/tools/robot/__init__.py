@@ -190,20 +190,41 @@ def _write_all(u: Urdf, name: str, tmp: Path, link: str, srdf: collisions.Srdf |
 # physics, sensors and controller in one process while tuning: the same results as apart (a composed lockstep run
 # is bit-identical to the distributed one), in less time
 TUNING_COMPOSE = {"compose": [["physics", "sensors", "controller"]]}
+TUNING_WORKERS = 2  # joints tuned at once (each its own run of the services, the others held at home)
+
+
+def _tune_one(scenario: Path, joint: str, prismatic: bool) -> tuple[str, dict[str, float], str]:
+    """One joint tuned (in a worker process): its gains and the line that says how they do."""
+    from hilsim.tools.tuning import Target, tune
+
+    step = 0.01 if prismatic else 0.2
+    r = tune(str(scenario), joint, "relay", step, Target(), lambda s: print(f"    {joint}: {s.strip()}", flush=True),
+             overrides=TUNING_COMPOSE)
+    f = r.figures
+    line = (f"  {joint}: kp {r.gains['kp']:g}, ki {r.gains['ki']:g}, kd {r.gains['kd']:g}: rise {f.rise_time_s:.3f} s, "
+            f"settling {f.settling_time_s:.3f} s, overshoot {f.overshoot_pct:.2f} %"
+            + ("" if not r.misses else f" (target missed: {'; '.join(r.misses)})"))
+    return joint, r.gains, line
 
 
 def _tune(scenario: Path, joints: list, say: Callable[[str], None]) -> None:
-    from hilsim.tools.tuning import Target, tune, write_gains
+    """Every joint tuned, :data:`TUNING_WORKERS` at a time, each with the others held by the starting gains (so
+    the result does not depend on the order); the gains written once all are found."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
 
+    from hilsim.tools.tuning import write_gains
+
+    found: dict[str, dict[str, float]] = {}
+    ctx = multiprocessing.get_context("spawn")  # a fresh interpreter: nothing of this one's state is shared
+    with ProcessPoolExecutor(TUNING_WORKERS, mp_context=ctx) as pool:
+        futures = [pool.submit(_tune_one, scenario, j.name, j.kind == "prismatic") for j in joints]
+        for fut in futures:
+            joint, gains, line = fut.result()
+            found[joint] = gains
+            say(line)
     for j in joints:
-        step = 0.01 if j.kind == "prismatic" else 0.2
-        indent = lambda s: say("    " + s)  # noqa: E731
-        r = tune(str(scenario), j.name, "relay", step, Target(), indent, overrides=TUNING_COMPOSE)
-        write_gains(scenario, j.name, r.gains)
-        f = r.figures
-        say(f"  {j.name}: kp {r.gains['kp']:g}, ki {r.gains['ki']:g}, kd {r.gains['kd']:g}: "
-            f"rise {f.rise_time_s:.3f} s, settling {f.settling_time_s:.3f} s, overshoot {f.overshoot_pct:.2f} %"
-            + ("" if not r.misses else f" (target missed: {'; '.join(r.misses)})"))
+        write_gains(scenario, j.name, found[j.name])
 
 
 def cmd_robot_import(args: argparse.Namespace) -> int:
