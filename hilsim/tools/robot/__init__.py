@@ -174,7 +174,8 @@ def _write_all(u: Urdf, name: str, tmp: Path, link: str, srdf: collisions.Srdf |
     description.write(u.path, meshes, tmp / f"{name}.urdf")
     gains = scenario_file.model_gains(model, d.qpos.copy(), joints)
     scenario = tmp / f"{name}.yaml"
-    how = ("found by hilsim tune (relay, Ziegler–Nichols, refined) at import" if tune else
+    how = ("found by hilsim tune (relay, Ziegler–Nichols, refined) at import; a joint it could not tune keeps "
+           f"a model-based PD (critically damped at {scenario_file.BANDWIDTH_HZ} Hz at home)" if tune else
            f"model-based PD (critically damped at {scenario_file.BANDWIDTH_HZ} Hz at home), not tuned: "
            f"hilsim tune {name}.yaml --all --method relay --write")
     scenario_file.write_scenario(scenario, name, u.path, joints, gains, home, home_how, targets, planner, how)
@@ -193,13 +194,19 @@ TUNING_COMPOSE = {"compose": [["physics", "sensors", "controller"]]}
 TUNING_WORKERS = 2  # joints tuned at once (each its own run of the services, the others held at home)
 
 
-def _tune_one(scenario: Path, joint: str, prismatic: bool) -> tuple[str, dict[str, float], str]:
-    """One joint tuned (in a worker process): its gains and the line that says how they do."""
+def _tune_one(scenario: Path, joint: str, prismatic: bool) -> tuple[str, dict[str, float] | None, str]:
+    """One joint tuned (in a worker process): its gains (None: the tuner could not, the starting gains stay)
+    and the line that says how they do."""
+    from hilsim.core.config import ConfigError
+    from hilsim.tools.rig import RigError
     from hilsim.tools.tuning import Target, tune
 
     step = 0.01 if prismatic else 0.2
-    r = tune(str(scenario), joint, "relay", step, Target(), lambda s: print(f"    {joint}: {s.strip()}", flush=True),
-             overrides=TUNING_COMPOSE)
+    try:
+        r = tune(str(scenario), joint, "relay", step, Target(),
+                 lambda s: print(f"    {joint}: {s.strip()}", flush=True), overrides=TUNING_COMPOSE)
+    except (ConfigError, RigError) as e:
+        return joint, None, f"  {joint}: not tuned ({e}): the model-based gains stay (hilsim tune to try again)"
     f = r.figures
     line = (f"  {joint}: kp {r.gains['kp']:g}, ki {r.gains['ki']:g}, kd {r.gains['kd']:g}: rise {f.rise_time_s:.3f} s, "
             f"settling {f.settling_time_s:.3f} s, overshoot {f.overshoot_pct:.2f} %"
@@ -215,8 +222,10 @@ def _tune(scenario: Path, joints: list, say: Callable[[str], None]) -> None:
 
     from hilsim.tools.tuning import write_gains
 
-    found: dict[str, dict[str, float]] = {}
-    ctx = multiprocessing.get_context("spawn")  # a fresh interpreter: nothing of this one's state is shared
+    found: dict[str, dict[str, float] | None] = {}
+    # fork: no resource-tracker process left behind (spawn starts one that outlives the pool); nothing here
+    # holds a thread or a Zenoh session yet
+    ctx = multiprocessing.get_context("fork")
     with ProcessPoolExecutor(TUNING_WORKERS, mp_context=ctx) as pool:
         futures = [pool.submit(_tune_one, scenario, j.name, j.kind == "prismatic") for j in joints]
         for fut in futures:
@@ -224,7 +233,8 @@ def _tune(scenario: Path, joints: list, say: Callable[[str], None]) -> None:
             found[joint] = gains
             say(line)
     for j in joints:
-        write_gains(scenario, j.name, found[j.name])
+        if found[j.name] is not None:
+            write_gains(scenario, j.name, found[j.name])
 
 
 def cmd_robot_import(args: argparse.Namespace) -> int:
