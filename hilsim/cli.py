@@ -237,7 +237,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "planner of --planners, compared (instead of --targets)")
     ev.add_argument("--planners", help="with --scenes: comma-separated library names, and auto (the learned "
                     "choice) and oracle (each query's best of the others); default every planner, auto and oracle")
-    ev.add_argument("--seeds", type=int, default=2, help="with --scenes: runs per query and planner (default 2)")
+    ev.add_argument("--seeds", type=int, default=3, help="with --scenes: runs per query and planner (default 3)")
+    ev.add_argument("--strict", action="store_true", help="with --scenes: refuse scenes or queries the choice's "
+                    "model was trained on (default: a warning)")
     ev.add_argument("--jobs", type=int, help="with --scenes: worker processes (default: every core)")
     ev.add_argument("--json", action="store_true", help="with --scenes: the figures as one JSON object, last line")
     ev.add_argument("--runs", help="with --scenes: keep every run in this CSV, and take the library planners' runs "
@@ -249,7 +251,9 @@ def build_parser() -> argparse.ArgumentParser:
     le.add_argument("--seed", type=int, default=0, help="scenes, queries, split and model (default 0)")
     le.add_argument("--scenes", type=int, default=18, help="random scenes besides the shipped ones (default 18)")
     le.add_argument("--queries", type=int, default=6, help="sampled queries per scene (default 6)")
-    le.add_argument("--seeds", type=int, default=1, help="runs of each planner on each query (default 1)")
+    le.add_argument("--seeds", type=int, default=3, help="runs of each planner on each query (default 3)")
+    le.add_argument("--scenario", help="the arm: a scenario file or name (default: the built-in arm); another "
+                    "arm's scenes are its world with obstacles sized to its reach, and its model needs its own --out")
     le.add_argument("--planners", help="comma-separated (default: the library's, auto aside)")
     le.add_argument("--iterations", type=int, help="iteration budget per run (default: the library's)")
     le.add_argument("--jobs", type=int, help="worker processes (default: every core)")
@@ -261,6 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--seed", type=int, default=1000, help="default 1000 (plan learn's scenes use --seed 0)")
     sc.add_argument("--queries", type=int, default=6, help="queries per scene (default 6)")
     sc.add_argument("--prefix", default="gen", help="scene names: PREFIX<seed>_<k>_<kind> (default gen)")
+    sc.add_argument("--scenario", help="the arm: a scenario file or name (default: the built-in arm)")
     sc.set_defaults(func=_lazy("hilsim.tools.learn", "cmd_scenes"))
 
     bench = sub.add_parser("bench", help="benchmarks (figures and ratios against an in-run baseline)")
@@ -308,8 +313,19 @@ def build_parser() -> argparse.ArgumentParser:
     bp.add_argument("--json", action="store_true")
     bp.add_argument("--seeds", type=int, default=10)
     bp.add_argument("--no-equal-time", action="store_true", help="skip the equal-wall-time pass")
-    bp.add_argument("--choice", action="store_true", help="only planner: auto's model load and decision time")
+    bp.add_argument("--choice", action="store_true", help="only planner: auto's model load and decision time "
+                    "(= hilsim bench choice)")
+    bp.add_argument("--scenario", help="the arm: a scenario file or name (default: the built-in arm on the shipped "
+                    "scenes); another arm: --scenes")
+    bp.add_argument("--scenes", help="a scenes file to plan in (default config/scenes/scenes.yaml)")
     bp.set_defaults(func=_lazy("hilsim.planning.bench", "cmd_bench"))
+    bch = bsub.add_parser("choice", help="planner: auto: the model's load and the decision's time (p50/p95/p99) "
+                          "on the held-out queries, against its 5 ms bound")
+    bch.add_argument("--json", action="store_true")
+    bch.add_argument("--scenes", help="queries to decide on (default models/planner_choice/heldout/scenes.yaml)")
+    bch.add_argument("--repeat", type=int, default=5, help="decisions per query (default 5)")
+    bch.add_argument("--scenario", default="arm", help="the scenario whose library's auto decides (default arm)")
+    bch.set_defaults(func=_lazy("hilsim.planning.bench", "cmd_choice"))
     b2 = bsub.add_parser("ros2", help="the ROS 2 bridge's DDS writes: Cyclone DDS (bridge-ros2-dds) vs rclpy")
     b2.add_argument("--json", action="store_true")
     b2.add_argument("--count", type=int, default=5000, help="samples per writer")

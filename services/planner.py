@@ -144,11 +144,18 @@ class PlannerService(Service):
         # one model for the query handlers (validation, IK), one for the planning worker
         self.arm = ArmModel(scenario.world.model, scenario.planner.clearance)
         self.plan_arm = ArmModel(scenario.world.model, scenario.planner.clearance, self.arm.joint_names)
-        self.auto_fallbacks = 0  # planner: auto plans that went to its fallback (a robot its model does not know)
-        if hasattr(default, "prepare"):  # planner: auto builds its world's features now, not on the first goal
-            default.prepare(self.plan_arm)
-            if hasattr(default, "unfit") and default.unfit(self.plan_arm):
-                self.log.warning("%s", default.fallback_text(self.plan_arm))
+        self.auto_fallbacks = 0  # planner: auto plans that went to its fallback (an arm it does not know, too slow)
+        self.choice_over_bound = 0  # planner: auto decisions over their CPU bound
+        self.choice_p99_ms: float | None = None  # planner: auto's decisions at start, 99th percentile [ms CPU]
+        # planner: auto, named anywhere (the default, a goal): its model and its world's features are loaded and
+        # its decision measured now, not at the first goal
+        for name, spec in self.library.specs.items():
+            if spec.get("kind") == "auto":
+                auto = default if name == self.default_planner else self.library.create(name, criterion=self.criterion)
+                auto.prepare(self.plan_arm)  # type: ignore[attr-defined]
+                self.choice_p99_ms = auto.warm_p99_ms(self.plan_arm)  # type: ignore[attr-defined]
+                if name == self.default_planner and auto.unfit(self.plan_arm):  # type: ignore[attr-defined]
+                    self.log.warning("%s", auto.fallback_text(self.plan_arm))  # type: ignore[attr-defined]
         self.n = self.arm.n
         self.vmax, self.amax, self.jmax = self.library.joint_limits(self.n, self.arm.velocity_limits(),
                                                                     self.arm.joint_names)
@@ -223,6 +230,8 @@ class PlannerService(Service):
             "trajectories_resent": self.resent,
             "handover_wait_max_s": round(self.handover_wait_max, 4),
             "auto_fallbacks": self.auto_fallbacks,
+            "choice_over_bound": self.choice_over_bound,
+            "choice_p99_ms": None if self.choice_p99_ms is None else round(self.choice_p99_ms, 2),
         }
 
     # ------------------------------------------------------------------ goal validation
@@ -584,8 +593,9 @@ class PlannerService(Service):
             # the measured state, a step of at most 2 tolerances.
             start = anchor
         planner = self.library.create(goal.planner, criterion=self.criterion)
-        if hasattr(planner, "prepare"):  # auto named by a goal, not the default: ready it (once)
+        if hasattr(planner, "prepare"):  # auto (prepared at start; once per collision model)
             planner.prepare(self.plan_arm)
+            planner.enforce_bound = not self.lockstep  # lockstep: sim time waits; a choice by load breaks determinism
         if self.lockstep:
             budget: dict[str, Any] = {
                 "max_iterations": self.iterations,
@@ -623,6 +633,8 @@ class PlannerService(Service):
             goal.choice = str(out.extra.get("choice", ""))
             if out.extra.get("auto_fallback"):
                 self.auto_fallbacks += 1
+            if out.extra.get("over_bound"):
+                self.choice_over_bound += 1
             if out.wall_cap_hit:
                 self.warn(f"{goal.goal_id}: planning hit the wall-clock cap ({pb.time_limit:g} s): not deterministic")
             if goal.canceled or goal.state != "planning":

@@ -97,3 +97,43 @@ def test_auto_on_an_arm_its_model_does_not_know_says_so_and_plans_with_the_defau
                              report=lambda p, w: reports.append((p, w))))
     assert out.success and out.extra["auto_fallback"] == "robot" and out.extra["planner"] == "improved_rrtstar"
     assert reports == [("improved_rrtstar", why)]
+
+
+@needs_erd
+def test_a_lab_retrains_the_choice_for_its_arm_by_one_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]
+                                                               ) -> None:
+    """`hilsim plan learn --scenario FILE --out DIR` on the UR5: scenes of its world sized to its reach, a model
+    whose manifest names the UR5; a library naming that model lets auto choose for the UR5, and `plan
+    evaluate --scenario` runs it there."""
+    import json
+
+    import yaml
+
+    from hilsim.cli import main
+
+    world = ur5_world(tmp_path)
+    scenario = tmp_path / "ur5.yaml"
+    lib = tmp_path / "planners.yaml"
+    out = tmp_path / "choice"
+    data = yaml.safe_load((REPO_ROOT / "config" / "planners.yaml").read_text())
+    data["planners"]["auto"]["params"]["model"] = str(out)
+    lib.write_text(yaml.safe_dump(data))
+    scenario.write_text(yaml.safe_dump({
+        "name": "ur5", "robot": "ur5", "services": ["physics", "sensors", "controller", "planner"],
+        "world": {"model": world.name}, "controller": {"gains": {"default": {"kp": 100.0, "ki": 0.0, "kd": 10.0}}},
+        "planner": {"planner": "improved_rrtstar", "library": lib.name}}))
+    # the built-in arm's model directory is not another arm's
+    assert main(["plan", "learn", "--scenario", str(scenario), "--seeds", "1"]) == 2
+    assert "another arm's goes into its own directory" in capsys.readouterr().err
+    assert main(["plan", "learn", "--scenario", str(scenario), "--out", str(out), "--scenes", "2", "--queries", "2",
+                 "--seeds", "1", "--planners", "rrtconnect,bitstar", "--iterations", "300", "--jobs", "2"]) == 0
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["robot"]["joints"][0] == "shoulder_pan_joint" and "--scenario" in manifest["command"]
+    assert all(s["kind"] != "shipped" for s in manifest["scenes"].values())  # the built-in arm's scenes: not here
+    auto = PlannerLibrary.load(lib).create("auto")
+    assert auto.unfit(ArmModel(world)) == ""
+    capsys.readouterr()
+    assert main(["plan", "evaluate", "--scenario", str(scenario), "--scenes", str(out / "scenes.yaml"),
+                 "--planners", "rrtconnect,bitstar,auto,oracle", "--seeds", "1", "--jobs", "2", "--json"]) == 0
+    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert res["planners"]["auto"]["success_rate"] == 1.0

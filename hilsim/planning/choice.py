@@ -34,7 +34,7 @@ from hilsim.core.config import MODELS_DIR
 from hilsim.planning.collision import ArmModel
 from hilsim.planning.features import FEATURES, FeatureModel
 from hilsim.planning.problem import Planner, PlannerConfigError, PlanOutcome, Problem
-from hilsim.planning.scoring import CRITERIA, TIME_WEIGHT, check_criterion, scores
+from hilsim.planning.scoring import CONSTANTS, CRITERIA, TIME_WEIGHT, check_criterion, scores
 
 
 class PlannerLibrary(Protocol):
@@ -52,6 +52,8 @@ MODEL_FILE = "model.pkl"
 MANIFEST_FILE = "manifest.json"
 DEFAULT_CRITERION = "weighted"
 DEFAULT_FALLBACK = "improved_rrtstar"  # auto's planner for an arm its model was not trained for
+BOUND_MS = 5.0  # a decision's CPU (features and model) at the 99th percentile, at most
+WARM_DECISIONS = 50  # decisions at start (random queries, a fixed seed) that measure whether the bound holds
 # extremely randomised trees: chosen over random forests and other leaf sizes and feature fractions by
 # a five-fold cross-validation over the training scenes (grouped by scene), the held-out scenes unseen
 FOREST = {"n_estimators": 60, "min_samples_leaf": 1, "max_features": 1.0}
@@ -100,13 +102,63 @@ def query_table(rows: Sequence[dict[str, Any]], planners: Sequence[str], time_we
         ok = np.array([int(r["success"]) for r in runs])
         sp, sa = (np.array([float(r[c]) for r in runs]) for c in ("sum_P", "sum_A"))
         checks = np.array([int(r["checks"]) for r in runs])
+        names = [str(r["planner"]) for r in runs]
         for p in range(P):
             success[i, p] = ok[idx == p].mean()
         for c in CRITERIA:
-            s = scores(ok, sp, sa, checks, c, time_weight)
+            s = scores(ok, sp, sa, checks, c, time_weight, names)
             for p in range(P):
                 score[c][i, p] = s[idx == p].mean()
     return QueryTable(keys, X, success, score, list(planners))
+
+
+@dataclass
+class Forest:
+    """A trained forest as plain arrays (trees × nodes, padded): predicting needs NumPy only, no
+    scikit-learn import (two seconds of CPU) and no per-tree Python call; loading is a few milliseconds.
+    The same arithmetic as scikit-learn's trees: each feature cast to float32, ``x <= threshold`` goes left,
+    the leaves' values averaged over the trees."""
+
+    feature: np.ndarray  # int32, trees × nodes (leaves: 0)
+    threshold: np.ndarray  # float64
+    left: np.ndarray  # int32 (-1: a leaf)
+    right: np.ndarray  # int32
+    value: np.ndarray  # float64, trees × nodes × outputs
+    depth: int
+
+    @classmethod
+    def from_sklearn(cls, forest: Any) -> Forest:
+        trees = [e.tree_ for e in forest.estimators_]
+        T, N = len(trees), max(t.node_count for t in trees)
+        out = trees[0].value.shape[1]
+        feature, left, right = (np.zeros((T, N), np.int32) for _ in range(3))
+        left[:] = -1
+        threshold = np.zeros((T, N))
+        value = np.zeros((T, N, out))
+        for k, t in enumerate(trees):
+            n = t.node_count
+            feature[k, :n] = np.maximum(t.feature, 0)
+            threshold[k, :n] = t.threshold
+            left[k, :n], right[k, :n] = t.children_left, t.children_right
+            value[k, :n] = t.value[:, :, 0]
+        return cls(feature, threshold, left, right, value, int(max(t.max_depth for t in trees)))
+
+    def predict(self, x: np.ndarray) -> np.ndarray:
+        xs = np.asarray(x, np.float32).astype(np.float64).ravel()
+        rows = np.arange(self.feature.shape[0])
+        node = np.zeros(len(rows), np.int64)
+        for _ in range(self.depth):
+            lft = self.left[rows, node]
+            inner = lft >= 0
+            if not inner.any():
+                break
+            go_left = xs[self.feature[rows, node]] <= self.threshold[rows, node]
+            node = np.where(inner, np.where(go_left, lft, self.right[rows, node]), node)
+        return self.value[rows, node].mean(axis=0)
+
+    def arrays(self) -> dict[str, Any]:
+        return {"feature": self.feature, "threshold": self.threshold, "left": self.left, "right": self.right,
+                "value": self.value, "depth": self.depth}
 
 
 def train_forest(table: QueryTable, seed: int) -> Any:
@@ -143,23 +195,21 @@ class ChoiceModelError(PlannerConfigError):
 
 @dataclass
 class ChoiceModel:
-    forest: Any
+    forest: Forest
     planners: list[str]
     features: list[str]
     manifest: dict[str, Any]
 
     def predict(self, x: np.ndarray) -> tuple[np.ndarray, dict[str, np.ndarray]]:
         """(success per planner, {criterion: score per planner}) for one query's features."""
-        # the forest's own mean of its trees' predictions, without predict()'s per-call checks and
-        # job dispatch (a third of the decision's time on one row)
-        x32 = np.asarray(x, np.float32).reshape(1, -1)
-        y = np.mean([t.predict(x32, check_input=False)[0] for t in self.forest.estimators_], axis=0)
+        y = self.forest.predict(x)
         P = len(self.planners)
         return y[:P], {c: y[P * (k + 1): P * (k + 2)] for k, c in enumerate(CRITERIA)}
 
     def save(self, directory: Path) -> tuple[Path, Path]:
         directory.mkdir(parents=True, exist_ok=True)
-        blob = pickle.dumps({"forest": self.forest, "planners": self.planners, "features": self.features},
+        # plain arrays, lists and strings: loading needs NumPy only
+        blob = pickle.dumps({"forest": self.forest.arrays(), "planners": self.planners, "features": self.features},
                             protocol=5)
         model = directory / MODEL_FILE
         model.write_bytes(blob)
@@ -170,9 +220,18 @@ class ChoiceModel:
 
 
 def library_versions() -> dict[str, str]:
+    import importlib.metadata
+
+    import mujoco
     import sklearn
 
-    return {"scikit-learn": sklearn.__version__, "numpy": np.__version__}
+    out = {"scikit-learn": sklearn.__version__, "numpy": np.__version__, "mujoco": mujoco.__version__}
+    for dist in ("ompl", "hilsim"):
+        try:
+            out[dist] = importlib.metadata.version(dist)
+        except importlib.metadata.PackageNotFoundError:
+            out[dist] = "?"
+    return out
 
 
 def load_model(directory: str | Path = MODEL_DIR) -> ChoiceModel:
@@ -188,20 +247,21 @@ def _load(directory: str) -> ChoiceModel:
         blob = (d / MODEL_FILE).read_bytes()
     except (OSError, ValueError) as e:
         raise ChoiceModelError(f"{d}: no planner-choice model ({e}); build it with `hilsim plan learn`") from None
-    import sklearn
-
-    want = str(manifest.get("versions", {}).get("scikit-learn", "?"))
-    if want.split(".")[:2] != sklearn.__version__.split(".")[:2]:
-        raise ChoiceModelError(f"{d / MANIFEST_FILE}: versions.scikit-learn: the model was built with "
-                               f"scikit-learn {want}, this is {sklearn.__version__}: rebuild it with "
-                               "`hilsim plan learn --train-only`")
+    constants = (manifest.get("criterion") or {}).get("constants")
+    if constants != CONSTANTS:
+        raise ChoiceModelError(f"{d / MANIFEST_FILE}: criterion.constants: the model was trained under "
+                               f"{constants}, hilsim.planning.scoring says {CONSTANTS}: retrain it "
+                               "(`hilsim plan learn --train-only`)")
     if hashlib.sha256(blob).hexdigest() != manifest.get("model_sha256"):
         raise ChoiceModelError(f"{d / MODEL_FILE}: does not match model_sha256 of {MANIFEST_FILE}")
     data = pickle.loads(blob)  # the repository's own file, its hash checked against the manifest
     if list(data["features"]) != list(FEATURES):
         raise ChoiceModelError(f"{d / MODEL_FILE}: trained on other features than hilsim.planning.features "
                                "computes: rebuild it with `hilsim plan learn --train-only`")
-    return ChoiceModel(data["forest"], list(data["planners"]), list(data["features"]), manifest)
+    if not isinstance(data.get("forest"), dict):
+        raise ChoiceModelError(f"{d / MODEL_FILE}: an older model format: rebuild it with "
+                               "`hilsim plan learn --train-only`")
+    return ChoiceModel(Forest(**data["forest"]), list(data["planners"]), list(data["features"]), manifest)
 
 
 # ---------------------------------------------------------------------------------- the decision
@@ -247,7 +307,8 @@ def mujoco_site(arm: ArmModel, name: str) -> int:
 
 
 _FEATURES: weakref.WeakKeyDictionary[ArmModel, FeatureModel] = weakref.WeakKeyDictionary()
-_WARM: weakref.WeakSet[ArmModel] = weakref.WeakSet()  # collision models a decision was made for
+# collision models decided for at start -> the 99th percentile of those decisions' CPU [ms]
+_WARM: weakref.WeakKeyDictionary[ArmModel, float] = weakref.WeakKeyDictionary()
 
 
 def feature_model(arm: ArmModel) -> FeatureModel:
@@ -265,10 +326,10 @@ class AutoPlanner:
 
     def __init__(self, name: str, params: dict[str, Any], library: PlannerLibrary, criterion: str | None = None
                  ) -> None:
-        unknown = set(params) - {"model", "fallbacks", "criterion", "fallback"}
+        unknown = set(params) - {"model", "fallbacks", "criterion", "fallback", "bound_ms"}
         if unknown:
             raise PlannerConfigError(f"planner {name!r}: unknown parameter(s) {sorted(unknown)}; "
-                                     "expected model, fallbacks, criterion, fallback")
+                                     "expected model, fallbacks, criterion, fallback, bound_ms")
         self.name = name
         self.library = library
         model = Path(str(params.get("model", MODEL_DIR)))
@@ -276,8 +337,10 @@ class AutoPlanner:
         try:
             self.criterion = check_criterion(str(criterion or params.get("criterion", DEFAULT_CRITERION)))
             self.fallbacks = int(params.get("fallbacks", 2))
+            self.bound_ms = float(params.get("bound_ms", BOUND_MS))
         except ValueError as e:
             raise PlannerConfigError(f"planner {name!r}: {e}") from None
+        self.enforce_bound = False  # the service sets it in realtime mode (solve)
         self.model = load_model(self.model_dir)
         self.candidates = [p for p in self.model.planners if p in library.specs]
         if not self.candidates:
@@ -311,14 +374,25 @@ class AutoPlanner:
                 "`hilsim plan learn --scenario FILE --out DIR` and name DIR in the library's auto params.model")
 
     def prepare(self, arm: ArmModel) -> None:
-        """Before the first goal: build the world's feature model (its scene features take a few ms)
-        and decide once, so that the first real decision is as quick as the others (the first call of
-        every code path costs more). Once per collision model."""
+        """Before the first goal: build the world's feature model (its scene features take a few ms) and
+        decide ``WARM_DECISIONS`` times on random queries (a fixed seed), so that the first real decision is
+        as quick as the others (the first call of every code path costs more) and the 99th percentile of
+        their CPU says whether the bound holds on this machine (:meth:`too_slow`). Once per collision model."""
         if arm in _WARM or self.unfit(arm):
             return
-        mid = (arm.lower + arm.upper) / 2
-        self.decide(arm, mid, np.clip(mid + 0.5, arm.lower, arm.upper))
-        _WARM.add(arm)
+        rng = np.random.default_rng(0)
+        lo, hi = arm.sampling_bounds()
+        ms = [1e3 * self.decide(arm, rng.uniform(lo, hi), rng.uniform(lo, hi)).seconds
+              for _ in range(WARM_DECISIONS)]
+        _WARM[arm] = float(np.percentile(ms[1:], 99))
+
+    def warm_p99_ms(self, arm: ArmModel) -> float | None:
+        """The 99th percentile of the start's decisions (CPU ms), None before :meth:`prepare`."""
+        return _WARM.get(arm)
+
+    def too_slow(self, arm: ArmModel) -> bool:
+        p99 = _WARM.get(arm)
+        return p99 is not None and p99 > self.bound_ms
 
     def decide(self, arm: ArmModel, start: np.ndarray, goal: np.ndarray) -> Decision:
         fm = feature_model(arm)  # built once per collision model (prepare), not part of a decision
@@ -332,12 +406,20 @@ class AutoPlanner:
         return Decision(self.criterion, ranking, s, ok, time.thread_time() - t0)
 
     def solve(self, pb: Problem) -> PlanOutcome:
-        if self.unfit(pb.arm):  # never a choice for a robot the model has not seen: the default, said so
-            why = self.fallback_text(pb.arm)
+        """Decide and plan. ``enforce_bound`` (set by the service in realtime mode): when the start's decisions were
+        over the bound on this machine, plan with the fallback planner instead (said, and counted). In
+        lockstep mode sim time stands still while deciding, and a choice that depended on the machine's
+        load would break determinism: a decision over the bound is only counted there
+        (``extra['over_bound']``)."""
+        slow = self.enforce_bound and self.too_slow(pb.arm)
+        if self.unfit(pb.arm) or slow:  # never a choice for a robot the model has not seen: the default, said so
+            why = self.fallback_text(pb.arm) if not slow else (
+                f"planner auto: its decisions took {self.warm_p99_ms(pb.arm):.1f} ms CPU at the 99th percentile "
+                f"at start, over its bound of {self.bound_ms:g} ms: planning with {self.fallback}")
             if pb.report is not None:
                 pb.report(self.fallback, why)
             out = self.library.create(self.fallback).solve(pb)
-            out.extra = dict(out.extra, planner=self.fallback, choice=why, auto_fallback="robot")
+            out.extra = dict(out.extra, planner=self.fallback, choice=why, auto_fallback="bound" if slow else "robot")
             return out
         decision = self.decide(pb.arm, pb.start, pb.goal)
         if pb.report is not None:
@@ -355,6 +437,7 @@ class AutoPlanner:
             tried.append(name)
         planned = None if not out.success else (decision.ranking[len(tried)])
         extra = dict(out.extra, planner=planned or decision.ranking[0], choice=decision.text(planned, tried),
-                     decision_s=decision.seconds, ranking=decision.ranking)
+                     decision_s=decision.seconds, ranking=decision.ranking,
+                     over_bound=1e3 * decision.seconds > self.bound_ms)
         msg = out.message if out.success else f"auto: {', '.join(tried)} failed ({out.message})"
         return PlanOutcome(out.path, msg, iterations, elapsed, cap, extra)

@@ -3,13 +3,16 @@
 A query is a start and a goal joint vector in a scene (a MuJoCo world with the arm). Its features,
 in :data:`FEATURES` order:
 
-- the joint-space distance (Euclidean, max-norm) and each joint's own move;
+- the joint-space distance (Euclidean, max-norm) and the joints' moves in six groups along the chain
+  (an arm of six joints: each joint's own move; of seven or nine: the largest move of each group, so
+  the features are the same whatever the joint count);
 - the straight joint line start → goal, checked at ``LINE_SAMPLES`` evenly spaced states: the
   fraction of them in collision (closer than the clearance), and the arm's smallest and mean
   distance to the world's static geoms (table, obstacles) along it, capped at ``FAR`` (a second copy
   of the model whose geoms report contacts up to ``FAR`` away);
 - that distance at the start and at the goal;
-- where the tool is at the start and at the goal, how far apart (m), and the lower of its two heights;
+- where the tool is at the start and at the goal, from the arm's base (its root body), how far apart (m),
+  and the lower of its two heights;
 - the scene: how many obstacles stand on the table, their volume, the highest one's top, and the
   fraction of ``CSPACE_SAMPLES`` random configurations (a fixed seed) that collide — computed once
   per world model and kept.
@@ -29,6 +32,7 @@ import numpy as np
 from hilsim.planning.collision import ArmModel
 
 LINE_SAMPLES = 16
+JOINT_GROUPS = 6  # the joints' moves, in this many groups along the chain
 FAR = 0.25  # m: distances beyond this count as far
 CSPACE_SAMPLES = 256
 _FIXED = ("table", "floor")  # static geoms that are not obstacles
@@ -54,6 +58,14 @@ class FeatureModel:
         m.geom_contype[:] = np.where(self._static, 0, 2)
         m.geom_conaffinity[:] = np.where(self._static, 2, 0)
         self.scene = scene_features(str(Path(model_path).resolve()), clearance, tuple(self.arm.joint_names))
+        # the arm's root body (the child of the world its first joint hangs from): where the tool is measured from
+        am = self.arm.model
+        b = int(am.jnt_bodyid[self.arm.joint_ids[0]])
+        while int(am.body_parentid[b]) != 0:
+            b = int(am.body_parentid[b])
+        self._root = b
+        n = self.arm.n  # each joint's group of the six (the identity for six joints)
+        self._group = np.minimum((np.arange(n) * JOINT_GROUPS) // max(n, 1), JOINT_GROUPS - 1)
 
     def clearance(self, q: np.ndarray) -> float:
         """The arm's distance to the nearest static geom at ``q`` (FAR when none is nearer)."""
@@ -67,14 +79,15 @@ class FeatureModel:
     def features(self, start: np.ndarray, goal: np.ndarray) -> np.ndarray:
         start, goal = np.asarray(start, float), np.asarray(goal, float)
         dq = np.abs(goal - start)
-        n = self.arm.n
-        moves = np.zeros(6)
-        moves[: min(n, 6)] = dq[:6]
+        moves = np.zeros(JOINT_GROUPS)
+        np.maximum.at(moves, self._group, dq)
         line = start + np.outer(np.linspace(0.0, 1.0, LINE_SAMPLES), goal - start)
         blocked = sum(not self.arm.is_valid(q) for q in line[1:-1]) / (LINE_SAMPLES - 2)
         clear = np.array([self.clearance(q) for q in line])
         ps, _ = self.arm.site_pose(start)
+        ps = ps - self.arm.data.xpos[self._root]
         pg, _ = self.arm.site_pose(goal)
+        pg = pg - self.arm.data.xpos[self._root]
         return np.array([
             float(np.linalg.norm(goal - start)), float(dq.max()), *moves,
             blocked, float(clear.min()), float(clear.mean()), float(clear[0]), float(clear[-1]),

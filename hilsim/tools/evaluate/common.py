@@ -11,12 +11,12 @@ import numpy as np
 import yaml
 
 from hilsim.core.config import ConfigError, Scenario
+from hilsim.planning.scoring import CRITERIA, best
 from hilsim.run.runs import new_run_dir
 
 if TYPE_CHECKING:
     from hilsim.core import msgs
 
-CRITERIA = ("length", "smoothness", "weighted")
 
 
 class Scored(Protocol):
@@ -56,24 +56,14 @@ def read_targets(path: str | Path, *, what: str, form: str, lengths: Collection[
     return [str(n) for n in names], targets, data
 
 
-def choose(evals: Sequence[Scored], criterion: str, w_length: float = 0.5) -> int | None:
-    """Index of the best successful evaluation by the criterion (None if none succeeded): the
-    smallest ``length``, the smallest ``smoothness``, or (``weighted``) the smallest weighted sum of
-    both, each normalised by its smallest value over the successful evaluations."""
+def choose(evals: Sequence[Scored], criterion: str) -> int | None:
+    """Index of the best successful evaluation by the criterion (None if none succeeded): the one
+    criterion of :mod:`hilsim.planning.scoring` (the smallest ``length``, ``smoothness``, or their
+    normalised weighted sum)."""
     if criterion not in CRITERIA:
         raise ValueError(f"criterion must be one of {', '.join(CRITERIA)}")
-    ok = [i for i, e in enumerate(evals) if e.ok]
-    if not ok:
-        return None
-    p = np.array([evals[i].length for i in ok])
-    a = np.array([evals[i].smoothness for i in ok])
-    if criterion == "length":
-        score = p
-    elif criterion == "smoothness":
-        score = a
-    else:
-        score = w_length * p / max(p.min(), 1e-12) + (1 - w_length) * a / max(a.min(), 1e-12)
-    return ok[int(np.argmin(score))]
+    return best([e.ok for e in evals], [e.length if e.ok else np.nan for e in evals],
+                [e.smoothness if e.ok else np.nan for e in evals], criterion)
 
 
 def output_csv(sc: Scenario, csv: str | None, out: str | None) -> Path:

@@ -33,7 +33,7 @@ from hilsim.core.config import ConfigError, Scenario
 from hilsim.planning.collision import ArmModel
 from hilsim.planning.library import PlannerLibrary
 from hilsim.planning.runs import BROKEN, RunContext, RunRecord, RunTask, run_all
-from hilsim.planning.scenes import load_scenes
+from hilsim.planning.scenes import Scene, load_scenes, query_sha256, world_sha256
 from hilsim.planning.scoring import scores
 
 ORACLE = "oracle"
@@ -77,8 +77,10 @@ def summarise(records: list[RunRecord], names: list[str], singles: list[str], cr
         by_query.setdefault((r.scene, r.query), []).append(r)
     per: dict[str, dict[str, list[float]]] = {n: {"score": [], "ok": [], "P": [], "A": [], "t": []} for n in names}
     for runs in by_query.values():
+        # planning time: the checks at the calibration of the planner that planned, plus a choice's decision
         s = scores([r.success for r in runs], [r.sum_P for r in runs], [r.sum_A for r in runs],
-                   [r.checks for r in runs], criterion)
+                   [r.checks for r in runs], criterion, planners=[r.used for r in runs],
+                   extra_s=[r.decision_ms / 1e3 for r in runs])
         mean: dict[str, float] = {}
         for name in {r.planner for r in runs}:
             idx = [i for i, r in enumerate(runs) if r.planner == name]
@@ -126,6 +128,52 @@ def format_table(summary: dict[str, dict[str, Any]], criterion: str, queries: in
     return "\n".join(lines)
 
 
+def overlap(scenes: dict[str, Scene], manifest: dict[str, Any]) -> tuple[list[str], int]:
+    """(the scenes whose world, obstacles and all, is one the model was trained on; how many queries it was
+    trained on) of a scenes file against the model's manifest. A world without obstacles (the table only)
+    is new when its queries are."""
+    trained = manifest.get("scenes") or {}
+    worlds = {v.get("world_sha256") for v in trained.values() if v.get("kind") != "free"}
+    queries = {(v.get("world_sha256"), q) for v in trained.values() for q in v.get("query_sha256") or []}
+    same, n_q = [], 0
+    for name, s in scenes.items():
+        w = world_sha256(s.model)
+        if w in worlds and s.kind != "free":
+            same.append(name)
+        n_q += sum((w, query_sha256(a, b)) in queries for a, b in s.queries)
+    return same, n_q
+
+
+def auto_records(ctx: RunContext, auto: Any, records: list[RunRecord], scenes: dict[str, Scene], seeds: int,
+                 name: str) -> list[RunRecord]:
+    """``auto``'s runs, from the runs of the planners it picks: its decision (made here, once per query, as a
+    service makes it; its CPU measured), then per seed the run of its first pick, and of the next while
+    one fails (up to its fallbacks). A run of a planner depends on its (query, planner, seed) only, so this
+    is the run auto would make (tests/test_choice.py::test_auto_runs_are_the_runs_of_the_planner_it_picks)."""
+    by = {(r.scene, r.query, r.planner, r.seed): r for r in records}
+    out = []
+    for sname, s in scenes.items():
+        arm = ctx.arms[sname]
+        auto.prepare(arm)
+        for qi, (a, b) in enumerate(s.queries):
+            d = auto.decide(arm, np.asarray(a, float), np.asarray(b, float))
+            for seed in range(seeds):
+                tried, checks, cpu, its = [], 0, d.seconds, 0
+                rec = None
+                for p in d.ranking[: 1 + max(0, auto.fallbacks)]:
+                    rec = by[(sname, qi, p, seed)]
+                    checks, cpu, its = checks + rec.checks, cpu + rec.cpu_s, its + rec.iterations
+                    if rec.success:
+                        break
+                    tried.append(p)
+                assert rec is not None
+                planned = rec.planner if rec.success else None
+                out.append(RunRecord(sname, qi, name, seed, rec.success, rec.sum_P, rec.sum_A, rec.duration_s,
+                                     rec.waypoints, its, checks, planned or d.ranking[0],
+                                     d.text(planned, tried), cpu, 1e3 * d.seconds))
+    return out
+
+
 def cmd_evaluate_scenes(sc: Scenario, args: argparse.Namespace) -> int:
     """``hilsim plan evaluate --scenes FILE [--planners NAMES] [--criterion C] [--seeds S] [--json]``."""
     if args.targets:
@@ -139,8 +187,23 @@ def cmd_evaluate_scenes(sc: Scenario, args: argparse.Namespace) -> int:
     for n in names:
         if n != ORACLE and n not in lib.names():
             raise ConfigError(f"--planners: unknown planner {n!r}; available: {', '.join([*lib.names(), ORACLE])}")
+    # the oracle picks among the single planners named (all of the library's when none is)
+    named = [n for n in names if n in singles]
+    if named:
+        singles = named
     run = list(dict.fromkeys([*(n for n in names if n != ORACLE), *(singles if ORACLE in names else [])]))
     scenes = load_scenes(args.scenes)
+    autos = [n for n in names if lib.specs.get(n, {}).get("kind") == "auto"]
+    if autos:
+        model = lib.create(autos[0], criterion=args.criterion).model  # type: ignore[attr-defined]
+        same, n_q = overlap(scenes, model.manifest)
+        if same or n_q:
+            what = (f"{args.scenes}: {len(same)} scenes ({', '.join(same[:3])}{', …' if len(same) > 3 else ''}) and "
+                    f"{n_q} queries are in the training set of {lib.create(autos[0]).model_dir}: "  # type: ignore[attr-defined]
+                    "not unseen")
+            if getattr(args, "strict", False):
+                raise ConfigError(what + " (--strict)")
+            print(f"warning: {what}", file=sys.stderr)
     for sname, s in scenes.items():
         arm = ArmModel(s.model, sc.planner.clearance)
         for qi, (a, b) in enumerate(s.queries):
@@ -151,8 +214,10 @@ def cmd_evaluate_scenes(sc: Scenario, args: argparse.Namespace) -> int:
                     raise ConfigError(f"{args.scenes}: scenes.{sname}.queries[{qi}].{what}: {bad[1]}")
     ctx = RunContext(lib, {n: s.model for n, s in scenes.items()}, {n: s.queries for n, s in scenes.items()},
                      sc.planner.clearance, sc.planner.iterations, args.criterion, _warm(lib, run, args.criterion))
+    # auto's runs are its picks' runs (auto_records) when every planner it can pick runs anyway
+    derived = [n for n in autos if set(lib.create(n).candidates) <= set(run)]  # type: ignore[attr-defined]
     tasks = [RunTask(sname, qi, p, seed) for sname, s in scenes.items() for qi in range(len(s.queries))
-             for p in run for seed in range(args.seeds)]
+             for p in run if p not in derived for seed in range(args.seeds)]
     records: list[RunRecord] = []
     keep = None
     if getattr(args, "runs", None):
@@ -174,19 +239,33 @@ def cmd_evaluate_scenes(sc: Scenario, args: argparse.Namespace) -> int:
             append_record(keep, rec)
 
     run_all(ctx, tasks, jobs, on_record, what="plan evaluate")
+    for n in derived:
+        records = [r for r in records if r.planner != n]
+        records += auto_records(ctx, lib.create(n, criterion=args.criterion), records, scenes, args.seeds, n)
     summary = summarise(records, names, [p for p in singles if p in run], args.criterion)
     n_q = sum(len(s.queries) for s in scenes.values())
     print(format_table(summary, args.criterion, n_q, args.seeds))
     out: dict[str, Any] = {"criterion": args.criterion, "planners": summary}
     auto = [n for n in names if lib.specs.get(n, {}).get("kind") == "auto"]
     if auto:
-        dec = [r.decision_ms for r in records if r.planner in auto]
-        out["decision_ms"] = {"mean": float(np.mean(dec)), "max": float(np.max(dec))} if dec else None
+        dec = [r.decision_ms for r in records if r.planner in auto and r.seed == 0]
+        out["decision_ms"] = {"mean": float(np.mean(dec)), "p99": float(np.percentile(dec, 99)),
+                              "max": float(np.max(dec))} if dec else None
+        best_single = min((p for p in singles if p in summary and summary[p]["score"] is not None),
+                          key=lambda p: summary[p]["score"], default=None)
+        if best_single and ORACLE in summary and summary[ORACLE]["score"] is not None:
+            b, o, a = summary[best_single]["score"], summary[ORACLE]["score"], summary[auto[0]]["score"]
+            out["best_single"] = best_single
+            out["gap_closed"] = (b - a) / (b - o) if b > o else None
         model = lib.create(auto[0], criterion=args.criterion).model  # type: ignore[attr-defined]
         hp = model.manifest.get("test_scores", {}).get(args.criterion, {}).get("hyperplan_planner")
         out["hyperplan"] = hp
         if dec:
-            print(f"auto's decision: mean {out['decision_ms']['mean']:.2f} ms, max {out['decision_ms']['max']:.2f} ms")
+            print(f"auto's decision: mean {out['decision_ms']['mean']:.2f} ms, p99 {out['decision_ms']['p99']:.2f} ms, "
+                  f"max {out['decision_ms']['max']:.2f} ms CPU")
+        if out.get("gap_closed") is not None:
+            print(f"auto closes {100 * out['gap_closed']:.0f} % of the gap between the best single planner "
+                  f"({out['best_single']}) and the oracle")
         if hp:
             print(f"hyperplan (the single planner best on the model's training scenes for {args.criterion}): {hp}")
     if args.json:
