@@ -151,7 +151,12 @@ class PlannerService(Service):
         # its decision measured now, not at the first goal
         for name, spec in self.library.specs.items():
             if spec.get("kind") == "auto":
-                auto = default if name == self.default_planner else self.library.create(name, criterion=self.criterion)
+                try:  # the default's error ended the start above; another's is said, and refuses its goals
+                    auto = default if name == self.default_planner else self.library.create(name,
+                                                                                            criterion=self.criterion)
+                except PlannerConfigError as e:
+                    self.log.warning("planner %s: %s", name, e)
+                    continue
                 auto.prepare(self.plan_arm)  # type: ignore[attr-defined]
                 self.choice_p99_ms = auto.warm_p99_ms(self.plan_arm)  # type: ignore[attr-defined]
                 if name == self.default_planner and auto.unfit(self.plan_arm):  # type: ignore[attr-defined]

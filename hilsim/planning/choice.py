@@ -56,7 +56,7 @@ BOUND_MS = 5.0  # a decision's CPU (features and model) at the 99th percentile, 
 WARM_DECISIONS = 50  # decisions at start (random queries, a fixed seed) that measure whether the bound holds
 # extremely randomised trees: chosen over random forests and other leaf sizes and feature fractions by
 # a five-fold cross-validation over the training scenes (grouped by scene), the held-out scenes unseen
-FOREST = {"n_estimators": 60, "min_samples_leaf": 1, "max_features": 1.0}
+FOREST = {"n_estimators": 120, "min_samples_leaf": 1, "max_features": 1.0}
 
 
 # ---------------------------------------------------------------------------------- the data, per query
