@@ -3,7 +3,7 @@
     hilsim up SCENARIO [--clock lockstep|realtime] [--duration S | --interactive] [--seed N] [--only A,B --router EP]
     hilsim run SERVICE --config FILE
     hilsim topic list | echo KEY [--count N] [--json] | hz KEY
-    hilsim view [RRD]
+    hilsim view [RRD] | --live [--run DIR]
     hilsim play BAG [--rate R] [--keys PATTERN] [--loop] [--clock]
     hilsim bag info|recover BAG
     hilsim export RUN --to mcap|csv [--out DIR]
@@ -85,6 +85,13 @@ def _endpoint_args(p: argparse.ArgumentParser) -> None:
                    "credentials; default: the one run of yours that is up, asked if there are several)")
 
 
+def _view(args: argparse.Namespace) -> int:
+    """``hilsim view``: a recording, or ``--live`` a run that is up (hilsim.record.live)."""
+    if args.live:
+        return _lazy("hilsim.record.live", "cmd_view_live")(args)
+    return _lazy("hilsim.core.recording", "cmd_view")(args)
+
+
 def _up(args: argparse.Namespace) -> int:
     """``hilsim up``; with ``--ui`` the panel starts the run and stays (hilsim.ui.server)."""
     return _lazy("hilsim.ui.server", "cmd_up_ui")(args) if args.ui else _lazy("hilsim.run.launcher", "cmd_up")(args)
@@ -119,6 +126,10 @@ def build_parser() -> argparse.ArgumentParser:
                          "(docs/deployment.md); use with --router")
     up.add_argument("--wait", type=float, metavar="S",
                     help="seconds to wait for every service to announce itself (default: clock.start_timeout, 120)")
+    up.add_argument("--view", action="store_true", help="watch it live: stream the run to Rerun's web viewer "
+                    "(prints `viewer: URL`; docs/recording.md, \"Watch it live\")")
+    up.add_argument("--view-host", metavar="HOST", help="with --view: the viewer's address (default loopback; "
+                    "another one asks a token, given in the URL)")
     up.add_argument("--ui", action="store_true", help="start the browser control panel with this run (docs/panel.md)")
     up.add_argument("--ui-host", default="127.0.0.1", help="with --ui: the panel's address (default loopback)")
     up.add_argument("--ui-port", type=int, default=8080, help="with --ui: the panel's port (default 8080)")
@@ -152,10 +163,14 @@ def build_parser() -> argparse.ArgumentParser:
                            help="count every sample, not only those of the key's announced writer")
         t.set_defaults(func=_lazy("hilsim.tools.topic", f"cmd_{name}"))
 
-    view = sub.add_parser("view", help="open the Rerun viewer on a recording (latest by default)")
+    view = sub.add_parser("view", help="open the Rerun viewer on a recording (latest by default), or --live on a run")
     view.add_argument("rrd", nargs="?")
     view.add_argument("--runs", default="runs")
-    view.set_defaults(func=_lazy("hilsim.core.recording", "cmd_view"))
+    view.add_argument("--live", action="store_true", help="the live viewer of a run that is up with --view: prints "
+                      "`viewer: URL` (and opens the native viewer on it where there is a display)")
+    view.add_argument("--run", metavar="DIR", help="with --live: the run's directory (default: the one run of yours "
+                      "that is up)")
+    view.set_defaults(func=_view)
 
     play = sub.add_parser("play", help="publish a recorded bag again on its keys, in sim time (like ros2 bag play)")
     play.add_argument("bag", help="a run directory, its bag/ directory or an .mcap file")

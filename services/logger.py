@@ -115,7 +115,7 @@ from hilsim.core.service import LEVEL_WARN, Service
 disable_analytics()  # before rerun is imported: its SDK reads the analytics config at start-up
 import rerun as rr  # noqa: E402
 
-from hilsim.record import report  # noqa: E402
+from hilsim.record import live, report  # noqa: E402
 from hilsim.record.bag import NO_ATTACHMENT, TIME_NOTE, BagError  # noqa: E402
 from hilsim.record.bag_read import BAG_DIR, bag_paths, recover_file  # noqa: E402
 from hilsim.record.limits import BagSeries, human_bytes, stop_reason  # noqa: E402
@@ -152,6 +152,7 @@ class LoggerService(Service):
             # makes it readable); this process records the rest of the run in a part of its own
             self.rrd_path = self.run_dir / part_name(restarted())
         self.rec: rr.RecordingStream | None = None
+        self.live: live.LiveStream | None = None  # logger.live: the second sink, to the live viewer
         self.bag_dir = self.run_dir / BAG_DIR
         self.bag: BagSeries | None = None  # None: logger.bag is false, or the bag failed (a fault)
         self.bagged: Counter[str] = Counter()  # messages per key written to the bag
@@ -230,8 +231,9 @@ class LoggerService(Service):
         self.rec = rr.RecordingStream("hilsim", send_properties=True)
         m = self.model
         scene = self._load_scene()
-        # file sink only: no viewer, no network
-        self.rec.save(self.rrd_path, default_blueprint=default_blueprint(m, scene))
+        # file sink only: no viewer, no network; with logger.live a second sink feeds the live viewer
+        self.live = live.start(self.sc.logger.live, self.run_dir, self.warn)
+        live.attach(self.live, self.rec, self.rrd_path, default_blueprint(m, scene))
         self.rec.send_recording_name(f"{self.sc.name} {self.run_dir.name}")
         self.rows = RowWriter(self.rec, self.sc.robot, m, self.fault, scene)
         if self.sc.logger.bag:
@@ -245,6 +247,7 @@ class LoggerService(Service):
             self.rows.log_scene()
         except Exception as e:  # nor may the world's geometry
             self.warn(f"world geometry of {self.sc.world.model} not recorded: {type(e).__name__}: {e}")
+        live.setup_done(self.live, self.rec)
         self._worker = threading.Thread(target=self._work, name="logger-worker", daemon=True)
         self._worker.start()
         if self.delay_s:
@@ -433,13 +436,14 @@ class LoggerService(Service):
         rows = self.rows
         assert rows is not None
         last_flush = time.monotonic()
+        period = live.FLUSH_PERIOD_S if self.live is not None else FLUSH_PERIOD_S
         while True:
             try:
                 key, payload, att, t = q.popleft()
             except IndexError:
                 if self._worker_stop.is_set():
                     break
-                if rows.buffered and time.monotonic() - last_flush >= FLUSH_PERIOD_S:
+                if rows.buffered and time.monotonic() - last_flush >= period:
                     self._flush()
                     last_flush = time.monotonic()
                     if self._limit_reached():
@@ -447,7 +451,7 @@ class LoggerService(Service):
                 time.sleep(0.002)
                 continue
             self._handle(key, payload, att, t)
-            if rows.buffered >= FLUSH_ROWS or time.monotonic() - last_flush >= FLUSH_PERIOD_S:
+            if rows.buffered >= FLUSH_ROWS or time.monotonic() - last_flush >= period:
                 self._flush()
                 last_flush = time.monotonic()
                 if self._limit_reached():
@@ -539,6 +543,8 @@ class LoggerService(Service):
                 self.rec.flush(timeout_sec=FILE_FLUSH_TIMEOUT_S)
             except Exception as e:  # a slow disk: the rows are still on their way to the file
                 self.warn(f"the recording was not written to {self.rrd_path} within {FILE_FLUSH_TIMEOUT_S:g} s: {e}")
+            if self.live is not None:
+                self.live.pump()  # never waits: a slow viewer's frames are dropped, counted in health
             with self.lock:
                 self.recorded.update(self._pending)
                 self.written_ns = self.rows.clock_ns  # every row up to this sim time is in the file now
@@ -600,6 +606,7 @@ class LoggerService(Service):
         self.rec.flush()
         self.rec.disconnect()
         self._close_bag()
+        live.stop(self.live)
         used = self.recording_bytes()
         self.stopped_at = {"reason": why, "sim_time": round(self.sim_ns / 1e9, 3), "bytes": used,
                            "wall_time": time.strftime("%Y-%m-%dT%H:%M:%S")}
@@ -639,6 +646,7 @@ class LoggerService(Service):
             **({"recording_stopped": f"at sim time {self.stopped_at.get('sim_time', '?')} s: {self.stopped}"}
                if self.stopped_at else {}),
             **{f"lost:{k}": v for k, v in sorted(lost.items())},
+            **(self.live.health() if self.live is not None else {}),
         }
 
     # ------------------------------------------------------------------ stopping
@@ -689,6 +697,7 @@ class LoggerService(Service):
             self.rec.flush()
             self.rec.disconnect()
             self._close_bag()
+        live.stop(self.live)
         self._report()
 
     def _close_bag(self) -> None:

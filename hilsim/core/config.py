@@ -233,6 +233,16 @@ class TaskConfig(_Model):
     target_timeout: float = Field(30.0, gt=0, description="sim seconds per target")
 
 
+class LiveConfig(_Model):
+    """The recorder's live stream to Rerun's web viewer (``hilsim up --view``; hilsim.record.live)."""
+
+    enabled: bool = Field(False, description="stream the recording live to Rerun's bundled web viewer while the run "
+                          "goes on (the address in <run dir>/live.json; docs/recording.md, \"Watch it live\")")
+    host: str = Field("127.0.0.1", description="the address the viewer listens on (loopback; another one asks a "
+                      "token in the viewer's URL)")
+    port: int = Field(0, ge=0, le=65535, description="the viewer page's port (0: a free one)")
+
+
 class LoggerConfig(_Model):
     enabled: bool = Field(True, description="false: no recorder in the run (as `hilsim up --no-logger`)")
     out_dir: Path = Path("runs")
@@ -256,6 +266,7 @@ class LoggerConfig(_Model):
     min_free: int = Field(500 * 1000**2, ge=0, description="the recorder stops recording (the run goes on) before "
                           "the free space of the run directory's file system falls below this many bytes ('1GB' "
                           "too; 0: only a full disk stops it)")
+    live: LiveConfig = Field(default_factory=LiveConfig)
 
     @field_validator("max_bag_size", "max_size", "min_free", mode="before")
     @classmethod

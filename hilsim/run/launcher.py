@@ -665,6 +665,18 @@ def _interactive_hint(la: Launcher, example: list[float] | None) -> str:
     return f"interactive: Ctrl-C to stop; try {try_}"
 
 
+def say_viewer(la: Launcher, timeout: float = 60.0) -> None:
+    """``--view``: the live viewer's address on a line of its own, once the recorder's viewer listens."""
+    from hilsim.record.live import wait_live
+
+    logger = la.children.get("logger")
+    info = wait_live(la.run_dir, timeout, lambda: logger is None or logger.proc.poll() is None)
+    if info is None:
+        la.say(f"viewer: none (see {la.run_dir / 'logger.log'})")
+    else:
+        la.say(f"viewer: {info['viewer']}")
+
+
 def up_overrides(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, str]]:
     """The scenario fields ``hilsim up``'s options set (``--set`` and the rest), and where each came from.
     ``--interactive`` runs at wall-clock pace (realtime): a person sends goals at their pace, and sim time
@@ -684,6 +696,10 @@ def up_overrides(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, st
         overrides["seed"], origins["seed"] = args.seed, f"--seed {args.seed}"
     if getattr(args, "wait", None) is not None:  # physics waits as long as the launcher does
         overrides["clock.start_timeout"], origins["clock.start_timeout"] = args.wait, f"--wait {args.wait:g}"
+    if getattr(args, "view", False) or getattr(args, "view_host", None):  # the recorder's live stream
+        overrides["logger.live.enabled"], origins["logger.live.enabled"] = True, "--view"
+        if getattr(args, "view_host", None):
+            overrides["logger.live.host"], origins["logger.live.host"] = args.view_host, f"--view-host {args.view_host}"
     if args.compose:
         overrides["compose"] = [[n.strip() for n in g.split(",") if n.strip()] for g in args.compose]
         origins["compose"] = " ".join(f"--compose {g}" for g in args.compose)
@@ -738,6 +754,8 @@ def cmd_up(args: argparse.Namespace) -> int:
         try:
             la.start()
             if la.wait_ready(sc.clock.start_timeout):
+                if sc.logger.live.enabled and any("logger" in u.split("+") for u in la.local):
+                    threading.Thread(target=say_viewer, args=(la,), name="viewer", daemon=True).start()
                 if interactive:
                     print(_interactive_hint(la, example), flush=True)
                 elif not sc.task.targets and sc.duration is None:

@@ -1,0 +1,445 @@
+"""Watch a run live: the recorder's Rerun stream, teed to Rerun's bundled web viewer while it runs.
+
+``logger.live.enabled`` (``hilsim up … --view``) gives the recorder's recording stream a second sink
+beside its file: a :class:`rerun.BinaryStream` (the same chunks the file gets, encoded once more, no
+second subscriber on any key). :class:`LiveStream` hands what that sink holds, after each of the
+recorder's flushes, to a ``rerun --serve-web`` child reading it on its standard input: Rerun's own
+gRPC server (which keeps the run's history, static data always, for a viewer that joins late, within
+``SERVER_MEMORY_LIMIT``) and its bundled web viewer, both bound to loopback. In front of the web viewer
+:class:`PageProxy` serves the page with a Content-Security-Policy that lets it reach nothing but this
+host's two ports: the viewer's own update checks, fonts, example lists and usage analytics never leave
+the browser (nothing reaches the network), and Rerun's analytics are off as everywhere in hilsim.
+
+Bounded: each flush's bytes are one *frame* (a whole RRD stream of its own: header, messages,
+footer). Frames wait in a queue of at most ``QUEUE_BYTES`` for a writer thread of their own that writes
+them to the child's pipe (it may block; the recorder never does); a frame that finds the queue full
+pushes out the oldest ones not yet begun, counted as
+``live_dropped`` in the recorder's health (``live_frames``, ``live_bytes`` what went through). The frames
+of the recorder's setup (the robot's model, the world's geometry, the layout) are never dropped. So a
+slow or vanished viewer never slows the recorder, nor through it the loop. The child is stopped with the
+recorder: the stream stops with the run.
+
+The viewer's address is written to ``<run dir>/live.json`` (:func:`read_live`), where ``hilsim up
+--view`` prints it as ``viewer: URL`` and ``hilsim view --live`` finds it. Zenoh keys: none (the
+recorder's stream only); files: ``<run dir>/live.json``, ``<run dir>/live-viewer.log``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import http.client
+import http.server
+import json
+import logging
+import os
+import secrets
+import signal
+import subprocess
+import threading
+import time
+import urllib.parse
+from collections import deque
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+LIVE_NAME = "live.json"
+LOG_NAME = "live-viewer.log"
+QUEUE_BYTES = 32 * 1024**2  # frames waiting for the viewer's pipe at most (a few seconds of the arm's rows)
+SERVER_MEMORY_LIMIT = "512MiB"  # the run's history Rerun's server keeps for late viewers (static data always)
+FLUSH_PERIOD_S = 0.2  # the recorder's flush period while live: how often the view moves on (0.5 s without)
+START_TIMEOUT_S = 60.0  # for the viewer's ports to listen (once its first frame came; a loaded machine)
+LOOPBACK = ("127.0.0.1", "localhost", "::1")
+
+
+class LiveError(RuntimeError):
+    """The live viewer could not be started or found (one line)."""
+
+
+def _rerun_binary() -> str:
+    """The rerun CLI's binary itself (not the Python wrapper that starts it): one process, one pipe."""
+    try:
+        import rerun_cli
+
+        exe = Path(rerun_cli.__file__).parent / "rerun"
+        if exe.is_file() and os.access(exe, os.X_OK):
+            return str(exe)
+    except ImportError:
+        pass
+    from hilsim.core.recording import rerun_executable
+
+    return rerun_executable()
+
+
+def _reached_at(host: str) -> str:
+    """The address a browser uses for ``host``: loopback as 127.0.0.1, all interfaces by this host's name."""
+    import socket
+
+    if host in LOOPBACK:
+        return "127.0.0.1"
+    return socket.gethostname() if host in ("0.0.0.0", "::") else host
+
+
+def _free_port(host: str) -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind((host, 0))
+        return int(s.getsockname()[1])
+
+
+def _wait_listening(host: str, port: int, proc: subprocess.Popen[bytes], timeout: float) -> None:
+    import socket
+
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if proc.poll() is not None:
+            raise LiveError(f"the live viewer (rerun) exited with code {proc.returncode} at start")
+        with socket.socket() as s:
+            s.settimeout(0.5)
+            if s.connect_ex((host, port)) == 0:
+                return
+        time.sleep(0.05)
+    raise LiveError(f"the live viewer (rerun) did not listen on {host}:{port} within {timeout:g} s")
+
+
+def csp(grpc_origin: str) -> str:
+    """The page's Content-Security-Policy: scripts, styles, fonts and wasm from this page's origin only,
+    data from the run's gRPC server only; any other address (fonts, update checks, analytics) is refused
+    by the browser before a request is made."""
+    return ("default-src 'self'; script-src 'self' 'unsafe-inline' 'wasm-unsafe-eval'; "
+            "style-src 'self' 'unsafe-inline'; img-src 'self' data: blob:; font-src 'self' data:; "
+            f"connect-src 'self' {grpc_origin}; worker-src 'self' blob:; frame-ancestors *")
+
+
+class PageProxy:
+    """Rerun's bundled web viewer (served by the child on loopback) behind a page server that adds
+    :func:`csp`; on a host other than loopback it also asks for ``token`` (once, in the URL; then a
+    cookie)."""
+
+    def __init__(self, host: str, port: int, upstream: tuple[str, int], grpc_origin: str, token: str = "") -> None:
+        self.upstream, self.policy, self.token = upstream, csp(grpc_origin), token
+        proxy = self
+
+        class Handler(http.server.BaseHTTPRequestHandler):
+            protocol_version = "HTTP/1.1"
+
+            def do_GET(self) -> None:  # http.server's name
+                proxy.get(self)
+
+            def log_message(self, *a: Any) -> None:  # quiet: the recorder's log is not a web server's
+                pass
+
+        self.server = http.server.ThreadingHTTPServer((host, port), Handler)
+        self.server.daemon_threads = True
+        self.port = int(self.server.server_address[1])
+        self.thread = threading.Thread(target=self.server.serve_forever, name="live-page", daemon=True)
+        self.thread.start()
+
+    def get(self, h: http.server.BaseHTTPRequestHandler) -> None:
+        url = urllib.parse.urlsplit(h.path)
+        cookie = ""
+        if self.token:
+            given = urllib.parse.parse_qs(url.query).get("token", [""])[0]
+            has = f"hilsim_live={self.token}" in (h.headers.get("Cookie") or "")
+            if not (has or secrets.compare_digest(given, self.token)):
+                h.send_error(403, "the viewer's token is missing or wrong")
+                return
+            cookie = f"hilsim_live={self.token}; Path=/; HttpOnly; SameSite=Strict"
+        conn = http.client.HTTPConnection(*self.upstream, timeout=30)
+        try:
+            conn.request("GET", url.path or "/", headers={"Accept-Encoding": h.headers.get("Accept-Encoding", "")})
+            r = conn.getresponse()
+            body = r.read()
+        except OSError as e:
+            h.send_error(502, f"the live viewer is gone: {e}")
+            return
+        finally:
+            conn.close()
+        h.send_response(r.status)
+        for k, v in r.getheaders():
+            if k.lower() not in ("content-length", "connection", "transfer-encoding", "content-security-policy"):
+                h.send_header(k, v)
+        h.send_header("Content-Length", str(len(body)))
+        h.send_header("Content-Security-Policy", self.policy)
+        h.send_header("Cache-Control", "no-store")
+        if cookie:
+            h.send_header("Set-Cookie", cookie)
+        h.end_headers()
+        with contextlib.suppress(OSError):  # a browser that left
+            h.wfile.write(body)
+
+    def close(self) -> None:
+        self.server.shutdown()
+        self.server.server_close()
+
+
+class LiveStream:
+    """The recorder's second sink and the viewer it feeds (see the module's docstring)."""
+
+    def __init__(self, run_dir: Path, host: str = "127.0.0.1", port: int = 0,
+                 warn: Callable[[str], None] | None = None) -> None:
+        self.run_dir, self.host = Path(run_dir), host
+        self.warn = warn or (lambda _text: None)
+        self.sink: Any = None  # rerun.BinaryStream, once attached
+        self.queue: deque[tuple[bytes, bool]] = deque()  # frames not yet written: (frame, essential)
+        self.queued = 0  # bytes in the queue
+        self.frames = self.bytes = self.dropped = self.dropped_bytes = 0
+        self.stopped = ""  # why the stream stopped early ("" while it runs)
+        self.closed = False
+        self.lock = threading.Lock()
+        self.ready = threading.Condition(self.lock)  # a frame queued, or closed
+        bind = "127.0.0.1" if host in LOOPBACK else host
+        self.grpc_port = _free_port(bind)
+        web = _free_port(bind)
+        from hilsim.core.recording import rerun_env
+
+        env = {**os.environ, **rerun_env(), "RERUN_ANALYTICS": "0"}
+        self.log_path = self.run_dir / LOG_NAME
+        with open(self.log_path, "wb") as log:
+            self.proc = subprocess.Popen(
+                [_rerun_binary(), "--serve-web", "--bind", bind,
+                 "--port", str(self.grpc_port), "--web-viewer-port", str(web),
+                 "--server-memory-limit", SERVER_MEMORY_LIMIT, "-"],
+                stdin=subprocess.PIPE, stdout=log, stderr=log, env=env, preexec_fn=_child_setup)
+        assert self.proc.stdin is not None
+        self.fd = self.proc.stdin.fileno()
+        with contextlib.suppress(OSError):  # a larger pipe: fewer wake-ups of the writer
+            fcntl.fcntl(self.fd, 1031, 1024**2)  # F_SETPIPE_SZ
+        self.writer = threading.Thread(target=self._write, name="live-writer", daemon=True)
+        self.writer.start()
+        self.page: PageProxy | None = None
+        seen = _reached_at(host)  # the address the browser reaches
+        self.grpc_url = f"rerun+http://{seen}:{self.grpc_port}/proxy"
+        self.url = ""
+        # rerun listens once the first bytes reached its standard input (the setup's frame): announced then
+        threading.Thread(target=self._announce, args=(bind, web, seen, port), name="live-announce",
+                         daemon=True).start()
+
+    def _announce(self, bind: str, web: int, seen: str, port: int) -> None:
+        """Once the viewer's ports listen: the page server in front of it, and ``live.json``."""
+        try:
+            _wait_listening(bind, self.grpc_port, self.proc, START_TIMEOUT_S)
+            _wait_listening(bind, web, self.proc, START_TIMEOUT_S)
+            token = "" if self.host in LOOPBACK else secrets.token_urlsafe(18)
+            page = PageProxy(bind, port, (bind, web), f"http://{seen}:{self.grpc_port}", token)
+        except (LiveError, OSError) as e:
+            with self.lock:
+                self._stop_early(f"no live viewer: {e}")
+            return
+        with self.lock:
+            if self.closed:
+                page.close()
+                return
+            self.page = page
+        q = urllib.parse.urlencode({"url": self.grpc_url, **({"token": token} if token else {})})
+        self.url = f"http://{seen}:{page.port}/?{q}"
+        tmp = self.run_dir / (LIVE_NAME + ".tmp")
+        tmp.write_text(json.dumps({"viewer": self.url, "grpc": self.grpc_url, "pid": os.getpid()}) + "\n")
+        tmp.replace(self.run_dir / LIVE_NAME)
+
+    # ------------------------------------------------------------------ the recorder's side
+    def attach(self, rec: Any, rrd_path: Path, blueprint: Any) -> None:
+        """The recording stream's sinks: its file and this stream (the layout sent to both)."""
+        import rerun as rr
+
+        self.sink = rec.binary_stream()
+        rr.set_sinks(rr.FileSink(rrd_path), self.sink, default_blueprint=blueprint, recording=rec)
+        # a default blueprint alone is not applied by a viewer that receives the stream live: made active too
+        rr.send_blueprint(blueprint, make_active=True, make_default=True, recording=rec)
+
+    def pump(self, essential: bool = False) -> None:
+        """After the recorder flushed: what the sink holds, as one frame, to the writer's queue; never
+        waits. ``essential``: the setup's frame, never dropped."""
+        if self.stopped or self.sink is None:
+            return
+        frame = self.sink.read(flush=False)
+        if not frame:
+            return
+        with self.ready:
+            self.queue.append((frame, essential))
+            self.queued += len(frame)
+            while self.queued > QUEUE_BYTES:  # the oldest frames not begun and not the setup's go
+                i = next((i for i, (_, keep) in enumerate(self.queue) if not keep), None)
+                if i is None or i == len(self.queue) - 1:
+                    break
+                dropped = self.queue[i][0]
+                del self.queue[i]
+                self.queued -= len(dropped)
+                self.dropped += 1
+                self.dropped_bytes += len(dropped)
+            self.ready.notify()
+
+    def _write(self) -> None:
+        """The writer thread: frames to the viewer's pipe, one whole frame at a time (blocking here,
+        never the recorder)."""
+        while True:
+            with self.ready:
+                while not self.queue and not self.closed:
+                    self.ready.wait()
+                if not self.queue:
+                    return
+                frame, _ = self.queue.popleft()
+                self.queued -= len(frame)
+            view = memoryview(frame)
+            try:
+                while view:
+                    view = view[os.write(self.fd, view):]
+            except OSError as e:  # the viewer process is gone: the recording goes on without it
+                with self.ready:
+                    self._stop_early(f"the live viewer stopped reading ({e})")
+                return
+            with self.ready:
+                self.frames += 1
+                self.bytes += len(frame)
+
+    def _stop_early(self, why: str) -> None:
+        self.stopped = why
+        self.dropped += len(self.queue)
+        self.queue.clear()
+        self.queued = 0
+        self.warn(f"{why}; the recording goes on")
+
+    def health(self) -> dict[str, Any]:
+        """The stream's counts, for the recorder's health."""
+        with self.lock:
+            return {"live_frames": self.frames, "live_bytes": self.bytes, "live_queued": self.queued,
+                    "live_dropped": self.dropped, "live_dropped_bytes": self.dropped_bytes,
+                    **({"live_stopped": self.stopped} if self.stopped else {})}
+
+    def close(self, linger: float = 2.0) -> None:
+        """The run ended: write what is queued (at most ``linger`` seconds), then stop the viewer."""
+        if self.closed:
+            return
+        self.closed = True
+        with self.ready:
+            self.ready.notify()
+        self.writer.join(linger)  # what is queued, for at most `linger` seconds
+        with self.lock:
+            page, self.page = self.page, None
+        if page is not None:
+            page.close()
+        self._kill()
+        with contextlib.suppress(OSError):
+            (self.run_dir / LIVE_NAME).unlink()
+
+    def _kill(self) -> None:
+        p = self.proc
+        if p.stdin is not None:
+            with contextlib.suppress(OSError):
+                p.stdin.close()
+        if p.poll() is None:
+            p.send_signal(signal.SIGTERM)
+            try:
+                p.wait(5)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
+
+
+def _child_setup() -> None:
+    """The viewer process: below the simulation's processes in the scheduler's eyes, gone with the recorder."""
+    with contextlib.suppress(OSError):
+        os.nice(10)
+    with contextlib.suppress(OSError):
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+
+
+def read_live(run_dir: str | Path) -> dict[str, Any] | None:
+    """The live viewer's addresses of a run that is up with ``--view`` (``viewer``, ``grpc``), else None."""
+    p = Path(run_dir) / LIVE_NAME
+    try:
+        info = json.loads(p.read_text())
+    except (OSError, ValueError):
+        return None
+    return info if isinstance(info, dict) and "viewer" in info else None
+
+
+def wait_live(run_dir: str | Path, timeout: float, alive: Callable[[], bool] = lambda: True) -> dict[str, Any] | None:
+    """:func:`read_live`, waiting up to ``timeout`` seconds while ``alive()``."""
+    end = time.monotonic() + timeout
+    while True:
+        info = read_live(run_dir)
+        if info is not None or time.monotonic() >= end or not alive():
+            return info
+        time.sleep(0.1)
+
+
+# ---------------------------------------------------------------------- the recorder's hooks (services/logger.py)
+def start(cfg: Any, run_dir: Path, warn: Callable[[str], None]) -> LiveStream | None:
+    """The live stream of ``logger.live`` (:class:`hilsim.core.config.LiveConfig`), None when it is off or
+    cannot start (said once; the recording goes on without it)."""
+    if not cfg.enabled:
+        return None
+    try:
+        return LiveStream(run_dir, cfg.host, cfg.port, warn)
+    except (LiveError, OSError) as e:
+        warn(f"no live viewer: {e}; the recording goes on")
+        return None
+
+
+def attach(stream: LiveStream | None, rec: Any, rrd_path: Path, blueprint: Any) -> None:
+    """The recording's sinks: its file, and with a live stream that stream too."""
+    if stream is None:
+        rec.save(rrd_path, default_blueprint=blueprint)
+    else:
+        stream.attach(rec, rrd_path, blueprint)
+
+
+def setup_done(stream: LiveStream | None, rec: Any) -> None:
+    """The recorder's static rows (the model, the world, the layout) logged: sent as frames never dropped."""
+    if stream is not None:
+        rec.flush()
+        stream.pump(essential=True)
+
+
+def stop(stream: LiveStream | None) -> None:
+    """The recording ended: so does the live stream (idempotent)."""
+    if stream is not None and not stream.closed:
+        with contextlib.suppress(Exception):  # the recording is closed: what its sink still holds
+            stream.pump()
+        stream.close()
+        h = stream.health()
+        logging.getLogger(__name__).info(
+            "live viewer stopped: %d frames (%d bytes) streamed, %d dropped (%d bytes)%s", h["live_frames"],
+            h["live_bytes"], h["live_dropped"], h["live_dropped_bytes"],
+            f"; {stream.stopped}" if stream.stopped else "")
+
+
+# ---------------------------------------------------------------------- hilsim view --live
+def cmd_view_live(args: Any) -> int:
+    """``hilsim view --live [--run DIR]``: the live viewer of a run that is up with ``--view``: its address
+    (``viewer: URL``), and with a display Rerun's native viewer connected to the run's stream."""
+    import sys
+
+    from hilsim.core import runs
+    from hilsim.core.config import ConfigError
+    from hilsim.core.recording import rerun_config_home, rerun_executable
+
+    try:
+        if args.run:
+            run_dir = Path(args.run)
+        else:
+            up = runs.live_runs()
+            if not up:
+                raise ConfigError("no run of yours is up (start one with `hilsim up arm --view`)")
+            run_dir = (up[0] if len(up) == 1 else runs.choose_run(up, "hilsim view --live")).run_dir
+    except ConfigError as e:
+        print(f"hilsim view --live: {e}", file=sys.stderr)
+        return 1
+    info = read_live(run_dir)
+    if info is None:
+        print(f"hilsim view --live: {run_dir} streams nothing live (is it up? it must be started with "
+              "`hilsim up … --view`)", file=sys.stderr)
+        return 1
+    print(f"viewer: {info['viewer']}", flush=True)
+    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        return 0
+    env = {**os.environ, "XDG_CONFIG_HOME": str(rerun_config_home())}
+    try:  # the native viewer, connected to the run's stream (it ends when its window is closed)
+        return subprocess.call([rerun_executable(), "--connect", str(info["grpc"])], env=env)
+    except KeyboardInterrupt:
+        return 130
