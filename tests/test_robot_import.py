@@ -290,3 +290,9 @@ def test_the_import_tunes_a_joint_with_the_projects_tuner(ur5: Path, tmp_path: P
     after = load_scenario(work / "ur5.yaml").controller.gains["wrist_3_joint"]
     assert (after.kp, after.kd) != (before.kp, before.kd)
     assert len(lines) == 1 and lines[0].startswith("  wrist_3_joint: kp ") and "target missed" not in lines[0], lines
+
+
+def test_the_import_writes_a_can_overlay_for_its_first_joint(ur5: Path) -> None:
+    sc = load_scenario(ur5 / "ur5.yaml", overlays=[ur5 / "hil-can.yaml"])
+    assert sc.clock.mode == "realtime" and "drive-emulator" in sc.services
+    assert sc.joint("shoulder_pan_joint").server == "bridge-can" and sc.joint("elbow_joint").server == "sim"

@@ -182,6 +182,9 @@ def _write_all(u: Urdf, name: str, tmp: Path, link: str, srdf: collisions.Srdf |
     from hilsim.core.scenario import load_scenario
 
     load_scenario(scenario)  # a scenario that does not load is never written
+    hil = tmp / "hil-can.yaml"
+    scenario_file.write_hil_overlay(hil, scenario.name, joints[0])
+    load_scenario(scenario, overlays=[hil])
     if tune:
         say(f"[{time.monotonic() - t0:4.0f} s] tuning {len(joints)} joints on the real services (hilsim tune)")
         _tune(scenario, joints, say)

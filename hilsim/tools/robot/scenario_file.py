@@ -141,3 +141,22 @@ logger:
   enabled: true
   out_dir: runs
 """)
+
+
+def write_hil_overlay(path: Path, scenario_name: str, joint: Joint) -> None:
+    """``hil-can.yaml``: hardware in the loop for the imported arm, its first joint on a CAN drive (the project's
+    emulated ODrive by default, as ``config/hil/can-emulated.yaml`` does for the built-in arm; a real drive on
+    can0: docs/hil.md). Any other joint: change the joint's name in both places."""
+    base = (CONFIG_DIR / "hil" / "can-emulated.yaml").resolve()
+    path.write_text(f"""\
+# Hardware in the loop: {joint.name} on a CAN drive (the project's emulated ODrive, its own process).
+# Run: hilsim up {scenario_name} --hil {path.name}   (realtime: a drive lives on the wall clock)
+# Another joint, or several: name it under joints and bridge-can.joints (a node_id each; docs/hil.md).
+extends: {base}
+joints!:
+  default: {{interface: effort, server: sim}}
+  {joint.name}: {{interface: position, server: bridge-can}}
+bridge-can:
+  joints!:
+    {joint.name}: {{node_id: 0, gear_ratio: 1.0, direction: 1, offset: 0.0}}
+""")
