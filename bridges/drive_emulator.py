@@ -51,7 +51,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from hilsim.bridges.can_bus import BusConfig, CanLink, JointMap, UnusedFrames, raise_priority, resolve_bus
 from hilsim.bridges.can_profiles import DriveCommand, DriveProfile, Estimate, FrameError, Heartbeat, make_profile
 from hilsim.core import msgs
-from hilsim.core.config import SIM, ConfigError, Scenario
+from hilsim.core.config import SIM, ConfigError, Scenario, require_realtime
 from hilsim.core.service import Service
 from hilsim.core.simclock import wall_of
 
@@ -271,9 +271,7 @@ class DriveEmulatorService(Service):
                 if scenario.joint(j).server != SIM:
                     raise ConfigError(f"{where}: {self.name}.drives.{j}: in mode simulation a drive is a simulated "
                                       f"joint, but joints.{j}.server is {scenario.joint(j).server!r}")
-            if scenario.clock.mode != "realtime":
-                raise ConfigError(f"{where}: {self.name}: mode simulation puts a CAN host on the wall clock, so "
-                                  f"the scenario needs clock.mode: realtime (got {scenario.clock.mode!r})")
+            require_realtime(scenario, self.name, "mode simulation puts a CAN host on the wall clock")
             if "controller" in scenario.services:
                 raise ConfigError(f"{where}: services: {self.name} in mode simulation takes the controller's "
                                   f"place (it publishes joint_commands); remove controller from services")

@@ -35,7 +35,7 @@ from hilsim.bridges import mavlink_gps as mg
 from hilsim.bridges.link import OncePer
 from hilsim.bridges.mavlink_link import LinkConfig, MavLink
 from hilsim.core import msgs
-from hilsim.core.config import ConfigError, Scenario
+from hilsim.core.config import ConfigError, Scenario, require_realtime
 from hilsim.core.service import Service
 
 
@@ -78,9 +78,7 @@ class GpsEmulatorService(Service):
         super().__init__(scenario)
         where = f"{scenario.source or 'scenario'}: "
         c = self.cfg
-        if scenario.clock.mode != "realtime":
-            raise ConfigError(f"{where}clock.mode: {self.name} is a device on the wall clock, so the scenario needs "
-                              f"clock.mode: realtime (got {scenario.clock.mode!r}; pass --clock realtime)")
+        require_realtime(scenario, "clock.mode", f"{self.name} is a device on the wall clock")
         self.gps = mg.scenario_gps(scenario, c.sensor, where)
         self.rate_hz = c.rate_hz or self.gps.rate_hz
         self.link_cfg = LinkConfig(connection=c.connection or default_connection(scenario), baud=c.baud,

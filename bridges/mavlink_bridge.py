@@ -58,7 +58,7 @@ from hilsim.bridges import mavlink_gps as mg
 from hilsim.bridges.link import OncePer
 from hilsim.bridges.mavlink_link import LinkConfig, MavLink
 from hilsim.core import msgs
-from hilsim.core.config import ConfigError, Scenario
+from hilsim.core.config import ConfigError, Scenario, require_realtime
 from hilsim.core.service import Service
 from hilsim.sim.sensing import sensor_class
 
@@ -136,9 +136,7 @@ class MavlinkBridgeService(Service):
         super().__init__(scenario)
         where = f"{scenario.source or 'scenario'}: "
         c = self.cfg
-        if scenario.clock.mode != "realtime":
-            raise ConfigError(f"{where}clock.mode: {self.name} talks to a device on the wall clock, so the scenario "
-                              f"needs clock.mode: realtime (got {scenario.clock.mode!r}; pass --clock realtime)")
+        require_realtime(scenario, "clock.mode", f"{self.name} talks to a device on the wall clock")
         if not c.gps.enabled and not c.to_autopilot.enabled:
             raise ConfigError(f"{where}{self.name}: nothing to do: enable gps (GPS in the loop) or to_autopilot "
                               f"(gps: hil_gps|gps_input, imu: hil_sensor)")

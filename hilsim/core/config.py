@@ -600,3 +600,13 @@ def tls_from_env() -> dict[str, str] | None:
     if missing:
         raise ConfigError(f"TLS from the environment: {', '.join(missing)} not set (set all three, or none)")
     return got
+
+
+def require_realtime(sc: Scenario, field: str, why: str, where: str | Path | None = None) -> None:
+    """Hardware (a drive, a GPS, an autopilot, an external joint server) lives on the wall clock and cannot wait
+    for a lockstep step: a scenario that puts one in lockstep is refused in one line, the same for every kind
+    (``field``: the field that brings the hardware in; ``why``: what it is, e.g. ``bridge-mavlink talks to a
+    device on the wall clock``)."""
+    if sc.clock.mode != "realtime":
+        raise ConfigError(f"{where or sc.source or 'scenario'}: {field}: {why}, so the scenario needs clock.mode: "
+                          f"realtime (got {sc.clock.mode!r}; pass --clock realtime)")

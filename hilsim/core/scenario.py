@@ -32,7 +32,15 @@ import yaml
 from pydantic import ValidationError
 
 from hilsim.core import fleet, registry
-from hilsim.core.config import CONFIG_DIR, SIM, ConfigError, Scenario, format_error, tls_from_env
+from hilsim.core.config import (
+    CONFIG_DIR,
+    SIM,
+    ConfigError,
+    Scenario,
+    format_error,
+    require_realtime,
+    tls_from_env,
+)
 
 
 def _context() -> dict[str, Any]:
@@ -369,11 +377,8 @@ def check_joint_servers(sc: Scenario, path: Path | str) -> None:
         if j.server not in known:
             raise ConfigError(f"{path}: joints.{jname}.server: unknown server {j.server!r}; "
                               f"expected 'sim' or one of {', '.join(known)}")
-        if sc.clock.mode != "realtime":
-            # hardware lives on the wall clock: it cannot wait for a lockstep step
-            raise ConfigError(f"{path}: joints.{jname}.server: {j.server!r} is an external server, which runs on "
-                              f"the wall clock, so the scenario needs clock.mode: realtime (got "
-                              f"{sc.clock.mode!r}; pass --clock realtime)")
+        require_realtime(sc, f"joints.{jname}.server", f"{j.server!r} is an external server, which runs on the "
+                         "wall clock", path)
 
 
 def _is_scenario(p: Path, depth: int = 0) -> bool:
