@@ -235,12 +235,14 @@ def _run_and_judge(scenario: Path, robot: str, tmp: Path, targets: list[list[flo
 
 
 @pytest.mark.e2e
+@pytest.mark.timeout(900)  # an import and a whole run of the services, two tests at a time on two cores
 def test_the_ur5_runs_its_task_from_the_import(ur5: Path, tmp_path: Path) -> None:
     sc = load_scenario(ur5 / "ur5.yaml")
     _run_and_judge(ur5 / "ur5.yaml", "ur5", tmp_path, [list(t) for t in sc.task.targets])
 
 
 @pytest.mark.e2e
+@pytest.mark.timeout(900)  # an import and a whole run of the services, two tests at a time on two cores
 def test_the_panda_with_its_gripper_runs_its_targets_in_another_order(panda: Path, tmp_path: Path) -> None:
     sc = load_scenario(panda / "panda.yaml")
     targets = [list(t) for t in sc.task.targets][::-1]
@@ -257,6 +259,7 @@ def test_tools_default_to_the_imported_arms_joints(ur5: Path) -> None:
 
 
 @pytest.mark.e2e
+@pytest.mark.timeout(900)  # an import and a whole run of the services, two tests at a time on two cores
 def test_an_imported_arm_is_bit_identical_run_to_run_in_lockstep(ur5: Path, tmp_path: Path) -> None:
     """Same seed, same physics truth, sample for sample (the first 1.5 s of the UR5's first move)."""
     runs = []
@@ -273,6 +276,7 @@ def test_an_imported_arm_is_bit_identical_run_to_run_in_lockstep(ur5: Path, tmp_
 
 
 @pytest.mark.e2e
+@pytest.mark.timeout(900)  # an import and a whole run of the services, two tests at a time on two cores
 def test_the_import_tunes_a_joint_with_the_projects_tuner(ur5: Path, tmp_path: Path) -> None:
     """The import's tuning step on one joint (all of them take minutes): the project's tuner, on the real
     services, writes gains that meet its target into the imported scenario."""
