@@ -137,3 +137,25 @@ def test_a_lab_retrains_the_choice_for_its_arm_by_one_command(tmp_path: Path, ca
                  "--planners", "rrtconnect,bitstar,auto,oracle", "--seeds", "1", "--jobs", "2", "--json"]) == 0
     res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert res["planners"]["auto"]["success_rate"] == 1.0
+
+
+@needs_erd
+def test_evaluating_auto_on_an_arm_its_model_does_not_know_is_refused_in_one_line(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import yaml
+
+    from hilsim.cli import main
+
+    world = ur5_world(tmp_path)
+    scenario = tmp_path / "ur5.yaml"
+    scenario.write_text(yaml.safe_dump({
+        "name": "ur5", "robot": "ur5", "services": ["physics", "sensors", "controller", "planner"],
+        "world": {"model": world.name}, "controller": {"gains": {"default": {"kp": 100.0, "ki": 0.0, "kd": 10.0}}},
+        "planner": {"planner": "improved_rrtstar"}}))
+    assert main(["plan", "scenes", "--scenario", str(scenario), "--out", str(tmp_path / "s"), "--count", "1",
+                 "--queries", "1"]) == 0
+    capsys.readouterr()
+    assert main(["plan", "evaluate", "--scenario", str(scenario), "--scenes", str(tmp_path / "s" / "scenes.yaml"),
+                 "--planners", "rrtconnect,auto"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "planner auto: its model" in err and "shoulder_pan_joint" in err, err

@@ -206,6 +206,11 @@ def cmd_evaluate_scenes(sc: Scenario, args: argparse.Namespace) -> int:
             print(f"warning: {what}", file=sys.stderr)
     for sname, s in scenes.items():
         arm = ArmModel(s.model, sc.planner.clearance)
+        for n in autos:  # a model never judged on an arm it was not trained for
+            chooser = lib.create(n, criterion=args.criterion)
+            if chooser.unfit(arm):  # type: ignore[attr-defined]
+                raise ConfigError(f"{args.scenes}: scenes.{sname}: planner {n}: {chooser.unfit(arm)}: "  # type: ignore[attr-defined]
+                                  "retrain it for this arm (`hilsim plan learn --scenario FILE --out DIR`)")
         for qi, (a, b) in enumerate(s.queries):
             for what, q in (("start", a), ("goal", b)):
                 if q.shape != (arm.n,):
