@@ -128,6 +128,9 @@ def build_parser() -> argparse.ArgumentParser:
                     help="seconds to wait for every service to announce itself (default: clock.start_timeout, 120)")
     up.add_argument("--view", action="store_true", help="watch it live: stream the run to Rerun's web viewer "
                     "(prints `viewer: URL`; docs/recording.md, \"Watch it live\")")
+    up.add_argument("--foxglove", nargs="?", type=int, const=8765, metavar="PORT",
+                    help="serve the run's ROS 2 topics over Foxglove's WebSocket protocol on loopback (default port "
+                    "8765; prints `foxglove: ws://…`; docs/recording.md, \"Foxglove, live\")")
     up.add_argument("--view-host", metavar="HOST", help="with --view: the viewer's address (default loopback; "
                     "another one asks a token, given in the URL)")
     up.add_argument("--ui", action="store_true", help="start the browser control panel with this run (docs/panel.md)")
@@ -289,6 +292,9 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--json", action="store_true")
     bl.add_argument("--sim-seconds", type=float, default=5.0)
     bl.add_argument("--realtime-seconds", type=float, default=60.0)
+    bl.add_argument("--live", type=int, default=0, metavar="N",
+                    help="only what watching it live costs: the pipelined arm without --view, with it and nobody "
+                         "watching, and with Rerun's viewer attached, N rounds (docs/performance.md)")
     bl.add_argument("--identities", type=int, default=0, metavar="N",
                     help="only this: N pairs of runs through the run's router, one identity for every process vs "
                          "one per process (docs/performance.md, \"Identities\")")

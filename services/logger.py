@@ -115,7 +115,7 @@ from hilsim.core.service import LEVEL_WARN, Service
 disable_analytics()  # before rerun is imported: its SDK reads the analytics config at start-up
 import rerun as rr  # noqa: E402
 
-from hilsim.record import live, report  # noqa: E402
+from hilsim.record import foxglove_live, live, report  # noqa: E402
 from hilsim.record.bag import NO_ATTACHMENT, TIME_NOTE, BagError  # noqa: E402
 from hilsim.record.bag_read import BAG_DIR, bag_paths, recover_file  # noqa: E402
 from hilsim.record.limits import BagSeries, human_bytes, stop_reason  # noqa: E402
@@ -153,6 +153,7 @@ class LoggerService(Service):
             self.rrd_path = self.run_dir / part_name(restarted())
         self.rec: rr.RecordingStream | None = None
         self.live: live.LiveStream | None = None  # logger.live: the second sink, to the live viewer
+        self.fox: foxglove_live.FoxgloveLive | None = None  # logger.foxglove: the samples on a Foxglove server
         self.bag_dir = self.run_dir / BAG_DIR
         self.bag: BagSeries | None = None  # None: logger.bag is false, or the bag failed (a fault)
         self.bagged: Counter[str] = Counter()  # messages per key written to the bag
@@ -248,6 +249,7 @@ class LoggerService(Service):
         except Exception as e:  # nor may the world's geometry
             self.warn(f"world geometry of {self.sc.world.model} not recorded: {type(e).__name__}: {e}")
         live.setup_done(self.live, self.rec)
+        self.fox = foxglove_live.start(self.sc.logger.foxglove, self.warn, self.run_dir)
         self._worker = threading.Thread(target=self._work, name="logger-worker", daemon=True)
         self._worker.start()
         if self.delay_s:
@@ -470,6 +472,8 @@ class LoggerService(Service):
                 return  # no bytes: nothing for the bag (bagged < recorded for this key)
         if self.bag is not None:  # every payload as it arrived, valid or not
             self._bag_append((key, payload, NO_ATTACHMENT if att is None else att, t_ns))
+        if self.fox is not None:  # and to Foxglove's clients, as it arrived
+            self.fox.add(key, payload, t_ns)
         if rows.raw(key, payload):  # a clock, joint state or IMU sample of a layout seen before
             self.sim_ns = rows.clock_ns
             self._pending[key] += 1
@@ -607,6 +611,8 @@ class LoggerService(Service):
         self.rec.disconnect()
         self._close_bag()
         live.stop(self.live)
+        foxglove_live.stop(self.fox)
+        self.fox = None
         used = self.recording_bytes()
         self.stopped_at = {"reason": why, "sim_time": round(self.sim_ns / 1e9, 3), "bytes": used,
                            "wall_time": time.strftime("%Y-%m-%dT%H:%M:%S")}
@@ -698,6 +704,7 @@ class LoggerService(Service):
             self.rec.disconnect()
             self._close_bag()
         live.stop(self.live)
+        foxglove_live.stop(self.fox)
         self._report()
 
     def _close_bag(self) -> None:

@@ -10,10 +10,14 @@ fails.
 from __future__ import annotations
 
 import io
+import json
 import os
+import re
 import shutil
 import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -22,7 +26,9 @@ from typing import Any
 import numpy as np
 import pytest
 
+from hilsim.core.scenario import load_scenario
 from hilsim.record import live
+from tests.util import REPO, finish, up
 
 # what the browser test records: the keys the 3D view and the joint plots draw (a software-rendering
 # browser on two loaded cores keeps up with these; every key at 1 kHz it does not)
@@ -64,6 +70,119 @@ def _listening(port: int) -> bool:
     with socket.socket() as s:
         s.settimeout(0.5)
         return s.connect_ex(("127.0.0.1", port)) == 0
+
+
+def _table_shown(shot: np.ndarray) -> float:
+    """The fraction of the 3D view that is the table's brown: the world's geometry has reached the viewer."""
+    v = shot[WORLD_VIEW]
+    r, g, b = v[..., 0], v[..., 1], v[..., 2]
+    return float(((r > g + 15) & (g > b + 15) & (r > 90) & (r < 220)).mean())
+
+
+def _hilsim(*args: str, timeout: float = 120) -> str:
+    r = subprocess.run([sys.executable, "-m", "hilsim.cli", *args], capture_output=True, text=True, timeout=timeout,
+                       cwd=REPO)
+    assert r.returncode == 0, (args, r.stdout, r.stderr)
+    return r.stdout
+
+
+def _truth(run: Path) -> list[float]:
+    """The arm's joint positions now, from the physics truth."""
+    out = _hilsim("topic", "echo", "/arm/truth/joint_states", "--count", "1", "--json", "--run", str(run))
+    return [float(v) for v in json.loads(out.strip().splitlines()[-1])["position"]]
+
+
+@pytest.mark.e2e
+@pytest.mark.timeout(1200)
+def test_live_web_viewer_shows_the_arm_moving(tmp_path: Path) -> None:
+    """``hilsim up arm --interactive --view``: the browser opens the printed address; once the viewer shows
+    the world, the arm is sent to two of the scenario's targets, and after each (reached, by the physics
+    truth) the 3D view is photographed once it is still: the pictures differ where the arm is."""
+    sync_playwright, exe = _browser()
+    run = tmp_path / "run"
+    p = up("arm", "--interactive", "--view", "--out", str(run), "--wait", "600", "--set", f"logger.record={LIVE_KEYS}")
+    lines: list[str] = []
+    url = ""
+    assert p.stdout is not None
+    for line in p.stdout:
+        lines.append(line)
+        if line.startswith("viewer: "):
+            url = line.split(" ", 1)[1].strip()
+            break
+    assert url.startswith("http://127.0.0.1:"), "".join(lines)  # loopback by default
+    info = json.loads((run / live.LIVE_NAME).read_text())
+    assert info["viewer"] == url
+    grpc_port = int(re.search(r":(\d+)/proxy", info["grpc"]).group(1))  # type: ignore[union-attr]
+    rest: list[str] = []
+    reader = threading.Thread(target=lambda: rest.extend(p.stdout), daemon=True)  # type: ignore[arg-type]
+    reader.start()
+    targets = load_scenario("arm").task.targets
+
+    shots: list[np.ndarray] = []
+    outside: list[str] = []  # requests the page made to anything but this host
+    try:
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=exe, headless=True, args=[
+                "--no-sandbox", "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"])
+            page = browser.new_page(viewport={"width": VIEWPORT[0], "height": VIEWPORT[1]})
+            page.on("request", lambda r: outside.append(r.url) if not r.url.startswith(
+                ("http://127.0.0.1", "data:", "blob:")) else None)
+            page.goto(url + "&renderer=webgl", timeout=300_000, wait_until="domcontentloaded")
+
+            def still() -> np.ndarray:
+                """A screenshot once the 3D view shows the world and stopped changing (the viewer caught up)."""
+                last = None
+                for _ in range(40):
+                    time.sleep(5)
+                    shot = _pixels(page.screenshot(timeout=300_000))
+                    if last is not None and _table_shown(shot) > 0.05 and not _changed(last, shot, WORLD_VIEW).any():
+                        return shot
+                    last = shot
+                from PIL import Image
+
+                Image.fromarray(last.astype(np.uint8)).save(tmp_path / "live-last.png")  # type: ignore[union-attr]
+                raise AssertionError(f"the live view did not show the world and come to rest (table "
+                                     f"{_table_shown(last):.3f} of the view)")  # type: ignore[arg-type]
+
+            shots.append(still())  # the arm where it starts
+            for target in targets[:2]:
+                _hilsim("goal", "arm", "--joints", *map(str, target), "--run", str(run), timeout=300)
+                assert np.allclose(_truth(run), target, atol=0.02), (_truth(run), target)
+                shots.append(still())
+            browser.close()
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGINT)
+        out = finish(p, 300)
+        reader.join(5)
+    text = "".join(lines + rest) + out
+    assert "result: OK" in text, text
+    for i, s in enumerate(shots):  # for a person to look at
+        from PIL import Image
+
+        Image.fromarray(s.astype(np.uint8)).save(tmp_path / f"live-{i}.png")
+
+    # the arm moved in the 3D view between targets, and only where it is
+    area = (WORLD_VIEW[0].stop - WORLD_VIEW[0].start) * (WORLD_VIEW[1].stop - WORLD_VIEW[1].start)
+    for i in (1, 2):
+        mask = _changed(shots[i - 1], shots[i], WORLD_VIEW)
+        moved = int(mask.sum())
+        rows, cols = np.nonzero(mask)
+        print(f"3D view, before and after target {i}: {moved} of {area} pixels differ ({100 * moved / area:.1f} %), "
+              f"rows {rows.min() if moved else '-'}…{rows.max() if moved else '-'}, "
+              f"columns {cols.min() if moved else '-'}…{cols.max() if moved else '-'} of the view")
+        assert moved > 0.003 * area, f"the arm did not move in the live view: {moved} pixels changed (of {area})"
+        # the camera, the table and the floor stay: what changed is the arm's part of the picture
+        assert moved < 0.25 * area, f"{moved} of {area} pixels changed: more than the arm"
+        assert abs(_table_shown(shots[i]) - _table_shown(shots[0])) < 0.1
+    # nothing left this host: the viewer's update checks, fonts and analytics were refused by the page's policy
+    assert not outside, outside
+    # the stream stopped with the run: the viewer process is gone, its address file removed
+    assert not (run / live.LIVE_NAME).exists()
+    assert not _listening(grpc_port)
+    log = (run / "logger.log").read_text()
+    m = re.search(r"live viewer stopped: (\d+) frames \((\d+) bytes\) streamed, (\d+) dropped", log)
+    assert m and int(m.group(1)) > 10, log
 
 
 class _Frames:
@@ -167,3 +286,46 @@ def test_the_page_refuses_other_hosts_and_a_missing_token(tmp_path: Path) -> Non
         page.close()
         srv.shutdown()
         srv.server_close()
+
+
+@pytest.mark.e2e
+@pytest.mark.timeout(900)
+def test_the_panel_shows_the_robot_live(tmp_path: Path) -> None:
+    """``hilsim up arm --ui``: the panel starts its run with ``--view``; ``GET /api/live`` gives the viewer's
+    address, and the page embeds it beside the joint plots (an iframe on that address, shown)."""
+    from tests.test_panel import PanelProc, _http
+
+    sync_playwright, exe = _browser()
+    panel = PanelProc(up=["arm", "--interactive", "--set", f"logger.record={LIVE_KEYS}"])
+    outside: list[str] = []
+    try:
+        got: dict[str, str] = {}
+
+        def viewer() -> bool:
+            got.update(_http(panel.url + "/api/live")[1])
+            return bool(got.get("viewer"))
+
+        assert live_wait(viewer, 300), panel.out()
+        url = got["viewer"]
+        assert url.startswith("http://127.0.0.1:") and "url=rerun%2Bhttp" in url, url
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=exe, headless=True, args=[
+                "--no-sandbox", "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"])
+            page = browser.new_page(viewport={"width": 1400, "height": 1000})
+            page.on("request", lambda r: outside.append(r.url) if not r.url.startswith(
+                ("http://127.0.0.1", "data:", "blob:", "about:")) else None)
+            page.goto(panel.page_url, timeout=300_000, wait_until="domcontentloaded")
+            frame = page.locator("#live-view")
+            frame.wait_for(state="visible", timeout=120_000)
+            assert frame.get_attribute("src") == url
+            # the viewer's page loaded in it (its own origin: the run's page server)
+            assert live_wait(lambda: any(f.url.startswith(url.split("?")[0]) for f in page.frames), 120)
+            box = frame.bounding_box()
+            plot = page.locator("#plot").bounding_box()
+            assert box and plot and box["x"] + box["width"] <= plot["x"] + 1, (box, plot)  # beside the plots
+            time.sleep(20)
+            page.screenshot(path=str(tmp_path / "panel-live.png"), timeout=300_000)
+            browser.close()
+    finally:
+        panel.close(timeout=120)
+    assert not outside, outside

@@ -243,6 +243,15 @@ class LiveConfig(_Model):
     port: int = Field(0, ge=0, le=65535, description="the viewer page's port (0: a free one)")
 
 
+class FoxgloveConfig(_Model):
+    """The recorder's samples on a Foxglove WebSocket server (``hilsim up --foxglove``; hilsim.record.foxglove_live)."""
+
+    enabled: bool = Field(False, description="serve every recorded key's samples (raw CDR, ros2msg schemas) over "
+                          "Foxglove's WebSocket protocol while the run goes on")
+    host: str = Field("127.0.0.1", description="the address the server listens on (loopback)")
+    port: int = Field(8765, ge=0, le=65535, description="its port (0: a free one)")
+
+
 class LoggerConfig(_Model):
     enabled: bool = Field(True, description="false: no recorder in the run (as `hilsim up --no-logger`)")
     out_dir: Path = Path("runs")
@@ -267,6 +276,7 @@ class LoggerConfig(_Model):
                           "the free space of the run directory's file system falls below this many bytes ('1GB' "
                           "too; 0: only a full disk stops it)")
     live: LiveConfig = Field(default_factory=LiveConfig)
+    foxglove: FoxgloveConfig = Field(default_factory=FoxgloveConfig)
 
     @field_validator("max_bag_size", "max_size", "min_free", mode="before")
     @classmethod

@@ -666,10 +666,17 @@ def _interactive_hint(la: Launcher, example: list[float] | None) -> str:
 
 
 def say_viewer(la: Launcher, timeout: float = 60.0) -> None:
-    """``--view``: the live viewer's address on a line of its own, once the recorder's viewer listens."""
+    """``--view``: the live viewer's address on a line of its own, once the recorder's viewer listens;
+    ``--foxglove``: the Foxglove server's."""
+    from hilsim.record.foxglove_live import read_info
     from hilsim.record.live import wait_live
 
     logger = la.children.get("logger")
+    if la.sc.logger.foxglove.enabled:  # started in the recorder's setup, before it announced itself
+        fox = read_info(la.run_dir)
+        la.say(f"foxglove: {fox['url']}" if fox else f"foxglove: none (see {la.run_dir / 'logger.log'})")
+    if not la.sc.logger.live.enabled:
+        return
     info = wait_live(la.run_dir, timeout, lambda: logger is None or logger.proc.poll() is None)
     if info is None:
         la.say(f"viewer: none (see {la.run_dir / 'logger.log'})")
@@ -700,6 +707,10 @@ def up_overrides(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, st
         overrides["logger.live.enabled"], origins["logger.live.enabled"] = True, "--view"
         if getattr(args, "view_host", None):
             overrides["logger.live.host"], origins["logger.live.host"] = args.view_host, f"--view-host {args.view_host}"
+    fox = getattr(args, "foxglove", None)
+    if fox is not None:  # the recorder's samples on a Foxglove WebSocket server
+        overrides["logger.foxglove.enabled"], origins["logger.foxglove.enabled"] = True, "--foxglove"
+        overrides["logger.foxglove.port"], origins["logger.foxglove.port"] = fox, f"--foxglove {fox}"
     if args.compose:
         overrides["compose"] = [[n.strip() for n in g.split(",") if n.strip()] for g in args.compose]
         origins["compose"] = " ".join(f"--compose {g}" for g in args.compose)
@@ -754,7 +765,8 @@ def cmd_up(args: argparse.Namespace) -> int:
         try:
             la.start()
             if la.wait_ready(sc.clock.start_timeout):
-                if sc.logger.live.enabled and any("logger" in u.split("+") for u in la.local):
+                if (sc.logger.live.enabled or sc.logger.foxglove.enabled) and any(
+                        "logger" in u.split("+") for u in la.local):
                     threading.Thread(target=say_viewer, args=(la,), name="viewer", daemon=True).start()
                 if interactive:
                     print(_interactive_hint(la, example), flush=True)

@@ -122,7 +122,7 @@ def cpu_s(pid: int) -> float:
 
 
 def _run(sc: Scenario, run_dir: Path, cpu: dict[str, float] | None = None, *, task: bool = False,
-         run_router: bool = False, per_service: bool = True) -> Any:
+         run_router: bool = False, per_service: bool = True, after_ready: Any = None) -> Any:
     """Run ``sc`` with ``hilsim up``'s launcher; its outcome (hilsim.run.follow.Outcome). ``cpu``, if
     given, is filled with the CPU seconds each process spent from "ready" to the end of the run (the
     router and launcher: this process). ``task``: the run ends with its task, not at a duration.
@@ -140,6 +140,8 @@ def _run(sc: Scenario, run_dir: Path, cpu: dict[str, float] | None = None, *, ta
         la.start()
         if not la.wait_ready():
             raise RuntimeError(f"services did not start; see {run_dir}")
+        if after_ready is not None:
+            after_ready(la)
         pids = {c.name: c.proc.pid for c in la.children.values()}
         pids["router+launcher"] = os.getpid()
         c0 = {n: cpu_s(p) for n, p in pids.items()}
@@ -208,6 +210,47 @@ def bench_pipelined(sim_seconds: float, tmp: Path, cpu: dict[str, float] | None 
     return float(h["real_time_factor"])
 
 
+def bench_live(sim_seconds: float, tmp: Path, repeat: int, say: Any) -> dict[str, Any]:
+    """What watching it live costs (docs/recording.md, "Watch it live"): the pipelined arm through the run's
+    own router, as ``hilsim up`` runs it, without ``--view`` (off), with it and nobody watching (on), and with
+    Rerun's native viewer attached to the stream (watched: ``rerun --headless --connect``, ingesting and
+    rendering on this machine's cores as a viewer on the same host does), in turns ``repeat`` times in one
+    sitting (a shared machine's load drifts): each round's ratios against off, and their medians."""
+    import subprocess
+
+    from hilsim.core.recording import rerun_env
+    from hilsim.record.live import _rerun_binary, wait_live
+
+    rtf: dict[str, list[float]] = {"off": [], "on": [], "watched": []}
+    for i in range(repeat):
+        for mode in rtf:
+            viewers: list[subprocess.Popen[bytes]] = []
+
+            def attach(la: Any, mode: str = mode, viewers: list[Any] = viewers) -> None:
+                if mode != "watched":
+                    return
+                info = wait_live(la.run_dir, 120)
+                if info is None:
+                    raise RuntimeError(f"no live viewer; see {la.run_dir}")
+                viewers.append(subprocess.Popen(
+                    [_rerun_binary(), "--headless", "--bind", "127.0.0.1", "--new", "--connect", info["grpc"]],
+                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env={**os.environ, **rerun_env()}))
+
+            sc = _scenario(sim_seconds, **{"clock.controller_lag": 1, "logger.live.enabled": mode != "off"})
+            try:
+                o = _run(sc, tmp / f"live-{mode}-{i}", run_router=True, after_ready=attach)
+            finally:
+                for v in viewers:
+                    v.kill()
+                    v.wait()
+            rtf[mode].append(float(o.health["physics"]["real_time_factor"]))
+        say(f"    round {i + 1}: off {rtf['off'][-1]:.2f}x, on {rtf['on'][-1]:.2f}x, watched {rtf['watched'][-1]:.2f}x")
+    on = [a / b for a, b in zip(rtf["on"], rtf["off"], strict=True)]
+    watched = [a / b for a, b in zip(rtf["watched"], rtf["off"], strict=True)]
+    return {"rtf": rtf, "ratio_on": on, "ratio_watched": watched, "median_ratio_on": statistics.median(on),
+            "median_ratio_watched": statistics.median(watched)}
+
+
 def bench_identities(sim_seconds: float, tmp: Path, repeat: int, say: Any) -> dict[str, Any]:
     """What an identity per process costs (docs/security.md): the pipelined arm through the run's own
     router with one identity that may do everything (as before) and with one per process, alternated
@@ -264,6 +307,16 @@ def cmd_loop(args: argparse.Namespace) -> int:
     say = progress(args.json)
 
     say(f"hilsim bench loop: arm, 1 kHz physics and control, {sim:g} s sim per lockstep run")
+    if getattr(args, "live", 0):
+        say(f"  watching it live: the pipelined arm through the run's own router, without --view, with it, and "
+            f"with Rerun's viewer attached, {args.live} rounds …")
+        with TemporaryDirectory(prefix="hilsim-bench-") as d:
+            res["live"] = r = bench_live(sim, Path(d), args.live, say)
+        say(f"    median ratio against off: on (nobody watching) {r['median_ratio_on']:.3f}, "
+            f"watched {r['median_ratio_watched']:.3f}")
+        if args.json:
+            print(json.dumps(res, indent=1))
+        return 0
     if getattr(args, "identities", 0):
         say(f"  identities: the pipelined arm through the run's own router, one identity vs one per process, "
             f"{args.identities} pairs …")

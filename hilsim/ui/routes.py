@@ -87,6 +87,11 @@ def make_app(panel: Panel) -> Starlette:
         except BadInput as e:
             return bad(e)
 
+    async def live(request: Request) -> Response:
+        from hilsim.ui.live_view import live_address
+
+        return JSONResponse({"viewer": await run_in_threadpool(live_address, panel)})
+
     async def recording(request: Request) -> Response:
         rec = str(panel.run.info.get("recording") or "")
         if not rec or not Path(rec).is_file():
@@ -116,6 +121,7 @@ def make_app(panel: Panel) -> Starlette:
         Route("/api/cancel", action(panel.commands.cancel, blocking=True), methods=["POST"]),
         Route("/api/gains", action(panel.commands.gains, blocking=True), methods=["POST"]),
         Route("/api/viewer", viewer, methods=["POST"]),
+        Route("/api/live", live),
         Route("/recording.rrd", recording),
         Mount("/static", StaticFiles(directory=STATIC), name="static"),
     ]

@@ -108,6 +108,8 @@ class RunManager:
                 argv += ["--set", "task.targets=[]"]
             if req.planner:
                 argv += ["--set", f"planner.planner={req.planner}"]
+            if "logger" in sc.services and "--view" not in req.extra:  # the robot, live, in the panel's page
+                argv.append("--view")
             argv += req.extra
             env = {**os.environ, "PYTHONUNBUFFERED": "1"}
             self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,

@@ -383,3 +383,22 @@ function connect() {
 }
 
 loadOptions().then(connect);
+
+// The robot, live: Rerun's web viewer on the run's stream (hilsim up --view), beside the joint plots.
+let liveUrl = null;
+function showLive(url) {
+  if (url === liveUrl) return;
+  liveUrl = url;
+  $("live").hidden = !url;
+  $("joints-live").classList.toggle("with-live", !!url);
+  $("live-view").src = url || "about:blank";
+  $("live-link").href = url || "#";
+}
+async function pollLive() {
+  try {
+    const res = await fetch("/api/live");
+    if (res.ok) showLive((await res.json()).viewer || "");
+  } catch (e) { /* the panel's server is away: try again */ }
+  setTimeout(pollLive, 3000);
+}
+pollLive();
