@@ -18,7 +18,7 @@ from hilsim.cli import main
 from hilsim.core.config import REPO_ROOT
 from hilsim.planning.choice import BOUND_MS, MODEL_DIR, ChoiceModelError, Forest, load_model
 from hilsim.planning.collision import ArmModel
-from hilsim.planning.library import PlannerLibrary
+from hilsim.planning.library import PlannerLibrary, seed_ompl
 from hilsim.planning.problem import Problem
 from hilsim.planning.runs import RunContext, RunRecord, RunTask, run_all
 from hilsim.planning.scenes import SCENES, load_scenes
@@ -30,9 +30,14 @@ DOCS = REPO_ROOT / "docs" / "planning.md"
 
 
 def test_every_seed_is_its_own_ompl_stream() -> None:
-    """Seeds 0, 1, 2 of one planner on one query (each run in a fresh process): three different runs."""
+    """Seeds 0, 1, 2 of one planner on one query (each run in a fresh process): three different runs, even
+    when the parent process had seeded OMPL and planned before (a test run before this one, in-process)."""
     lib = PlannerLibrary.load()
     scene = load_scenes(SCENES)["table_obstacle"]
+    seed_ompl(7)
+    start, goal = scene.queries[0]
+    assert lib.create("rrtconnect").solve(Problem(ArmModel(scene.model), start, goal, seed=7, max_iterations=300,
+                                                  time_limit=60)).success
     ctx = RunContext(lib, {"t": scene.model}, {"t": scene.queries}, 0.005, 300)
     recs: list[RunRecord] = []
     run_all(ctx, [RunTask("t", 0, p, s) for p in ("rrtconnect", "bitstar") for s in (0, 1, 2)], 2, recs.append)

@@ -57,6 +57,20 @@ def seed_ompl(seed: int) -> None:
         _ompl_seeded = int(seed)
 
 
+def reseed_ompl(seed: int) -> None:
+    """Seed OMPL's global RNG for a run of its own in a forked child, even when the parent seeded it (and
+    sampled) before: the planners created after this draw their seeds from ``seed``. Without it a child
+    of such a parent would keep the parent's stream, and every seed would be one run."""
+    global _ompl_seeded
+    from ompl import util as ou
+
+    level = ou.getLogLevel()
+    ou.setLogLevel(ou.LOG_NONE)  # OMPL says that sampling had started: in the parent, not in this child
+    ou.RNG.setSeed(int(seed) & 0x7FFFFFFF or 1)
+    ou.setLogLevel(level)
+    _ompl_seeded = int(seed)
+
+
 def _setter_name(param: str) -> str:
     return "set" + "".join(p[:1].upper() + p[1:] for p in param.split("_"))
 

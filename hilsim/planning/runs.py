@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from hilsim.planning.collision import ArmModel
-from hilsim.planning.library import PlannerLibrary, seed_ompl
+from hilsim.planning.library import PlannerLibrary, reseed_ompl
 from hilsim.planning.problem import Problem
 from hilsim.planning.trajectory import TrajectoryError, acceleration_variance, joint_path_lengths, time_parameterize
 
@@ -104,7 +104,7 @@ def run_one(ctx: RunContext, task: RunTask) -> RunRecord:
     """One run in this process (a fresh child: OMPL is seeded here with the run's seed)."""
     from ompl import util as ou
 
-    seed_ompl(task.seed + 1)  # seed_ompl takes 0 as 1: seeds 0 and 1 would be the same OMPL run
+    reseed_ompl(task.seed + 1)  # 0 is taken as 1: seeds 0 and 1 would be the same OMPL run
     ou.setLogLevel(ou.LOG_NONE)  # OMPL's own complaints ("zero-length path") would break the progress line
     arm = ctx.arms[task.scene]
     start, goal = ctx.queries[task.scene][task.query]
