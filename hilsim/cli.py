@@ -32,6 +32,7 @@ import logging
 import sys
 from collections.abc import Callable, Sequence
 
+from hilsim import __version__
 from hilsim.core.config import ConfigError
 from hilsim.core.scenario import load_scenario, parse_overrides
 
@@ -100,12 +101,15 @@ def _up(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="hilsim", description="Distributed robot simulator over Zenoh.")
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    p.add_argument("--version", action="version", version=f"hilsim {__version__}", help="print the version and exit")
     sub = p.add_subparsers(dest="cmd", required=True)
 
     up = sub.add_parser("up", help="start all services of a scenario, run its task, stop, summarise")
     up.add_argument("scenario", help="scenario name in config/ (arm, arm-lean: the arm at half its rates, rover, "
                     "rover-outdoor) or a YAML path")
-    up.add_argument("--clock", choices=["lockstep", "realtime"], help="override clock.mode")
+    up.add_argument("--clock", choices=["lockstep", "realtime"], help="override clock.mode (lockstep: as fast as "
+                    "every service allows, deterministic; realtime: paced by the wall clock; default the scenario's, "
+                    "the arm's lockstep)")
     up.add_argument("--duration", type=float, help="stop after this many sim seconds (before the task ends: "
                     "result STOPPED, exit code 3)")
     up.add_argument("--interactive", action="store_true",
@@ -114,6 +118,8 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="override any scenario field")
     up.add_argument("--out", help="run directory (default runs/<timestamp>)")
     up.add_argument("--no-logger", action="store_true", help="do not record (benchmarks)")
+    up.add_argument("--allow-loss", action="store_true", help="realtime: a recording that missed more than "
+                    "logger.max_loss (default 5 %%) of the samples is said, not a failure (sets logger.max_loss=1)")
     up.add_argument("--router", help="connect to this Zenoh router instead of starting one")
     up.add_argument("--world", help="the scenario's world, e.g. rover --world outdoor (config/rover-outdoor.yaml)")
     up.add_argument("--hil", "--overlay", dest="hil", action="append", default=[], metavar="FILE",
@@ -142,13 +148,16 @@ def build_parser() -> argparse.ArgumentParser:
     run = sub.add_parser("run", help="run one service alone (what docker compose uses)")
     run.add_argument("service", help="physics, sensors, controller, planner, logger, or a bridge name")
     run.add_argument("--config", required=True, help="scenario YAML")
-    run.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE")
+    run.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="override a scenario field; "
+                     "repeatable")
     run.set_defaults(func=cmd_run)
 
     topic = sub.add_parser("topic", help="inspect topics like `ros2 topic` (ROS 2 names, rmw_zenoh keys)")
     tsub = topic.add_subparsers(dest="topic_cmd", required=True)
     for name in ("list", "echo", "hz"):
-        t = tsub.add_parser(name)
+        t = tsub.add_parser(name, help={"list": "the topics of the run's ROS 2 graph (like ros2 topic list)",
+                                        "echo": "print a topic's messages as they come (like ros2 topic echo)",
+                                        "hz": "a topic's rate (like ros2 topic hz)"}[name])
         if name != "list":
             t.add_argument("key", help="a ROS 2 topic name, e.g. /arm/joint_states, or a Zenoh key expression")
         else:
@@ -156,19 +165,22 @@ def build_parser() -> argparse.ArgumentParser:
             t.add_argument("-t", "--show-types", action="store_true", help="print each topic's type")
         t.add_argument("--domain", type=int, default=None, help="ROS 2 domain (default: ROS_DOMAIN_ID, else 0)")
         _endpoint_args(t)
-        t.add_argument("--duration", type=float, default=None, help="seconds to listen")
+        t.add_argument("--duration", type=float, default=None, help="wall seconds to listen (default: list 1 s, "
+                       "echo and hz until Ctrl-C or --count)")
         if name == "echo":
-            t.add_argument("--count", type=int, default=None)
-            t.add_argument("--json", action="store_true")
+            t.add_argument("--count", type=int, default=None, help="stop after this many messages (default: none)")
+            t.add_argument("--json", action="store_true", help="one JSON object per message (default: YAML)")
         if name == "hz":
-            t.add_argument("--window", type=int, default=1000)
+            t.add_argument("--window", type=int, default=1000, help="samples the rate is averaged over "
+                           "(default 1000)")
             t.add_argument("--any-writer", action="store_true",
                            help="count every sample, not only those of the key's announced writer")
         t.set_defaults(func=_lazy("hilsim.tools.topic", f"cmd_{name}"))
 
     view = sub.add_parser("view", help="open the Rerun viewer on a recording (latest by default), or --live on a run")
-    view.add_argument("rrd", nargs="?")
-    view.add_argument("--runs", default="runs")
+    view.add_argument("rrd", nargs="?", help="a recording.rrd or its run directory (default: the latest run "
+                      "under --runs)")
+    view.add_argument("--runs", default="runs", help="where runs are, for the latest (default: runs)")
     view.add_argument("--live", action="store_true", help="the live viewer of a run that is up with --view: prints "
                       "`viewer: URL` (and opens the native viewer on it where there is a display)")
     view.add_argument("--run", metavar="DIR", help="with --live: the run's directory (default: the one run of yours "
@@ -225,20 +237,26 @@ def build_parser() -> argparse.ArgumentParser:
     export.set_defaults(func=_lazy("hilsim.tools.export", "cmd_export"))
 
     goal = sub.add_parser("goal", help="send a move goal to a running planner and print feedback")
-    goal.add_argument("robot")
+    goal.add_argument("robot", help="the robot's name (its namespace), e.g. arm")
     g = goal.add_mutually_exclusive_group(required=True)
-    g.add_argument("--joints", type=float, nargs="+")
-    g.add_argument("--pose", type=float, nargs="+", help="x y z [roll pitch yaw]")
-    g.add_argument("--xy", type=float, nargs=2, metavar=("X", "Y"), help="a mobile robot's goal (the navigator)")
+    g.add_argument("--joints", type=float, nargs="+", help="a joint-space target, one value per joint [rad "
+                   "or m]")
+    g.add_argument("--pose", type=float, nargs="+", help="a tool pose: x y z [m] [roll pitch yaw [rad]]")
+    g.add_argument("--xy", type=float, nargs=2, metavar=("X", "Y"), help="a mobile robot's goal [m] (the "
+                   "navigator)")
     goal.add_argument("--yaw", type=float, help="with --xy: the final heading [rad]")
-    goal.add_argument("--planner", default="")
-    goal.add_argument("--timeout", type=float, default=60.0)
+    goal.add_argument("--planner", default="", help="a planner by name, e.g. rrtconnect (docs/planning.md; "
+                      "default: the scenario's planner.planner)")
+    goal.add_argument("--timeout", type=float, default=60.0, help="wall seconds to wait for the result "
+                      "(default 60)")
     _endpoint_args(goal)
     goal.set_defaults(func=_lazy("hilsim.planning.client", "cmd_goal"))
 
-    gains = sub.add_parser("gains", help="change controller gains of a running simulation, live")
-    gains.add_argument("robot")
-    gains.add_argument("assignments", nargs="+", metavar="JOINT.GAIN=VALUE", help="e.g. joint_2.kp=80 joint_2.kd=4")
+    gains = sub.add_parser("gains", help="list the controller gains of a running simulation, or change them live "
+                           "(old -> new)")
+    gains.add_argument("robot", help="the robot's name (its namespace), e.g. arm")
+    gains.add_argument("assignments", nargs="*", metavar="JOINT.GAIN=VALUE", help="e.g. joint_2.kp=80 joint_2.kd=4 "
+                       "(gains: kp, ki, kd, i_limit, output_limit, feedforward); none: list the gains")
     _endpoint_args(gains)
     gains.set_defaults(func=_lazy("hilsim.tools.params", "cmd_gains"))
 
@@ -246,11 +264,13 @@ def build_parser() -> argparse.ArgumentParser:
     psub = plan.add_subparsers(dest="plan_cmd", required=True)
     ev = psub.add_parser("evaluate", help="plan several targets and compare them (paper Table III)")
     ev.add_argument("--targets", help="targets YAML (required for the arm; a rover scenario: default its task's goals)")
-    ev.add_argument("--criterion", choices=["length", "smoothness", "weighted"], default="weighted")
-    ev.add_argument("--scenario", default="arm")
+    ev.add_argument("--criterion", choices=["length", "smoothness", "weighted"], default="weighted",
+                    help="which plan is best: the shortest, the smoothest, or both weighted (default weighted)")
+    ev.add_argument("--scenario", default="arm", help="the scenario whose robot and world are planned in "
+                    "(default arm)")
     ev.add_argument("--csv", help="CSV path; the recording goes next to it (default: OUT/plan_evaluate.csv)")
     ev.add_argument("--out", help="output directory (default runs/<timestamp>-plan-evaluate)")
-    ev.add_argument("--execute", action="store_true")
+    ev.add_argument("--execute", action="store_true", help="then run the best plan on a running system")
     ev.add_argument("--scenes", help="a scenes file (config/scenes/scenes.yaml's format): every query with every "
                     "planner of --planners, compared (instead of --targets)")
     ev.add_argument("--planners", help="with --scenes: comma-separated library names, and auto (the learned "
@@ -289,9 +309,10 @@ def build_parser() -> argparse.ArgumentParser:
     bench = sub.add_parser("bench", help="benchmarks (figures and ratios against an in-run baseline)")
     bsub = bench.add_subparsers(dest="bench_cmd", required=True)
     bl = bsub.add_parser("loop", help="distributed lockstep loop vs in-process, and realtime jitter")
-    bl.add_argument("--json", action="store_true")
-    bl.add_argument("--sim-seconds", type=float, default=5.0)
-    bl.add_argument("--realtime-seconds", type=float, default=60.0)
+    bl.add_argument("--json", action="store_true", help="print the figures as one JSON object")
+    bl.add_argument("--sim-seconds", type=float, default=5.0, help="sim seconds of each lockstep run (default 5)")
+    bl.add_argument("--realtime-seconds", type=float, default=60.0, help="wall seconds of the realtime run "
+                    "(default 60; 0: none)")
     bl.add_argument("--live", type=int, default=0, metavar="N",
                     help="only what watching it live costs: the pipelined arm without --view, with it and nobody "
                          "watching, and with Rerun's viewer attached, N rounds (docs/performance.md)")
@@ -300,7 +321,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "one per process (docs/performance.md, \"Identities\")")
     bl.set_defaults(func=_lazy("hilsim.tools.bench", "cmd_loop"))
     bsc = bsub.add_parser("scale", help="many robots: real-time factor, step latency, recorder load vs one robot")
-    bsc.add_argument("--json", action="store_true")
+    bsc.add_argument("--json", action="store_true", help="print the figures as one JSON object")
     bsc.add_argument("--robots", type=_lazy_ints, default=[1, 2, 4, 8], metavar="N,…",
                      help="numbers of robots to run (must include 1, the baseline; default 1,2,4,8)")
     bsc.add_argument("--subscribers", type=_lazy_ints, default=[0, 4], metavar="S,…",
@@ -317,7 +338,7 @@ def build_parser() -> argparse.ArgumentParser:
                      help="clock.controller_lag (default: as config/arm.yaml ships it)")
     bsc.set_defaults(func=_lazy("hilsim.tools.bench_scale", "cmd_scale"))
     bc = bsub.add_parser("can", help="CAN bridge: frames per second and added latency vs python-can alone")
-    bc.add_argument("--json", action="store_true")
+    bc.add_argument("--json", action="store_true", help="print the figures as one JSON object")
     bc.add_argument("--samples", type=int, default=1000, help="paced latency probes per path")
     bc.add_argument("--seconds", type=float, default=3.0, help="flat-out duration per direction")
     bc.add_argument("--port", type=int, default=None, help="udp_multicast port (default: a random one)")
@@ -326,13 +347,13 @@ def build_parser() -> argparse.ArgumentParser:
                          "needs root or CAP_SYS_NICE; default 0: none)")
     bc.set_defaults(func=_lazy("hilsim.bridges.can_bench", "cmd_can"))
     bm = bsub.add_parser("mavlink", help="MAVLink bridge: added latency GPS message -> Zenoh sample vs pymavlink alone")
-    bm.add_argument("--json", action="store_true")
+    bm.add_argument("--json", action="store_true", help="print the figures as one JSON object")
     bm.add_argument("--samples", type=int, default=1000, help="paced latency probes per path")
     bm.add_argument("--seconds", type=float, default=3.0, help="flat-out duration")
     bm.set_defaults(func=_lazy("hilsim.bridges.mavlink_bench", "cmd_mavlink"))
     bp = bsub.add_parser("plan", help="planners on the shipped scenes")
-    bp.add_argument("--json", action="store_true")
-    bp.add_argument("--seeds", type=int, default=10)
+    bp.add_argument("--json", action="store_true", help="print the figures as one JSON object")
+    bp.add_argument("--seeds", type=int, default=10, help="runs of each planner on each query (default 10)")
     bp.add_argument("--no-equal-time", action="store_true", help="skip the equal-wall-time pass")
     bp.add_argument("--choice", action="store_true", help="only planner: auto's model load and decision time "
                     "(= hilsim bench choice)")
@@ -348,7 +369,7 @@ def build_parser() -> argparse.ArgumentParser:
     bch.add_argument("--scenario", default="arm", help="the scenario whose library's auto decides (default arm)")
     bch.set_defaults(func=_lazy("hilsim.planning.bench", "cmd_choice"))
     b2 = bsub.add_parser("ros2", help="the ROS 2 bridge's DDS writes: Cyclone DDS (bridge-ros2-dds) vs rclpy")
-    b2.add_argument("--json", action="store_true")
+    b2.add_argument("--json", action="store_true", help="print the figures as one JSON object")
     b2.add_argument("--count", type=int, default=5000, help="samples per writer")
     b2.add_argument("--rate", type=float, default=1000.0, help="samples per second")
     b2.add_argument("--repeat", type=int, default=3, help="passes of each writer, interleaved (the best is kept)")
@@ -357,8 +378,8 @@ def build_parser() -> argparse.ArgumentParser:
     b2.add_argument("--inside", action="store_true", help=argparse.SUPPRESS)
     b2.set_defaults(func=_lazy("hilsim.tools.bench_ros2", "cmd_ros2"))
     br = bsub.add_parser("rover", help="the rover scenario with navigation: lockstep real-time factor, laser rays/s")
-    br.add_argument("--json", action="store_true")
-    br.add_argument("--sim-seconds", type=float, default=20.0)
+    br.add_argument("--json", action="store_true", help="print the figures as one JSON object")
+    br.add_argument("--sim-seconds", type=float, default=20.0, help="sim seconds of each run (default 20)")
     br.add_argument("--world", default="indoor", help="indoor or outdoor")
     br.add_argument("--repeat", type=int, default=3, help="runs with the laser on and off each (the best is kept)")
     br.set_defaults(func=_lazy("hilsim.tools.bench", "cmd_rover"))
@@ -376,7 +397,9 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument("robot", help="scenario name in config/ (e.g. arm) or a YAML path")
     tune.add_argument("joint", nargs="?", help="the joint (or --all); the rover: steering or traction")
     tune.add_argument("--all", action="store_true", help="tune every joint in turn")
-    tune.add_argument("--method", choices=["ziegler-nichols", "relay"], default="relay")
+    tune.add_argument("--method", choices=["ziegler-nichols", "relay"], default="relay", help="how the ultimate point "
+                      "is found: relay (a relay's limit cycle) or ziegler-nichols (proportional gain doubled until "
+                      "the oscillation is sustained); default relay (docs/tools.md)")
     tune.add_argument("--step", type=float, help="step of the reference the refinement uses (default 0.2 rad; "
                       "the rover's traction: 2.0 rad/s)")
     tune.add_argument("--measure", type=float, default=1.0, help="sim seconds recorded after each step")
@@ -498,9 +521,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    except ConnectionError as e:  # a tool that reaches nothing (hilsim.core.runs.open_tool_session)
-        print(f"error: {str(e).splitlines()[0]}", file=sys.stderr)
-        return 1
+    except ConnectionError as e:  # a tool that reaches nothing (hilsim.core.runs.open_tool_session): no run up,
+        print(f"error: {str(e).splitlines()[0]}", file=sys.stderr)  # the same mistake, the same code in every tool
+        return 2
     except KeyboardInterrupt:
         return 130
 

@@ -25,9 +25,9 @@ Writes: only its own health and log keys (``<prefix>/<robot>/health/logger``,
   services say they published and did not reach it: their final health) written at exit.
 
 This module is the service's wiring: subscriptions, the queue, the worker thread, loss
-accounting, health and lifecycle. What is written for each kind of message (and the entity
-layout) is ``hilsim.record.rows``; which keys are subscribed one by one ``hilsim.record.routes``; what
-the summary file and lines say ``hilsim.record.report``; the
+accounting (judged at the end by ``hilsim.record.loss``), health and lifecycle. What is written for
+each kind of message (and the entity layout) is ``hilsim.record.rows``; which keys are subscribed one
+by one ``hilsim.record.routes``; what the summary file and lines say ``hilsim.record.report``; the
 robot model and tool kinematics ``hilsim.sim.kinematics``.
 
 Composed with other services (``--compose physics,sensors,controller,logger``, hilsim.run.compose),
@@ -93,6 +93,7 @@ stream only saves to the file.
 
 from __future__ import annotations
 
+import ctypes
 import json
 import os
 import threading
@@ -103,9 +104,9 @@ from typing import Any
 
 import zenoh
 
-from hilsim.core import batch, fleet, msgs, transport
+from hilsim.core import batch, msgs, transport
 from hilsim.core.config import Scenario
-from hilsim.core.keys import Keys, UnknownKey, message_type
+from hilsim.core.keys import UnknownKey, message_type
 from hilsim.core.provenance import DUPLICATE, TAKEN, Sequence, digest_of
 from hilsim.core.recording import RECORDING_NAME, SUMMARY_NAME, disable_analytics, part_name
 from hilsim.core.restart import restarted
@@ -115,7 +116,7 @@ from hilsim.core.service import LEVEL_WARN, Service
 disable_analytics()  # before rerun is imported: its SDK reads the analytics config at start-up
 import rerun as rr  # noqa: E402
 
-from hilsim.record import foxglove_live, live, report  # noqa: E402
+from hilsim.record import foxglove_live, live, loss, report  # noqa: E402
 from hilsim.record.bag import NO_ATTACHMENT, TIME_NOTE, BagError  # noqa: E402
 from hilsim.record.bag_read import BAG_DIR, bag_paths, recover_file  # noqa: E402
 from hilsim.record.limits import BagSeries, human_bytes, stop_reason  # noqa: E402
@@ -135,6 +136,14 @@ REALTIME_QUEUE_LIMIT = 50_000
 QUIET_S = 0.25
 DRAIN_LIMIT_S = 5.0
 DELAY_ENV = "HILSIM_LOGGER_DELAY_US"  # fault injection: slow the receive callback (µs per sample)
+
+
+def _name_thread(name: bytes) -> None:
+    """Name the calling thread for the OS (``/proc/<pid>/task/<tid>/comm``, 15 bytes); Linux only, else nothing."""
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(15, ctypes.c_char_p(name[:15]), 0, 0, 0)  # PR_SET_NAME
+    except (OSError, AttributeError):
+        pass
 
 
 class LoggerService(Service):
@@ -433,7 +442,17 @@ class LoggerService(Service):
             return self.gaps + self.dropped
 
     # ------------------------------------------------------------------ the worker
+    def _ordinary_class(self) -> None:
+        """The worker (this thread) in the ordinary scheduling class: hilsim up gives the recorder's threads
+        SCHED_FIFO in realtime for its receiving; writing the files must not take a core from the loop."""
+        try:
+            if os.sched_getscheduler(0) != os.SCHED_OTHER:
+                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        except OSError:
+            pass
+
     def _work(self) -> None:
+        _name_thread(b"logger-worker")  # as the OS sees it: hilsim up leaves it out of SCHED_FIFO
         q = self._queue
         rows = self.rows
         assert rows is not None
@@ -446,6 +465,7 @@ class LoggerService(Service):
                 if self._worker_stop.is_set():
                     break
                 if rows.buffered and time.monotonic() - last_flush >= period:
+                    self._ordinary_class()
                     self._flush()
                     last_flush = time.monotonic()
                     if self._limit_reached():
@@ -454,6 +474,7 @@ class LoggerService(Service):
                 continue
             self._handle(key, payload, att, t)
             if rows.buffered >= FLUSH_ROWS or time.monotonic() - last_flush >= period:
+                self._ordinary_class()
                 self._flush()
                 last_flush = time.monotonic()
                 if self._limit_reached():
@@ -509,21 +530,14 @@ class LoggerService(Service):
                 self._published[key] = {k[10:]: int(v) for k, v in values.items()
                                         if k.startswith("published:") and v.isdigit()}
 
-    def _judged_lost(self, lost: Counter[str], received: Counter[str]) -> Counter[str]:
-        """The losses per key, no more than the key's services say they published and did not reach the
-        recorder: a gap left by a forged number (a writer's gid used by another process, and no sample of
-        its own after it) is no loss when every sample the writers published arrived."""
+    def _judged_lost(self, gaps: Counter[str], dropped: Counter[str], received: Counter[str]) -> Counter[str]:
+        """The losses per key, one count per cause (:func:`hilsim.record.loss.judged_lost`)."""
         published: Counter[str] = Counter()
         with self.lock:
             for counts in self._published.values():
                 published.update(counts)
-            own = Counter({k: received[k] - self.suspect[k] for k in received})
-            before = Counter(self.before_first)
-        out = Counter(lost)
-        for k, n in lost.items():
-            if n and k in published:
-                out[k] = min(n, max(0, published[k] - own[k] - before[k]))
-        return +out
+            suspect, before = Counter(self.suspect), Counter(self.before_first)
+        return loss.judged_lost(gaps, dropped, received, suspect, before, published)
 
     def _reject(self, key: str, e: Exception) -> None:
         with self.lock:
@@ -664,16 +678,6 @@ class LoggerService(Service):
                 self.log.info("latched %s: nothing from its publisher's cache yet, asked again", key)
         self._finish()
 
-    def expected(self) -> set[str]:
-        """The latched keys this run publishes once each at its start, which must be in the recording: physics'
-        ``/tf_static`` and every robot's ``robot_description`` (a robot with a URDF). Not every transient-local
-        writer's: an action's status is latched too, and says nothing until a goal comes."""
-        sc, out = self.sc, set()
-        if "physics" in sc.services and sc.world.urdf is not None:
-            robots = [Keys.of(sc, r) for r in fleet.robot_names(sc)]
-            out.update([self.keys.tf_static, *(k.topic("robot_description") for k in robots)])
-        return {k for k in out if self.routes.covers(k)}
-
     def teardown(self) -> None:
         self._finish()
 
@@ -738,12 +742,13 @@ class LoggerService(Service):
                 duplicates=Counter(self.duplicates), after_stop=Counter(self.after_stop),
                 suspect=Counter(self.suspect), contested=Counter())
         c.plain = self.routes.plain_keys()
-        c.expected = self.expected() if self.stopped is None else set()
-        gaps = self.lost()
-        c.lost = self._judged_lost(gaps, c.received)
+        c.expected = loss.expected_keys(self.sc, self.keys, self.routes.covers) if self.stopped is None else set()
+        with self.lock:
+            gaps = Counter(self.gaps)
+        c.lost = self._judged_lost(gaps, c.dropped, c.received)
         c.contested = self.contested()
         for k in gaps:  # gaps its writers' own counts say are not losses: said apart, as contested ones
-            c.contested[k] += gaps[k] - c.lost[k]
+            c.contested[k] += gaps[k] - (c.lost[k] - c.dropped[k])
         bag = self.sc.logger.bag
         stopped_at = self.stopped_at if self.stopped is not None else None
         tmp = self.summary_path.with_suffix(".json.tmp")

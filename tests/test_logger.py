@@ -320,7 +320,8 @@ def test_a_strangers_gaps_are_not_the_recorders_losses(
 
 @pytest.mark.parametrize("mode", ["realtime", "lockstep"])
 def test_launcher_summary_reports_losses(scenario: Any, tmp_path: Path, capsys: Any, mode: str) -> None:
-    """`hilsim up` shows what the recorder lost; a loss fails a lockstep run, not a realtime one."""
+    """`hilsim up` shows what the recorder lost, one count per cause; any loss fails a lockstep run, a realtime
+    one past ``logger.max_loss``."""
     from hilsim.run.launcher import Launcher, summarise
 
     sc = scenario("arm", {"clock.mode": mode, "duration": 1.0, "task.targets": []})
@@ -343,8 +344,24 @@ def test_launcher_summary_reports_losses(scenario: Any, tmp_path: Path, capsys: 
     assert ": truth/imu 101, clock 250" not in out and ": clock 250, truth/imu 101" in out, out
     # every service's own per-key published count shows what left no gap (after the last sample seen)
     assert "51 published samples never reached the recorder: clock 51\n" in out, out
-    assert rc == (0 if mode == "realtime" else 1) and out.rstrip().endswith("OK" if rc == 0 else "FAILED"), out
-    assert "not judged" not in out, out
+    # 402 of 2003 published missed (20.1 %): past logger.max_loss (5 %) a realtime run fails too, and says why
+    assert rc == 1 and "not judged" not in out, out
+    if mode == "realtime":
+        assert "the recording missed 20.1% of the samples (more than logger.max_loss, 5.0%)" in out, out
+        assert out.rstrip().endswith("result: FAILED (recording lost 20.1%)"), out
+        la.sc = scenario("arm", {"clock.mode": mode, "duration": 1.0, "task.targets": [], "logger.max_loss": 1.0})
+        assert summarise(la) == 0  # --allow-loss: said, not a failure (as before)
+        out = capsys.readouterr().out
+        assert "lost 351" in out and "missed" not in out and out.rstrip().endswith("OK"), out
+    else:
+        assert out.rstrip().endswith("result: FAILED") and "missed" not in out, out  # lockstep: any loss fails
+    # counts whose dropped part exceeds what is lost (a summary of before the fix): never a negative count
+    counts[clock]["dropped"] = 300
+    (tmp_path / "record_summary.json").write_text(json.dumps(counts))
+    summarise(la)
+    out = capsys.readouterr().out
+    assert "lost 351 (101 in transport, 250 dropped by the recorder)" in out, out
+    counts[clock]["dropped"] = 50
     # a service killed before its final health: what it counted as published and never sent (its unsent batch)
     # is no loss of the recorder's; said, not judged
     la.outcome.health["physics"].pop("final")
@@ -394,3 +411,30 @@ def test_the_recorders_summary_and_lines_say_every_count() -> None:
                       "7 samples after it not recorded")
     assert out[5] == ("lost 2 samples (realtime: the recorder could not keep up): 1 in transport, "
                       "1 dropped by the logger (queue full)")
+
+
+def test_losses_are_counted_once_per_cause_and_never_negative(scenario: Any, tmp_path: Path) -> None:
+    """The recorder's losses per key: what it dropped itself (exact) plus the gaps in its writers' sequences,
+    no more gaps than the writers' own counts leave unexplained. A summary once said
+    'lost 101920 (-3 in transport, 101923 dropped by the recorder)': the cap took in the dropped samples too."""
+    from collections import Counter
+
+    from hilsim.services.logger import LoggerService
+
+    sc = scenario("arm", {"logger.run_dir": str(tmp_path / "run")})
+    svc = LoggerService(sc)
+    k = Keys.of(sc).clock
+    # the writer says it published 1000; 600 arrived, 300 dropped at the full queue, gaps of 103 seen
+    svc._published = {"h": {k: 1000}}
+    lost = svc._judged_lost(Counter({k: 103}), Counter({k: 300}), Counter({k: 600}))
+    assert lost[k] == 100 + 300  # 100 gaps at most (1000 - 600 - 300), the 300 dropped once
+    # every sample the writer published arrived or was dropped: the gaps are no loss (forged numbers), drops are
+    lost = svc._judged_lost(Counter({k: 5}), Counter({k: 400}), Counter({k: 600}))
+    assert lost[k] == 400
+    # the writer's count short of what arrived and was dropped (its count taken before its last samples):
+    # the drops stand whole, the gaps count nothing (the old cap said 400 lost, 403 of them dropped: -3)
+    lost = svc._judged_lost(Counter({k: 2}), Counter({k: 403}), Counter({k: 600}))
+    assert lost[k] == 403
+    # a key no service counts for: gaps and drops as seen
+    other = Keys.of(sc).topic("cmd_vel")
+    assert svc._judged_lost(Counter({other: 7}), Counter({other: 2}), Counter({other: 10}))[other] == 9

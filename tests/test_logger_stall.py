@@ -1,4 +1,5 @@
-"""End to end: a recorder too slow for a realtime run loses samples, says so, and never slows physics."""
+"""End to end: a recorder too slow for a realtime run loses samples, says so, never slows physics, and the
+run fails for it (more lost than ``logger.max_loss``)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import re
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -37,8 +39,9 @@ def test_slow_recorder_loses_samples_but_never_slows_realtime_physics(tmp_path: 
         if p.poll() is None:
             os.killpg(p.pid, signal.SIGKILL)
         router.close()
-    # realtime: a loss is reported, it does not fail the run (3: --duration ended it before its task)
-    assert p.returncode == 3 and "result: STOPPED (duration)" in stdout, stdout
+    # realtime: a loss past logger.max_loss (5 %) fails the run and says why (--allow-loss: reported only)
+    assert p.returncode == 1 and re.search(r"^result: FAILED \(recording lost \d+\.\d%\)$", stdout, re.M), stdout
+    assert re.search(r"^  the recording missed \d+\.\d% of the samples \(more than logger.max_loss", stdout, re.M)
 
     # physics kept its deadlines, by its own figures
     rtf = float(stdout.split("real-time factor ")[-1].split(",")[0])
@@ -70,3 +73,50 @@ def test_slow_recorder_loses_samples_but_never_slows_realtime_physics(tmp_path: 
     logger_out = (out / "logger.out").read_text()
     assert f"recorded {Keys().clock}: received {clock['received']} recorded {clock['received']}" in logger_out
     assert f"lost {sum(lost.values())} in {len(counts)} keys" in logger_out, logger_out
+
+
+def test_a_realtime_recorder_receives_on_sched_fifo_and_a_quiet_run_passes(tmp_path: Path) -> None:
+    """Realtime with the run's own router: the recorder's receiving threads (Zenoh's) on SCHED_FIFO like the
+    loop's services, its writing (the worker, Rerun's threads) in the ordinary class and not niced; the run
+    loses less than logger.max_loss and is not failed for it."""
+    import psutil
+
+    out = tmp_path / "run"
+    p = subprocess.Popen([sys.executable, "-m", "hilsim.cli", "up", "arm", "--clock", "realtime", "--duration", "4",
+                          "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=REPO,
+                         start_new_session=True)
+    lines: list[str] = []
+    policies: dict[str, set[int]] = {}
+    try:
+        assert p.stdout is not None
+        for line in p.stdout:
+            lines.append(line)
+            if line.startswith("ready:"):
+                break
+        pid = int(re.search(r"logger \(pid (\d+)\)", "".join(lines))[1])  # type: ignore[index]
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and p.poll() is None:
+            policies = {}
+            for t in psutil.Process(pid).threads():
+                try:
+                    comm = Path(f"/proc/{pid}/task/{t.id}/comm").read_text().strip()
+                    policies.setdefault(comm, set()).add(os.sched_getscheduler(t.id))
+                except OSError:
+                    continue
+            if os.SCHED_FIFO in policies.get("net-0", set()) and "logger-worker" in policies:
+                break
+            time.sleep(0.2)
+        nice = psutil.Process(pid).nice()
+        rest, _ = p.communicate(timeout=240)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.communicate()
+    stdout = "".join(lines) + rest
+    if "SCHED_FIFO not permitted" in stdout or os.geteuid() != 0:
+        pytest.skip("SCHED_FIFO not permitted here")
+    assert policies.get("net-0") == {os.SCHED_FIFO}, policies  # Zenoh's receiving
+    assert policies.get("logger-worker") == {os.SCHED_OTHER}, policies  # the worker: writing the files
+    assert all(policies.get(n, {os.SCHED_OTHER}) == {os.SCHED_OTHER} for n in ("file_writer", "RecordingStream"))
+    assert nice == 0, nice
+    assert p.returncode == 3 and "result: STOPPED (duration)" in stdout and "missed" not in stdout, stdout

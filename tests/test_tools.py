@@ -151,15 +151,25 @@ def _tiny_bag(path: Path, n: int = 200) -> Path:
 
 def test_a_tool_against_an_empty_port_fails(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                             capsys: pytest.CaptureFixture[str]) -> None:
-    """Nothing listening there: play and topic stop with an error, never report an empty success."""
+    """Nothing listening there: play, topic and gains stop with an error saying plainly that no run is up (no
+    "joined …" first), never report an empty success; the same mistake, the same exit code (2) in each, as goal."""
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
     empty = f"tcp/127.0.0.1:{transport.free_port()}"
-    assert cli(["play", str(_tiny_bag(tmp_path / "bag")), "--connect", empty, "--rate", "0"]) == 1
+    assert cli(["play", str(_tiny_bag(tmp_path / "bag")), "--connect", empty, "--rate", "0"]) == 2
     err = capsys.readouterr().err
-    assert f"hilsim play: joined {empty} (no run of yours is known there)" in err, err
-    assert f"nothing answers at {empty}" in err and "played " not in err, err
-    assert cli(["topic", "list", "--connect", empty]) == 1
-    assert "nothing answers" in capsys.readouterr().err
+    assert f"hilsim play: no run is up: none of yours, and nothing answers at {empty}" in err, err
+    assert "joined" not in err and "played " not in err, err
+    assert cli(["topic", "list", "--connect", empty]) == 2
+    err = capsys.readouterr().err
+    assert f"hilsim topic list: no run is up: none of yours, and nothing answers at {empty}" in err, err
+    assert "joined" not in err, err
+    assert cli(["gains", "arm", "joint_2.kp=80", "--connect", empty]) == 2
+    assert "no run is up" in capsys.readouterr().err
+    assert cli(["gains", "arm"]) == 2  # reading back: from a run's files, and none is up
+    assert "no run of yours is up" in capsys.readouterr().err
+    # a mistake in what is asked: 2 before connecting anywhere
+    assert cli(["gains", "arm", "kp=80", "--connect", empty]) == 2
+    assert "'kp=80': expected JOINT.GAIN=NUMBER, a joint's name first" in capsys.readouterr().err
 
 
 def test_play_says_who_hears_it_and_counts_what_it_played(router: str, tmp_path: Path) -> None:
@@ -178,3 +188,81 @@ def test_play_says_who_hears_it_and_counts_what_it_played(router: str, tmp_path:
     assert res["deaf"] == [Keys().topic("joint_states")]  # the clock has a subscriber, the joint states none
     assert 0 < res["messages"] < len(items) and res["keys"] == 2, res
     assert 0.05 < res["sim_s"] < 0.15, res  # what was played, not the bag's 0.199 s
+
+
+@pytest.mark.e2e
+@pytest.mark.timeout(900)  # a tool's start reads the run's files: slow on a machine loaded many times over
+def test_gains_read_back_and_say_old_to_new_and_goal_counts_joints_first(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A run of yours up (its own router, its files): ``hilsim gains arm`` lists the gains the controller runs
+    with, a change prints old -> new and is listed after; a joint the run's robot has not, and a goal with
+    the wrong number of joints, are refused with exit code 2 before anything is sent."""
+    import signal
+
+    run = tmp_path / "run"
+    up = subprocess.Popen([sys.executable, "-m", "hilsim.cli", "up", "arm", "--interactive", "--out", str(run)],
+                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    lines: list[str] = []
+    try:
+        assert up.stdout is not None
+        for line in up.stdout:
+            lines.append(line)
+            if line.startswith("ready:"):
+                break
+        assert any(ln.startswith("ready:") for ln in lines), "".join(lines)
+        capsys.readouterr()
+
+        def tool(*args: str) -> tuple[int, str, str]:
+            rc = cli([*args, "--run", str(run)])
+            got = capsys.readouterr()
+            return rc, got.out, got.err
+
+        rc, out, err = tool("gains", "arm")
+        assert rc == 0, (out, err)
+        row = next(ln.split() for ln in out.splitlines() if ln.startswith("joint_2 "))
+        assert row[1:4] == ["32.81", "0", "5.594"], out  # config/arm.yaml's kp, ki, kd
+        rc, out, err = tool("gains", "arm", "joint_2.kp=80")
+        assert rc == 0 and "  joint_2.kp: 32.81 -> 80" in out, (out, err)
+        rc, out, err = tool("gains", "arm")
+        assert next(ln.split() for ln in out.splitlines() if ln.startswith("joint_2 "))[1] == "80", out
+        rc, out, err = tool("gains", "arm", "joint_9.kp=1")
+        assert rc == 2 and "unknown joint 'joint_9'" in err and "joined" not in err, (out, err)
+        rc, out, err = tool("goal", "arm", "--joints", "0.1", "0.2")
+        assert rc == 2 and "--joints: 2 values, but arm has 6 joints" in err, (out, err)
+        assert "joined" not in err, err  # before connecting
+    finally:
+        up.send_signal(signal.SIGINT)
+        try:
+            up.communicate(timeout=120)
+        except subprocess.TimeoutExpired:
+            os.killpg(up.pid, signal.SIGKILL)
+            up.communicate()
+
+
+def test_every_option_says_what_it_does() -> None:
+    """Help text for every option and argument of every command (units and defaults where they have them),
+    and ``hilsim --version``."""
+    import argparse
+
+    from hilsim import __version__
+    from hilsim.cli import build_parser
+
+    def silent(p: argparse.ArgumentParser, path: str) -> list[str]:
+        out = []
+        for a in p._actions:
+            if isinstance(a, argparse._SubParsersAction):
+                for name, sp in a.choices.items():
+                    out += silent(sp, f"{path} {name}")
+            elif a.help is None:
+                out.append(f"{path} {'/'.join(a.option_strings) or a.dest}")
+        return out
+
+    # `hilsim creds` is issue 41's (security): its names are positional and said by the command's help
+    assert [m for m in silent(build_parser(), "hilsim") if not m.startswith("hilsim creds")] == []
+    # the README's command table names every benchmark (bench ros2 was missing)
+    bench = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices["bench"]
+    names = next(a for a in bench._actions if isinstance(a, argparse._SubParsersAction)).choices
+    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text()
+    assert [n for n in names if f"`hilsim bench {n}" not in readme] == []
+    got = subprocess.run([sys.executable, "-m", "hilsim.cli", "--version"], capture_output=True, text=True, timeout=60)
+    assert got.returncode == 0 and got.stdout.strip() == f"hilsim {__version__}", got

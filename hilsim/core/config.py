@@ -272,6 +272,10 @@ class LoggerConfig(_Model):
                                     "this many seconds of receive time (as rosbag2's --max-bag-duration; 0: none)")
     max_size: int = Field(0, ge=0, description="cap on the run's recording (recording.rrd and bag/ together, "
                           "bytes; '2GB' too): the recorder stops recording there and the run goes on (0: no cap)")
+    max_loss: float = Field(0.05, ge=0, le=1, description="realtime: the largest fraction of the published samples "
+                            "the recording may miss (lost in transport, dropped by the recorder, never reached it); "
+                            "more fails the run, 'result: FAILED (recording lost N %)' (1: never; hilsim up "
+                            "--allow-loss). Lockstep loses nothing, whatever this says")
     min_free: int = Field(500 * 1000**2, ge=0, description="the recorder stops recording (the run goes on) before "
                           "the free space of the run directory's file system falls below this many bytes ('1GB' "
                           "too; 0: only a full disk stops it)")

@@ -283,17 +283,43 @@ def tool_zenoh(connect: str | None = None) -> ZenohConfig:
     return tool_target(connect).zenoh
 
 
+def run_joints(run: RunPointer) -> list[str]:
+    """The joints of the robot of a run of this user that is up, from its resolved scenario (its world model's
+    actuated joints); empty if its files cannot say (the tool then leaves the check to the service)."""
+    from hilsim.core.scenario import load_scenario, model_joints
+
+    try:
+        return model_joints(load_scenario(str(run.run_dir / "scenario.yaml")))
+    except (OSError, ConfigError, ValueError):
+        return []
+
+
+def no_run_up(tool: str, where: str) -> str:
+    """What a tool says when no run of this user is known and nothing answers where it tried."""
+    return (f"{tool}: no run is up: none of yours, and nothing answers at {where} (start one with hilsim up; "
+            "or name one with --run DIR or --connect ENDPOINT)")
+
+
 def open_tool_session(connect: str | None = None, *, run: str | Path | None = None, tool: str | None = None,
                       wait: float = 2.0) -> zenoh.Session:
     """A session for a tool (:func:`tool_target`). With ``tool`` (its name, e.g. ``hilsim topic``), its first
     line on standard error names the run it joined, and a session that reaches nobody within ``wait``
     seconds (no router, no peer: an empty port) is a ConnectionError instead of a quiet tool."""
     target = tool_target(connect, run, tool or "hilsim")
-    if tool is not None:
+    if tool is not None and target.run is not None:
         print(f"{tool}: {target.describe()}", file=sys.stderr, flush=True)
-    session = open_session(target.zenoh)
+    where = ", ".join(target.zenoh.connect)
+    try:
+        session = open_session(target.zenoh)
+    except ConnectionError:
+        if tool is None or target.run is not None:
+            raise
+        raise ConnectionError(no_run_up(tool, where)) from None
     if tool is not None and not connected(session, wait):
         session.close()
-        raise ConnectionError(f"nothing answers at {', '.join(target.zenoh.connect)} (no router or simulation "
-                              "there; is the run up?)")
+        if target.run is None:  # said plainly, not as a join that then fails
+            raise ConnectionError(no_run_up(tool, where))
+        raise ConnectionError(f"{tool}: nothing answers at {where} (the run's router is gone?)")
+    if tool is not None and target.run is None:
+        print(f"{tool}: {target.describe()}", file=sys.stderr, flush=True)
     return session

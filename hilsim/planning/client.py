@@ -177,8 +177,15 @@ def cmd_goal(args: argparse.Namespace) -> int:
         print(f"hilsim goal: {e}", file=sys.stderr)
         return 2
     keys = runs.tool_keys(args.robot, args.prefix)
+    target = runs.tool_target(args.connect, getattr(args, "run", None), "hilsim goal")
+    joints = runs.run_joints(target.run) if target.run is not None and args.joints is not None else []
+    if joints and len(args.joints) != len(joints):  # the run is known: the mistake is said before connecting
+        print(f"hilsim goal: --joints: {len(args.joints)} values, but {args.robot} has {len(joints)} joints "
+              f"({', '.join(joints)})", file=sys.stderr)
+        return 2
     try:
-        session = runs.open_tool_session(args.connect, run=getattr(args, "run", None), tool="hilsim goal")
+        session = runs.open_tool_session(args.connect, run=target.run.run_dir if target.run else None,
+                                         tool="hilsim goal")
     except ConnectionError as e:
         print(f"hilsim goal: {e}", file=sys.stderr)
         return 2

@@ -83,6 +83,9 @@ LOGGER_NICE = 10
 ROUTER_PRIORITY = 5  # realtime: SCHED_FIFO of the run's router (physics 10, the HIL bridges 20)
 LOOP_PRIORITY = 8  # realtime: SCHED_FIFO the launcher gives the loop's services that asked for none
 PLANNING_PRIORITY = 1  # …and the planner or navigator: below every other, its plans are bursts of CPU
+LOGGER_PRIORITY = 1  # realtime: the recorder's receiving (its worker stays in the ordinary class)
+# the recorder's writing threads (its worker, Rerun's), left in the ordinary class
+RERUN_THREADS = ("logger-worker", "ChunkBatcher", "RecordingStream", "file_writer", "jemalloc")
 RESTART_READY_TIMEOUT = 120.0  # wall seconds a restarted service has to announce itself
 REMOTE_LEAVE_TIMEOUT = 10.0  # s the recorder waits, at a run's end, for the other hosts' services to leave
 REMOTE_MISSES = 2  # --only: polls in a row that must miss a remote service's token before it has left
@@ -121,12 +124,14 @@ def _pdeathsig() -> None:
         pass
 
 
-def _realtime_process(pid: int, priority: int) -> bool:
+def _realtime_process(pid: int, priority: int, skip: tuple[str, ...] = ()) -> bool:
     """Give every thread of a process that has an ordinary scheduling class SCHED_FIFO ``priority``
-    (threads it makes later inherit it; one that asked for its own class keeps it). False: not
-    permitted (root or CAP_SYS_NICE) or gone."""
+    (threads it makes later inherit it; one that asked for its own class keeps it), but those whose name
+    starts with one of ``skip``. False: not permitted (root or CAP_SYS_NICE) or gone."""
     try:
         for tid in os.listdir(f"/proc/{pid}/task"):
+            if skip and Path(f"/proc/{pid}/task/{tid}/comm").read_text().startswith(skip):
+                continue
             if os.sched_getscheduler(int(tid)) == os.SCHED_OTHER:
                 os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(priority))
     except OSError:
@@ -357,8 +362,16 @@ class Launcher:
                     planning = {"planner", "navigator"}.intersection(u.split("@")[0] for u in units)
                     _realtime_process(c.proc.pid, PLANNING_PRIORITY if planning and len(units) == 1
                                       else LOOP_PRIORITY)
-                if name == "logger":
-                    # The recorder runs at a lower CPU priority once it is set up: it buffers what it
+                if name == "logger" and self.sc.clock.mode == "realtime":
+                    # Realtime: the recorder's receiving on SCHED_FIFO like the loop's services (lowest), so that
+                    # no other work on the machine makes it drop samples; its worker (writing the files, the
+                    # bulk of its CPU) puts itself back to the ordinary class (services/logger.py), and is not
+                    # niced: its queue is bounded, what it cannot write in time is lost. Niced, two runs' recorders
+                    # each lost a quarter of their samples.
+                    if self._router is not None:
+                        _realtime_process(c.proc.pid, LOGGER_PRIORITY, skip=RERUN_THREADS)
+                elif name == "logger":
+                    # Lockstep: the recorder runs at a lower CPU priority once it is set up: it buffers what it
                     # receives, so on a small machine the loop's services get the cores first and it
                     # catches up when idle. Not before: niced from its start, on a machine busy with
                     # other work it took minutes to import and set up, and the whole run (and a HIL
@@ -701,6 +714,8 @@ def up_overrides(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, st
         overrides["duration"], origins["duration"] = args.duration, f"--duration {args.duration:g}"
     if args.seed is not None:
         overrides["seed"], origins["seed"] = args.seed, f"--seed {args.seed}"
+    if getattr(args, "allow_loss", False):
+        overrides["logger.max_loss"], origins["logger.max_loss"] = 1.0, "--allow-loss"
     if getattr(args, "wait", None) is not None:  # physics waits as long as the launcher does
         overrides["clock.start_timeout"], origins["clock.start_timeout"] = args.wait, f"--wait {args.wait:g}"
     if getattr(args, "view", False) or getattr(args, "view_host", None):  # the recorder's live stream

@@ -11,7 +11,8 @@ messages per key counted in its files against what the recorder received; a reco
 
 - ``OK`` (0): every target reached (or a run without a task ended as planned), nothing failed;
 - ``FAILED`` (1): a target missed, a fault reported, a service died or never announced itself, the
-  lockstep stalled, or the recording is not whole;
+  lockstep stalled, or the recording is not whole (lockstep: anything lost, an expected latched topic
+  missing; realtime: more of the samples missed than ``logger.max_loss``, ``FAILED (recording lost N %)``);
 - ``STOPPED (duration) 1/3 targets`` (3): ``--duration`` ended the run before its task, and
   nothing failed until then;
 - ``INTERRUPTED (SIGINT) 1/3 targets`` (128 + the signal: 130, SIGTERM 143): a stop signal ended
@@ -117,6 +118,7 @@ def summarise(la: FinishedRun) -> int:
             print(f"  {name}: {h['suspect']} suspect samples (a writer's id in samples out of its order: delivered, "
                   "its gaps not counted as lost; docs/keys.md)")
     rrd = la.run_dir / "recording.rrd"
+    lost_share: float | None = None  # realtime: the share of the samples the recording missed, past logger.max_loss
     if any("logger" in u.split("+") for u in la.local):  # a recorder on another host summarises there
         # a recorder that died left no footer (and no counts): make its file whole, say what it holds
         logger_restarted = any(r.name == "logger" for r in o.restarts)
@@ -129,7 +131,9 @@ def summarise(la: FinishedRun) -> int:
             recv = sum(v.get("received", 0) for v in counts.values())
             mismatch = sorted(k for k, v in counts.items() if v.get("received") != v.get("recorded"))
             lost = {k: v["lost"] for k, v in counts.items() if v.get("lost")}
-            n_lost, n_full = sum(lost.values()), sum(v.get("dropped", 0) for v in counts.values())
+            # one count per cause: dropped by the recorder (a part of lost), the rest lost in transport
+            n_lost = sum(lost.values())
+            n_full = sum(min(v.get("dropped", 0), v.get("lost", 0)) for v in counts.values())
             realtime = sc.clock.mode == "realtime"
 
             def short(key: str) -> str:  # keys as the user names them: clock, truth/joint_states, …
@@ -209,6 +213,13 @@ def summarise(la: FinishedRun) -> int:
                 keys = ", ".join(f"{short(k)} {n}" for k, n in top[:8]) + (", …" if len(top) > 8 else "")
                 print(f"  {sum(unseen.values())} published samples never reached the recorder: {keys}")
                 n_lost += sum(unseen.values())
+            # realtime: what the recording missed of what was published, against logger.max_loss
+            missed = n_lost
+            share = missed / max(1, recv + missed)
+            if realtime and not logger_restarted and stopped is None and share > sc.logger.max_loss:
+                lost_share = share
+                print(f"  the recording missed {share:.1%} of the samples (more than logger.max_loss, "
+                      f"{sc.logger.max_loss:.1%}): a failure (--allow-loss: said, not a failure)")
             if logger_restarted:
                 # what the killed recorder had received is in its part of the recording, but its
                 # counts died with it, and what it had not flushed yet is lost: reported, not
@@ -217,7 +228,7 @@ def summarise(la: FinishedRun) -> int:
                       "one had not written yet are lost)")
                 n_lost = 0
             # realtime: a loss is reported, not a failure; lockstep promises that nothing is lost
-            ok = ok and not mismatch and (realtime or not n_lost) and (realtime or not missing)
+            ok = ok and not mismatch and (realtime or not n_lost) and (realtime or not missing) and lost_share is None
         elif "logger" in o.killed:  # by a second stop signal: its counts died with it
             print("  recording summary missing (the recorder was killed)")
         else:
@@ -250,6 +261,8 @@ def summarise(la: FinishedRun) -> int:
         code = 128 + sig
     elif not ok:
         verdict, code = "FAILED", EXIT_FAILED
+        if lost_share is not None:
+            verdict += f" (recording lost {lost_share:.1%})"
     elif cut:
         verdict, code = f"STOPPED (duration){targets}", EXIT_STOPPED
     else:

@@ -292,17 +292,24 @@ def cmd_play(args: argparse.Namespace) -> int:
     domain = args.domain if args.domain is not None else int(items[0].key.split("/", 1)[0])
     run = getattr(args, "run", None)
     target = runs.tool_target(args.connect, run, "hilsim play")
-    print(f"hilsim play: {target.describe()}", file=sys.stderr, flush=True)
+    if target.run is not None:
+        print(f"hilsim play: {target.describe()}", file=sys.stderr, flush=True)
+    where = ", ".join(target.zenoh.connect)
     try:
         session = transport.open_session(target.zenoh)
     except ConnectionError as e:
-        print(f"hilsim play: {e}", file=sys.stderr)
-        return 1
+        print(runs.no_run_up("hilsim play", where) if target.run is None else f"hilsim play: {e}", file=sys.stderr)
+        return 2
     try:
         if not transport.connected(session, 2.0):
-            print(f"hilsim play: nothing answers at {', '.join(target.zenoh.connect)} (no router or simulation "
-                  "there; is the run up?): nothing played", file=sys.stderr)
-            return 1
+            if target.run is None:
+                print(runs.no_run_up("hilsim play", where) + ": nothing played", file=sys.stderr)
+            else:
+                print(f"hilsim play: nothing answers at {where} (the run's router is gone?): nothing played",
+                      file=sys.stderr)
+            return 2
+        if target.run is None:
+            print(f"hilsim play: {target.describe()}", file=sys.stderr, flush=True)
         keys = sorted({i.key for i in items} | ({Keys(domain=domain).clock} if args.clock else set()))
         explicit = bool(run or args.connect or os.environ.get("HILSIM_ZENOH_CONNECT"))
         refused = refusal(session, keys, domain, target.run, explicit)
