@@ -363,7 +363,7 @@ def build_parser() -> argparse.ArgumentParser:
     bp.set_defaults(func=_lazy("hilsim.planning.bench", "cmd_bench"))
     bch = bsub.add_parser("choice", help="planner: auto: the model's load and the decision's time (p50/p95/p99) "
                           "on the held-out queries, against its 5 ms bound")
-    bch.add_argument("--json", action="store_true")
+    bch.add_argument("--json", action="store_true", help="print the figures as one JSON object")
     bch.add_argument("--scenes", help="queries to decide on (default models/planner_choice/heldout/scenes.yaml)")
     bch.add_argument("--repeat", type=int, default=5, help="decisions per query (default 5)")
     bch.add_argument("--scenario", default="arm", help="the scenario whose library's auto decides (default arm)")
