@@ -9,10 +9,22 @@ physics truth of the same step: ``truth/joint_states`` at the message's stamp, f
 from __future__ import annotations
 
 import json
+import math
+import os
+import signal
 import struct
+import subprocess
+import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
+
+import pytest
+
+from hilsim.core import transport
+from hilsim.core.scenario import load_scenario
+from tests.util import REPO, finish, up
 
 WANTED = ("/arm/joint_states", "/tf", "/tf_static", "/arm/robot_description")
 
@@ -40,6 +52,125 @@ def _truth(run: Path) -> dict[int, list[float]]:
             s = m.ros_msg.header.stamp
             out[s.sec * 1_000_000_000 + s.nanosec] = list(m.ros_msg.position)
     return out
+
+
+@pytest.mark.e2e
+@pytest.mark.timeout(1200)
+def test_a_foxglove_client_sees_the_arm_as_the_physics_has_it(tmp_path: Path) -> None:
+    import websockets.sync.client as ws_client
+    from rosbags.typesys import Stores, get_typestore
+
+    run = tmp_path / "run"
+    port = transport.free_port()
+    p = up("arm", "--interactive", "--foxglove", str(port), "--out", str(run), "--wait", "600")
+    lines: list[str] = []
+    url = ""
+    assert p.stdout is not None
+    for line in p.stdout:
+        lines.append(line)
+        if line.startswith("foxglove: "):
+            url = line.split(" ", 1)[1].strip()
+            break
+    assert url == f"ws://127.0.0.1:{port}", "".join(lines)  # loopback by default
+    rest: list[str] = []
+    reader = threading.Thread(target=lambda: rest.extend(p.stdout), daemon=True)  # type: ignore[arg-type]
+    reader.start()
+    target = load_scenario("arm").task.targets[0]
+    got: dict[str, list[bytes]] = {t: [] for t in WANTED}
+    channels: dict[str, dict[str, Any]] = {}
+    goal: dict[str, Any] = {}
+    try:
+        with ws_client.connect(url, subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"],  # type: ignore[list-item]
+                               max_size=None, open_timeout=60) as ws:
+            subs: dict[int, str] = {}
+            near, jdec = False, None
+            end = time.monotonic() + 400
+            while time.monotonic() < end:
+                msg = ws.recv(timeout=60)
+                if isinstance(msg, str):
+                    j = json.loads(msg)
+                    if j.get("op") != "advertise":
+                        continue
+                    new = []
+                    for c in j["channels"]:
+                        if c["topic"] in WANTED and c["topic"] not in channels:
+                            channels[c["topic"]] = c
+                            sid = len(subs) + 1
+                            subs[sid] = c["topic"]
+                            new.append({"id": sid, "channelId": c["id"]})
+                    if new:
+                        ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
+                    if "/arm/joint_states" in channels and "goal" not in goal:  # the arm moves while we watch
+                        def send() -> None:
+                            goal["out"] = subprocess.run(
+                                [sys.executable, "-m", "hilsim.cli", "goal", "arm", "--joints", *map(str, target),
+                                 "--run", str(run)], capture_output=True, text=True, timeout=300, cwd=REPO)
+                        goal["goal"] = threading.Thread(target=send, daemon=True)
+                        goal["goal"].start()
+                    continue
+                assert msg[0] == 0x01, msg[:1]  # message data: opcode, subscription id, log time, payload
+                sid, _log_ns = struct.unpack_from("<IQ", msg, 1)
+                got[subs[sid]].append(bytes(msg[13:]))
+                if subs[sid] == "/arm/joint_states":  # how far the client has seen the arm go
+                    jdec = jdec or _decoders({"j": channels["/arm/joint_states"]})["j"]
+                    near = abs(jdec(msg[13:]).position[0] - target[0]) < 0.02
+                # the goal ended, and this client has watched the arm reach it (its stream may lag behind)
+                if "goal" in goal and not goal["goal"].is_alive() and near and len(got["/tf"]) > 20:
+                    break
+            else:
+                raise AssertionError(f"the goal did not end while watching: {goal}")
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGINT)
+        out = finish(p, 300)
+        reader.join(5)
+    text = "".join(lines + rest) + out
+    assert "result: OK" in text, text
+    assert goal["out"].returncode == 0, goal["out"]
+    assert not (run / "foxglove.json").exists()  # the server stopped with the run
+
+    dec = _decoders(channels)
+    assert channels["/arm/joint_states"]["schemaName"] == "sensor_msgs/msg/JointState"
+    assert channels["/tf"]["schemaName"] == "tf2_msgs/msg/TFMessage"
+    # latched topics: given to a subscriber that came after they were put, as a transient-local publisher does
+    assert got["/tf_static"] and got["/arm/robot_description"], {t: len(v) for t, v in got.items()}
+    urdf = dec["/arm/robot_description"](got["/arm/robot_description"][0]).data
+    assert "<robot" in urdf and "joint_1" in urdf
+    store = get_typestore(Stores.ROS2_JAZZY)
+    truth = _truth(run)
+    matched, moved = 0, []
+    for payload in got["/arm/joint_states"]:
+        m = dec["/arm/joint_states"](payload)
+        other = store.deserialize_cdr(payload, "sensor_msgs/msg/JointState")  # another implementation, same bytes
+        assert list(other.position) == list(m.position) and other.name == list(m.name)
+        t = m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
+        if t not in truth:
+            continue
+        matched += 1
+        err = max(abs(a - b) for a, b in zip(m.position, truth[t], strict=True))
+        assert err < 1e-3, (t, list(m.position), truth[t])  # the encoder's resolution and noise, no more
+        moved.append(truth[t][0])
+    assert matched >= 100, (matched, len(got["/arm/joint_states"]))
+    assert max(moved) - min(moved) > 0.1, "the arm did not move while the client watched"
+    # /tf: the first joint's transform is a rotation about z by the true joint_1 of the same step
+    checked = 0
+    for payload in got["/tf"]:
+        m = dec["/tf"](payload)
+        other = store.deserialize_cdr(payload, "tf2_msgs/msg/TFMessage")
+        assert [x.child_frame_id for x in other.transforms] == [x.child_frame_id for x in m.transforms]
+        for x in m.transforms:
+            if x.child_frame_id != "shoulder_link":
+                continue
+            t = x.header.stamp.sec * 1_000_000_000 + x.header.stamp.nanosec
+            if t in truth:
+                r = x.transform.rotation
+                angle = 2 * math.atan2(r.z, r.w)
+                d = (angle - truth[t][0] + math.pi) % (2 * math.pi) - math.pi
+                assert abs(d) < 1e-6, (t, angle, truth[t][0])
+                checked += 1
+    assert checked >= 10, (checked, len(got["/tf"]))
+    print(f"foxglove: {matched} joint states and {checked} transforms matched the truth of their step; "
+          f"joint_1 moved over {max(moved) - min(moved):.3f} rad while watched")
 
 
 def test_the_server_speaks_the_protocol_and_gives_latched_topics_to_late_subscribers() -> None:
