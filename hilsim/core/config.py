@@ -211,7 +211,8 @@ class ControllerConfig(_Model):
 
 
 class PlannerConfig(_Model):
-    planner: str = Field("rrtstar", description="default planner, by name in the planner library")
+    planner: str = Field("improved_rrtstar", description="default planner, by name in the planner library (the "
+                         "paper's improved RRT*; RRT-Connect's path when it finds none: ±2π and continuous joints)")
     planning_time: float = Field(1.0, gt=0, description="wall seconds per plan (realtime)")
     clearance: float = Field(0.005, ge=0, description="minimum distance to obstacles [m]")
     rate_hz: float = Field(100.0, gt=0, description="how often the planner decides (starts goals, monitors)")
