@@ -238,15 +238,22 @@ class ImprovedRRTStar:
             goal_node = prev
 
         seeded = ""
+        def spent() -> bool:
+            """Time for the first path: the iteration budget in lockstep; in realtime (no iteration budget)
+            half the wall time, so that the other half is left to find and improve one."""
+            if budget.max_it is not None:
+                return budget.iterations >= budget.max_it
+            return budget.elapsed() >= budget.time_limit / 2
+
         while not budget.done(goal_node >= 0):
-            if (goal_node < 0 and self.first_path is not None and budget.max_it is not None and not seeded
-                    and budget.iterations >= budget.max_it):
+            if goal_node < 0 and self.first_path is not None and not seeded and spent():
                 first = self.first_path(pb)
                 budget.iterations += first.iterations
                 seeded = getattr(getattr(self.first_path, "__self__", None), "name", "another planner")
                 if first.path is not None and np.array_equal(first.path[-1], goal):
                     seed_path(np.asarray(first.path, float))
-                    budget.max_it = budget.iterations + budget.max_it  # a budget more to improve it
+                    if budget.max_it is not None:
+                        budget.max_it = budget.iterations + budget.max_it  # a budget more to improve it
                     continue
             iterate()
         elapsed = budget.elapsed()
