@@ -296,7 +296,89 @@ def test_the_import_tunes_a_joint_with_the_projects_tuner(ur5: Path, tmp_path: P
     assert len(lines) == 1 and lines[0].startswith("  wrist_3_joint: kp ") and "target missed" not in lines[0], lines
 
 
+@pytest.mark.e2e
+@pytest.mark.timeout(600)  # the import (shared) and a realtime run of seven processes
+def test_the_ur5_reaches_its_targets_with_its_first_joint_on_a_can_drive(ur5: Path, router: str,
+                                                                          tmp_path: Path) -> None:
+    """``hil-can.yaml`` as written by the import: realtime, seven processes, the shoulder pan joint served over
+    udp_multicast CAN (a port of this test's own) by the bridge and the emulated drive: every target reached in
+    the physics truth, and the joint in the truth is what the drive's encoder estimates said."""
+    import random
+    import threading
+
+    import zenoh
+    from util import finish, up
+
+    from hilsim.core import msgs, transport
+    from hilsim.core.config import ZenohConfig
+    from hilsim.core.keys import Keys
+
+    hil = ur5 / "hil-can.yaml"
+    sc = load_scenario(ur5 / "ur5.yaml", overlays=[hil])
+    keys = Keys.of(sc)
+    lock = threading.Lock()
+    truth: list[tuple[int, list[float]]] = []
+    served: set[float] = set()
+    first: list[int] = []
+    results: dict[str, tuple[int, bool]] = {}
+
+    def on_truth(s: zenoh.Sample) -> None:
+        m = msgs.decode(msgs.JointState, s.payload.to_bytes())
+        with lock:
+            truth.append((msgs.ns_of(m.header.stamp), list(m.position)))
+
+    def on_server(s: zenoh.Sample) -> None:
+        m = msgs.decode(msgs.JointState, s.payload.to_bytes())
+        with lock:
+            served.add(m.position[0])
+            first.append(msgs.ns_of(m.header.stamp))
+
+    def on_result(s: zenoh.Sample) -> None:
+        m = msgs.decode(msgs.MoveResult, s.payload.to_bytes())
+        with lock:
+            results[m.goal_id] = (msgs.ns_of(m.header.stamp), m.success)
+
+    session = transport.open_session(ZenohConfig(connect=[router]))
+    subs = [session.declare_subscriber(keys.truth("joint_states"), on_truth),
+            session.declare_subscriber(keys.server_state("bridge-can"), on_server),
+            session.declare_subscriber(keys.topic("planner/result"), on_result)]
+    try:
+        port = random.SystemRandom().randint(20000, 60000)  # a bus of this test's own
+        p = up(str(ur5 / "ur5.yaml"), "--hil", str(hil), "--router", router, "--no-logger", "--out",
+               str(tmp_path / "run"), "--set", f"bridge-can.bus.port={port}",
+               "--set", "bridge-can.heartbeat_misses=10")  # a starved drive process is not what is tested
+        out = finish(p, 420)
+    finally:
+        for sub in subs:
+            sub.undeclare()
+        session.close()
+    # a fault makes the run FAILED (README: exit codes), even one the bridge recovered from
+    assert p.returncode == (1 if "  fault: " in out else 0), out
+    assert "bridge-can (pid " in out and "drive-emulator (pid " in out and "clock realtime" in out, out
+    assert "targets reached: 3/3" in out, out
+    for i, target in enumerate(sc.task.targets, 1):
+        stamp, ok = results[f"task-{i}"]
+        assert ok
+        at = min(truth, key=lambda t: abs(t[0] - stamp))[1]
+        err = np.abs(np.asarray(at) - np.asarray(target))
+        assert err.max() <= sc.task.tolerance + 0.002, (i, err)
+    # physics moved the shoulder only where the drive said it was
+    followed = [pos[0] for t, pos in truth if t > min(first) + 20_000_000]
+    foreign = [x for x in followed if x not in served]
+    assert len(served) > 500 and len(followed) > 5000, (len(served), len(followed))
+    assert len(foreign) <= len(followed) // 1000, f"physics moved shoulder_pan_joint by itself: {len(foreign)}"
+    assert max(followed) - min(followed) > 1.0  # it really moved (the targets span 2.6 rad)
+    log = (tmp_path / "run" / "bridge-can.log").read_text()
+    assert "shoulder_pan_joint (node 0) in closed-loop control (position)" in log, log
+
+
 def test_the_import_writes_a_can_overlay_for_its_first_joint(ur5: Path) -> None:
     sc = load_scenario(ur5 / "ur5.yaml", overlays=[ur5 / "hil-can.yaml"])
     assert sc.clock.mode == "realtime" and "drive-emulator" in sc.services
     assert sc.joint("shoulder_pan_joint").server == "bridge-can" and sc.joint("elbow_joint").server == "sim"
+    # the lean rates (a small machine keeps the wall clock), the drive where physics starts, bounded by the
+    # URDF's shoulder (velocity 3.15 rad/s; effort 150 N·m over its inertia)
+    assert sc.clock.dt == 0.002 and sc.controller.rate_hz == 250
+    drive = sc.section("drive-emulator")
+    assert drive["initial_position"] == {"shoulder_pan_joint": 0} and drive["max_velocity"] == 3.15, drive
+    assert 5 < drive["max_acceleration"] < 150, drive
