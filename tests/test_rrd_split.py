@@ -103,7 +103,7 @@ def test_a_split_recording_holds_every_sample_once(tmp_path: Path, capsys: Any, 
     assert [ln.split()[2] for ln in closed] == [f.name for f in files[:-1]], out
     assert f"recording on in {files[1].name}" in closed[0] and "up to sim time" in closed[0], closed
     assert any(ln.startswith("  logger: closed bag/bag_0.mcap") for ln in out.splitlines()), out
-    assert f"recording: {run / 'recording.rrd'} and {len(files) - 1} more files" in out, out
+    assert f"recording: {run / 'recording.rrd'} and {len(files) - 1} more file" in out, out
     assert "closed recording.rrd" in (run / "logger.log").read_text()
 
     r = subprocess.run([rerun_executable(), "rrd", "verify", *map(str, files)], capture_output=True, text=True,

@@ -236,7 +236,8 @@ def summarise(la: FinishedRun) -> int:
             ok = False
         parts = recording_parts(la.run_dir)
         if len(parts) > 1:  # split (logger.max_rrd_size, a restarted recorder): one recording for Rerun's viewer
-            print(f"  recording: {rrd} and {len(parts) - 1} more files ({', '.join(p.name for p in parts[1:4])}"
+            more = f"{len(parts) - 1} more file" + ("s" if len(parts) > 2 else "")
+            print(f"  recording: {rrd} and {more} ({', '.join(p.name for p in parts[1:4])}"
                   f"{', …' if len(parts) > 4 else ''}; opened together: hilsim view {la.run_dir})")
         else:
             print(f"  recording: {rrd}")
