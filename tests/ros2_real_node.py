@@ -17,6 +17,7 @@ published it). With ``use_sim_time`` its clock is the simulation's.
 """
 
 import argparse
+import hashlib
 import json
 import math
 import sys
@@ -195,7 +196,8 @@ def main() -> int:
     if "robot_description" in last:
         text = last["robot_description"].data
         seen["robot_description"] = {"bytes": len(text), "robot": "<robot " in text,
-                                     "whole": text.rstrip().endswith("</robot>")}
+                                     "whole": text.rstrip().endswith("</robot>"),
+                                     "sha256": hashlib.sha256(text.encode()).hexdigest()}
     for k in ("odom", "truth_odom"):
         if k in last:
             m = last[k]

@@ -250,6 +250,41 @@ def test_the_panda_with_its_gripper_runs_its_targets_in_another_order(panda: Pat
     _run_and_judge(panda / "panda.yaml", "panda", tmp_path, targets)
 
 
+@pytest.mark.e2e
+@pytest.mark.serial  # as tests/test_ros2_real.py: DDS in a network namespace
+@pytest.mark.timeout(600)
+def test_a_real_ros2_node_reads_and_drives_the_imported_ur5_over_dds(ur5: Path, tmp_path: Path) -> None:
+    """The DDS bridge (``--hil config/ros2/dds.yaml``) for an imported arm: a real rclpy node (Jazzy, Fast DDS,
+    tests/ros2_real_node.py) reads /ur5/joint_states with the URDF's joint names, the lab's URDF on
+    /ur5/robot_description, /clock and the IMU, and drives the arm with a JointTrajectory: the truth ends there."""
+    import hashlib
+
+    from test_ros2_real import check_common, node, seen_by, start, stop
+    from util import lan_netns
+
+    sc = load_scenario(ur5 / "ur5.yaml")
+    home, first = np.asarray(sc.world.home), np.asarray(sc.task.targets[0])
+    target = home + 0.3 * (first - home)  # a short straight move, collision-free all the way (checked)
+    arm = ArmModel(ur5 / "ur5.xml", clearance=0.0)
+    assert all(arm.why_invalid(home + s * (target - home)) is None for s in np.linspace(0, 1, 11))
+    with lan_netns("ur5") as ns:
+        run, lines = start(ns, tmp_path, str(ur5 / "ur5.yaml"), "--interactive", "--clock", "lockstep", "--set",
+                           "bridge-ros2-dds.to_dds=[joint_states,truth/joint_states,imu,/clock,robot_description]")
+        try:
+            seen = seen_by(node(ns, "jazzy", "--robot", "ur5", "--settle", "6", "--drive", "trajectory",
+                                "--target", *(f"{v:.6f}" for v in target)), "jazzy")
+        finally:
+            out = stop(run, lines)
+    assert "died" not in out, out
+    check_common(seen, "ur5", "jazzy")
+    names = [j.name for j in UrdfFrames(ur5 / "ur5.urdf").moving]
+    assert seen["joint_states"]["names"] == names and seen["truth_joint_states"]["names"] == names, seen
+    urdf = (ur5 / "ur5.urdf").read_text()
+    assert seen["robot_description"]["sha256"] == hashlib.sha256(urdf.encode()).hexdigest()
+    truth = seen["truth_joint_states"]["position"]
+    assert np.abs(np.asarray(truth) - target).max() < 0.01, (truth, target)
+
+
 def test_tools_default_to_the_imported_arms_joints(ur5: Path) -> None:
     """No Niryo default: ``hilsim report step`` steps every joint of another arm."""
     from hilsim.tools.step_report import DEFAULT_JOINTS, default_joints
