@@ -417,3 +417,16 @@ def test_the_import_writes_a_can_overlay_for_its_first_joint(ur5: Path) -> None:
     drive = sc.section("drive-emulator")
     assert drive["initial_position"] == {"shoulder_pan_joint": 0} and drive["max_velocity"] == 3.15, drive
     assert 5 < drive["max_acceleration"] < 150, drive
+
+
+def test_the_tuner_steps_from_where_physics_starts(panda: Path) -> None:
+    """``hilsim tune`` and ``identify`` step a joint from where physics starts it (``world.home``, else the MJCF's
+    ``home`` keyframe): the Panda's joint 4, whose range excludes zero, is tunable."""
+    from hilsim.sim.control import joint_table
+    from hilsim.tools.rig import _home
+
+    sc = load_scenario(panda / "panda.yaml")
+    names = list(joint_table(sc.world.model).names)
+    assert np.allclose(_home(sc, names), sc.world.home)
+    keyframe_only = sc.model_copy(update={"world": sc.world.model_copy(update={"home": None})})
+    assert np.allclose(_home(keyframe_only, names), sc.world.home, atol=1e-6)  # the import's keyframe is home
