@@ -14,6 +14,7 @@
     hilsim plan learn [--out DIR] [--seed N] [--scenes N] [--queries K] [--seeds S] [--train-only]
     hilsim plan scenes --out DIR [--count N] [--seed S] [--queries K]
     hilsim bench loop|plan|can|mavlink|rover|ros2 [--json]
+    hilsim bench loss [--runs 2] [--repeat 3] [--seconds S] [--json]
     hilsim bench scale [--robots 1,2,4,8] [--subscribers 0,4] [--sim-seconds S] [--repeat K] [--compose] [--json]
     hilsim report step ROBOT [--joints J,…] [--step RAD] [--speed RAD/S] [--hil FILE] [--json]
     hilsim identify SCENARIO|RUN_DIR --joints J[,…] [--write FILE] [--json]
@@ -337,6 +338,16 @@ def build_parser() -> argparse.ArgumentParser:
     bsc.add_argument("--lag", type=int, choices=[0, 1], default=None,
                      help="clock.controller_lag (default: as config/arm.yaml ships it)")
     bsc.set_defaults(func=_lazy("hilsim.tools.bench_scale", "cmd_scale"))
+    bls = bsub.add_parser("loss", help="realtime runs side by side: the share of the samples each recording "
+                          "missed, against one run alone (docs/performance.md)")
+    bls.add_argument("--runs", type=int, default=2, help="runs at once (default 2)")
+    bls.add_argument("--repeat", type=int, default=3, help="rounds, each one run alone then the runs at once "
+                     "(default 3)")
+    bls.add_argument("--seconds", type=float, default=20.0, help="--duration of each run, seconds (default 20)")
+    bls.add_argument("--scenario", default="arm", help="the scenario the runs start (default arm)")
+    bls.add_argument("--keep", metavar="DIR", help="keep the run directories under DIR (default: a temporary one)")
+    bls.add_argument("--json", action="store_true", help="print the figures as one JSON object")
+    bls.set_defaults(func=_lazy("hilsim.tools.bench_loss", "cmd_loss"))
     bc = bsub.add_parser("can", help="CAN bridge: frames per second and added latency vs python-can alone")
     bc.add_argument("--json", action="store_true", help="print the figures as one JSON object")
     bc.add_argument("--samples", type=int, default=1000, help="paced latency probes per path")

@@ -53,6 +53,7 @@ trap 'kill -- "-$ros2_install" 2>/dev/null || true' EXIT
 # two at a time (HILSIM_TEST_WORKERS): most of them wait on real processes, and the suite fits its
 # budget only so. Exit code 5 (no test selected, e.g. a file of one kind) is not a failure.
 rc=0
-.venv/bin/python -m pytest -q -m serial "$@" || { r=$?; [ "$r" -eq 5 ] || rc=$r; }
-.venv/bin/python -m pytest -q -m "not serial" -n "${HILSIM_TEST_WORKERS:-2}" "$@" || { r=$?; [ "$r" -eq 5 ] || rc=$r; }
+# (--durations: the slowest of each part in the output, so a run over its budget says where the time went)
+.venv/bin/python -m pytest -q -m serial --durations=15 "$@" || { r=$?; [ "$r" -eq 5 ] || rc=$r; }
+.venv/bin/python -m pytest -q -m "not serial" -n "${HILSIM_TEST_WORKERS:-2}" --durations=40 "$@" || { r=$?; [ "$r" -eq 5 ] || rc=$r; }
 exit $rc

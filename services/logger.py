@@ -11,7 +11,9 @@ Writes: only its own health and log keys (``<prefix>/<robot>/health/logger``,
 ``<logger.out_dir>/<YYYYmmdd-HHMMSS>``):
 
 - ``recording.rrd``       the Rerun recording, timeline ``sim_time`` (message stamps), with a
-  default viewer layout (``hilsim.record.viewer``);
+  default viewer layout (``hilsim.record.viewer``); split by ``logger.max_rrd_size`` /
+  ``max_rrd_duration`` into ``recording.part-1.rrd``, … (``hilsim.record.limits.RrdSeries``), each
+  closed file said in the log and as a notice on its log key (INFO), which ``hilsim up`` prints;
 - ``bag/``                a rosbag2 bag (``metadata.yaml``, ``bag_0.mcap``; ``hilsim.record.bag``): every
   sample of every key as the raw CDR bytes that arrived (a composed service's message: the bytes
   the worker encoded it to, the same the rows are read from), stamped with its receive time,
@@ -119,7 +121,7 @@ import rerun as rr  # noqa: E402
 from hilsim.record import foxglove_live, live, loss, report  # noqa: E402
 from hilsim.record.bag import NO_ATTACHMENT, TIME_NOTE, BagError  # noqa: E402
 from hilsim.record.bag_read import BAG_DIR, bag_paths, recover_file  # noqa: E402
-from hilsim.record.limits import BagSeries, human_bytes, stop_reason  # noqa: E402
+from hilsim.record.limits import BagSeries, RrdSeries, human_bytes, stop_reason  # noqa: E402
 from hilsim.record.routes import KeyRoutes  # noqa: E402
 from hilsim.record.rows import RowWriter  # noqa: E402
 from hilsim.record.viewer import default_blueprint  # noqa: E402
@@ -136,6 +138,7 @@ REALTIME_QUEUE_LIMIT = 50_000
 QUIET_S = 0.25
 DRAIN_LIMIT_S = 5.0
 DELAY_ENV = "HILSIM_LOGGER_DELAY_US"  # fault injection: slow the receive callback (µs per sample)
+LOG_INFO = 20  # rcl_interfaces/msg/Log's INFO: a notice hilsim up prints (a file of the recording closed)
 
 
 def _name_thread(name: bytes) -> None:
@@ -161,6 +164,8 @@ class LoggerService(Service):
             # makes it readable); this process records the rest of the run in a part of its own
             self.rrd_path = self.run_dir / part_name(restarted())
         self.rec: rr.RecordingStream | None = None
+        self.rrd: RrdSeries | None = None  # the .rrd's files (logger.max_rrd_size, max_rrd_duration)
+        self._blueprint: Any = None  # the viewer's layout, written to every file of the recording
         self.live: live.LiveStream | None = None  # logger.live: the second sink, to the live viewer
         self.fox: foxglove_live.FoxgloveLive | None = None  # logger.foxglove: the samples on a Foxglove server
         self.bag_dir = self.run_dir / BAG_DIR
@@ -194,6 +199,7 @@ class LoggerService(Service):
         # (DiagnosticArray, Log) must not interleave, or valid payloads are rejected.
         self._codec_lock = threading.RLock()
         self._finished = False
+        self._stopping = False  # set as the recorder stops (its end, or logger.max_size): no file split from here
         self._closed = False  # set once the subscribers are gone: late samples are dropped
         self._last_arrival = 0.0  # time.monotonic() of the latest sample
         # logger.batch: the services send batches; keys are subscribed one by one for the other writers
@@ -243,7 +249,10 @@ class LoggerService(Service):
         scene = self._load_scene()
         # file sink only: no viewer, no network; with logger.live a second sink feeds the live viewer
         self.live = live.start(self.sc.logger.live, self.run_dir, self.warn)
-        live.attach(self.live, self.rec, self.rrd_path, default_blueprint(m, scene))
+        self._blueprint = default_blueprint(m, scene)
+        live.attach(self.live, self.rec, self.rrd_path, self._blueprint)
+        lc = self.sc.logger
+        self.rrd = RrdSeries(self.rrd_path, self._move_rrd, max_size=lc.max_rrd_size, max_duration=lc.max_rrd_duration)
         self.rec.send_recording_name(f"{self.sc.name} {self.run_dir.name}")
         self.rows = RowWriter(self.rec, self.sc.robot, m, self.fault, scene)
         if self.sc.logger.bag:
@@ -290,6 +299,27 @@ class LoggerService(Service):
             self.sc.clock.mode,
             limit,
         )
+
+    def _move_rrd(self, path: Path) -> None:
+        """The recording's file sink to ``path`` (the live viewer's sink kept): the current file is
+        closed whole, with its footer; the stream (one recording id) goes on in the new one, the
+        viewer's layout written to it as well."""
+        assert self.rec is not None
+        sink = getattr(self.live, "sink", None)
+        rr.set_sinks(rr.FileSink(path), *([sink] if sink is not None else []), default_blueprint=self._blueprint,
+                     recording=self.rec)
+        self.rrd_path = path
+
+    def _say_closed(self, path: Path, size: int, nxt: Path | None) -> None:
+        """A file of the recording closed (a split): one line in the log, and on the run's screen (a
+        notice on the log key, which ``hilsim up`` prints)."""
+        def name(p: Path) -> str:
+            return str(p.relative_to(self.run_dir)) if p.is_relative_to(self.run_dir) else str(p)
+
+        text = f"closed {name(path)} ({human_bytes(size)}, up to sim time {self.written_ns / 1e9:.3f} s)" + (
+            f"; recording on in {name(nxt)}" if nxt is not None else "")
+        self.log.info(text)
+        self._publish_log(LOG_INFO, text)
 
     def _open_bag(self) -> BagSeries:
         """The bag's files of this process: ``bag_0.mcap`` (and on, split by ``logger.max_bag_size`` and
@@ -566,8 +596,10 @@ class LoggerService(Service):
             with self.lock:
                 self.recorded.update(self._pending)
                 self.written_ns = self.rows.clock_ns  # every row up to this sim time is in the file now
+            self._split_rrd()
         self._pending.clear()
         if self.bag is not None:
+            n_files, closed_bytes = len(self.bag.files), self.bag.closed_bytes
             try:
                 wrote = self.bag.flush()  # and on in a new file, if this one is as large or long as allowed
             except Exception as e:  # a full disk, a bug: the .rrd goes on, the bag stops here (a fault)
@@ -578,14 +610,35 @@ class LoggerService(Service):
             self._bag_append = self.bag.append
             with self.lock:
                 self.bagged.update(wrote)
+            if len(self.bag.files) > n_files:  # split: the bag's file before the current one closed
+                self._say_closed(self.bag.files[-2], self.bag.closed_bytes - closed_bytes, self.bag.path)
+
+    def _begin_stop(self) -> None:
+        """The recorder stops: no file of the .rrd or the bag split from here (see :meth:`_split_rrd`)."""
+        self._stopping = True
+        if self.bag is not None:
+            self.bag.max_size, self.bag.max_duration = 0, 0.0
+
+    def _split_rrd(self) -> None:
+        """After a flush: on in the next ``.rrd`` file if this one is as large or as long as allowed. Not
+        once the recorder is stopping: its files close anyway, and a notice published then would no
+        longer reach its own subscription (a sample of log/logger published, never recorded)."""
+        if self.rrd is None or self._stopping:
+            return
+        try:
+            closed = self.rrd.after_flush()
+        except Exception as e:  # the file sink could not move: the recording goes on in the current file
+            self.fault(f"the recording could not go on in a new file after {self.rrd_path}: {type(e).__name__}: {e}",
+                       exc=e)
+            self.rrd.max_size = self.rrd.max_duration = 0
+            return
+        if closed is not None:
+            self._say_closed(*closed, self.rrd.path)
 
     # ------------------------------------------------------------------ limits (logger.max_size, min_free)
     def recording_bytes(self) -> int:
-        """Bytes of this run's recording on disk: the ``.rrd`` and the bag's files of this process."""
-        try:
-            rrd = self.rrd_path.stat().st_size
-        except OSError:
-            rrd = 0
+        """Bytes of this run's recording on disk: the ``.rrd``'s and the bag's files of this process."""
+        rrd = self.rrd.size if self.rrd is not None else 0
         return rrd + (self.bag.size if self.bag is not None else 0)
 
     def _limit_reached(self) -> bool:
@@ -606,6 +659,7 @@ class LoggerService(Service):
         taken in is written, and both files are closed whole (the bag's summary, footer and
         ``metadata.yaml``; the ``.rrd``'s footer). Said in one line (log and health) and in
         ``record_summary.json``."""
+        self._begin_stop()
         with self.lock:  # _take checks it under the lock: nothing is queued after this
             self.stopped = why
             while self._queue:  # taken in, not written: no longer counted as received
@@ -660,6 +714,7 @@ class LoggerService(Service):
             **({"duplicates": sum(self.duplicates.values()), "key_subscriptions": len(self.routes.key_subs)}
                if self.batching else {}),
             "rrd": str(self.rrd_path),
+            **({"rrd_files": len(self.rrd.files)} if self.rrd is not None and len(self.rrd.files) > 1 else {}),
             "written_sim_time": f"{self.written_ns / 1e9:.3f}" if self.written_ns >= 0 else "none",
             **({"bagged": sum(self.bagged.values()), "bag": str(self.bag.path), "bag_files": len(self.bag.files)}
                if self.bag is not None else {}),
@@ -686,6 +741,7 @@ class LoggerService(Service):
         if self._finished:
             return
         self._finished = True
+        self._begin_stop()
         self._await_quiet()
         key_subs = self.routes.close()  # no key subscription declared after this
         for sub in [*self._subs, *key_subs]:

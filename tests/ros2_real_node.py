@@ -17,6 +17,7 @@ published it). With ``use_sim_time`` its clock is the simulation's.
 """
 
 import argparse
+import hashlib
 import json
 import math
 import sys
@@ -67,9 +68,12 @@ def main() -> int:
     def count(name):
         seen["counts"][name] = seen["counts"].get(name, 0) + 1
 
+    clock_values: set[int] = set()  # every /clock the simulation sent us
+
     def on_clock(m):
         count("clock")
         last["clock"] = ns(m.clock)
+        clock_values.add(last["clock"])
 
     def pair(encoders, truth):
         if len(truth) == len(encoders):
@@ -173,6 +177,11 @@ def main() -> int:
     seen["stage"] = "done" if done_at is not None else "timeout"
     seen["node_clock_ns"] = node.get_clock().now().nanoseconds
     seen["last_clock_ns"] = last.get("clock")
+    # rclpy's time is set from /clock messages (no interpolation): each reading is a value the simulation sent,
+    # whichever of rclpy's subscription and ours took a given message first (or within what it sent, should
+    # one best-effort reader have missed a message the other got)
+    lo, hi = (min(clock_values), max(clock_values)) if clock_values else (0, -1)
+    seen["clock_checks_sent"] = [now in clock_values or lo <= now <= hi for now, _ in seen["clock_checks"]]
     if "js" in last:
         seen["joint_states"] = {"names": list(last["js"].name), "position": list(last["js"].position)}
     if "truth_js" in last:
@@ -187,7 +196,8 @@ def main() -> int:
     if "robot_description" in last:
         text = last["robot_description"].data
         seen["robot_description"] = {"bytes": len(text), "robot": "<robot " in text,
-                                     "whole": text.rstrip().endswith("</robot>")}
+                                     "whole": text.rstrip().endswith("</robot>"),
+                                     "sha256": hashlib.sha256(text.encode()).hexdigest()}
     for k in ("odom", "truth_odom"):
         if k in last:
             m = last[k]

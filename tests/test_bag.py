@@ -37,7 +37,7 @@ from hilsim.cli import main as cli
 from hilsim.core import msgs, transport
 from hilsim.core.config import ZenohConfig
 from hilsim.core.keys import Keys
-from hilsim.core.recording import contents, disable_analytics
+from hilsim.core.recording import contents, disable_analytics, recording_files
 from hilsim.core.ros2 import wire
 from hilsim.core.scenario import load_scenario
 from hilsim.record.bag import BagError, BagWriter, qos_profiles
@@ -514,14 +514,15 @@ def arm_run(tmp_path_factory: Any) -> Iterator[tuple[Path, str]]:
 
 
 def _rrd_last(rrd: Path, entity: str) -> float:
-    """The value of an entity's Scalars row with the latest sim time, read from the .rrd."""
+    """The value of an entity's Scalars row with the latest sim time, read from the run's .rrd (every
+    file of it, if split: hilsim.core.recording.recording_files)."""
     disable_analytics()
     from rerun.chunk import RrdReader
 
     best: tuple[int, float] | None = None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        for chunk in RrdReader(rrd).stream().to_chunks():
+        for chunk in (c for f in recording_files(rrd) for c in RrdReader(f).stream().to_chunks()):
             if chunk.entity_path != entity:
                 continue
             rb = chunk.to_record_batch()
@@ -567,7 +568,7 @@ def test_an_arm_run_bag_reads_back_and_matches_the_rrd(arm_run: tuple[Path, str]
     counts, last = _read_back(run, out)
     custom = yaml.safe_load((run / "bag" / "metadata.yaml").read_text())["rosbag2_bagfile_information"]["custom_data"]
     assert custom["scenario"] == "arm" and custom["robot"] == "arm" and "log_time" in custom["times"]
-    rrd = contents(run / "recording.rrd").rows
+    rrd = contents(run).rows
     assert {"sensor_msgs/msg/JointState", "sensor_msgs/msg/Imu", "rosgraph_msgs/msg/Clock",
             "diagnostic_msgs/msg/DiagnosticArray", "trajectory_msgs/msg/JointTrajectory",
             "hilsim_msgs/action/Move_Feedback", "hilsim_msgs/msg/Contacts"} <= set(_types(run))
@@ -622,7 +623,7 @@ def test_a_rover_run_bag_reads_back_and_matches_the_rrd(tmp_path: Path) -> None:
     counts, last = _read_back(run, out)
     assert {"nav_msgs/msg/Odometry", "sensor_msgs/msg/LaserScan", "sensor_msgs/msg/NavSatFix", "tf2_msgs/msg/TFMessage",
             "geometry_msgs/msg/Twist", "nav_msgs/msg/OccupancyGrid", "nav_msgs/msg/Path"} <= set(_types(run))
-    rrd = contents(run / "recording.rrd").rows
+    rrd = contents(run).rows
     assert counts["/clock"] == rrd["/clock"]
     assert counts["/rover/odom"] == rrd["/odometry/x/odom"] and counts["/rover/truth/odom"] == rrd["/odometry/x/truth"]
     assert counts["/rover/gps/fix"] == rrd["/gps/fix/altitude"]

@@ -121,6 +121,8 @@ def test_a_composed_recorder_records_every_sample_as_it_was_published(tmp_path: 
 
     from rerun.chunk import RrdReader
 
+    from hilsim.core.recording import recording_files
+
     ep = f"tcp/127.0.0.1:{transport.free_port()}"
     router = transport.open_router(ep)
     obs = Observer(ep)
@@ -149,7 +151,7 @@ def test_a_composed_recorder_records_every_sample_as_it_was_published(tmp_path: 
         assert got["received"] == got["recorded"] == 1, (key, got)
     assert all(v["received"] == v["recorded"] and v["lost"] == 0 for v in summary.values()), summary
     recorded: dict[int, float] = {}
-    for chunk in RrdReader(run / "recording.rrd").stream().to_chunks():
+    for chunk in (c for f in recording_files(run) for c in RrdReader(f).stream().to_chunks()):
         if chunk.entity_path == "/joints/joint_2/position/truth":
             rb = chunk.to_record_batch().to_pydict()
             col = next(k for k in rb if "scalar" in k.lower())

@@ -225,7 +225,7 @@ def test_arrays_move_every_arm_to_its_target_and_keep_the_per_robot_keys(tmp_pat
             else:
                 assert recorded["joint_states"] == 0, (r, recorded)
     # either way every robot's joints are in the recording, robot by robot, every step
-    rows = contents(tmp_path / "run" / "recording.rrd").rows
+    rows = contents(tmp_path / "run").rows
     for r in ROBOTS:
         for source, q in (("truth", "position"), ("measured", "position"), ("command", "effort"),
                           ("reference", "position"), ("reference", "velocity")):

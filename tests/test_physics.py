@@ -186,7 +186,7 @@ def test_realtime_paces_to_the_wall_clock(tmp_path: Any) -> None:
     log = (tmp_path / "run" / "physics.log").read_text()
     m = re.search(r"realtime tick jitter: p50 (\d+) µs, p99 (\d+) µs, overruns (\d+) of (\d+) steps", log)
     assert m and int(m[4]) == 500, log  # every tick measured
-    assert "reached the scenario duration (0.500 s sim)" in log, log
+    assert "reached the end of the scenario duration (0.500 s sim)" in log, log
     rtf = float(r.stdout.split("real-time factor ")[-1].split(",")[0])
     assert 0.9 <= rtf <= 1.05 and wall >= 0.5, r.stdout  # paced, not as fast as it can
 

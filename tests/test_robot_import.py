@@ -250,6 +250,41 @@ def test_the_panda_with_its_gripper_runs_its_targets_in_another_order(panda: Pat
     _run_and_judge(panda / "panda.yaml", "panda", tmp_path, targets)
 
 
+@pytest.mark.e2e
+@pytest.mark.serial  # as tests/test_ros2_real.py: DDS in a network namespace
+@pytest.mark.timeout(600)
+def test_a_real_ros2_node_reads_and_drives_the_imported_ur5_over_dds(ur5: Path, tmp_path: Path) -> None:
+    """The DDS bridge (``--hil config/ros2/dds.yaml``) for an imported arm: a real rclpy node (Jazzy, Fast DDS,
+    tests/ros2_real_node.py) reads /ur5/joint_states with the URDF's joint names, the lab's URDF on
+    /ur5/robot_description, /clock and the IMU, and drives the arm with a JointTrajectory: the truth ends there."""
+    import hashlib
+
+    from test_ros2_real import check_common, node, seen_by, start, stop
+    from util import lan_netns
+
+    sc = load_scenario(ur5 / "ur5.yaml")
+    home, first = np.asarray(sc.world.home), np.asarray(sc.task.targets[0])
+    target = home + 0.3 * (first - home)  # a short straight move, collision-free all the way (checked)
+    arm = ArmModel(ur5 / "ur5.xml", clearance=0.0)
+    assert all(arm.why_invalid(home + s * (target - home)) is None for s in np.linspace(0, 1, 11))
+    with lan_netns("ur5") as ns:
+        run, lines = start(ns, tmp_path, str(ur5 / "ur5.yaml"), "--interactive", "--clock", "lockstep", "--set",
+                           "bridge-ros2-dds.to_dds=[joint_states,truth/joint_states,imu,/clock,robot_description]")
+        try:
+            seen = seen_by(node(ns, "jazzy", "--robot", "ur5", "--settle", "6", "--drive", "trajectory",
+                                "--target", *(f"{v:.6f}" for v in target)), "jazzy")
+        finally:
+            out = stop(run, lines)
+    assert "died" not in out, out
+    check_common(seen, "ur5", "jazzy")
+    names = [j.name for j in UrdfFrames(ur5 / "ur5.urdf").moving]
+    assert seen["joint_states"]["names"] == names and seen["truth_joint_states"]["names"] == names, seen
+    urdf = (ur5 / "ur5.urdf").read_text()
+    assert seen["robot_description"]["sha256"] == hashlib.sha256(urdf.encode()).hexdigest()
+    truth = seen["truth_joint_states"]["position"]
+    assert np.abs(np.asarray(truth) - target).max() < 0.01, (truth, target)
+
+
 def test_tools_default_to_the_imported_arms_joints(ur5: Path) -> None:
     """No Niryo default: ``hilsim report step`` steps every joint of another arm."""
     from hilsim.tools.step_report import DEFAULT_JOINTS, default_joints
@@ -296,7 +331,102 @@ def test_the_import_tunes_a_joint_with_the_projects_tuner(ur5: Path, tmp_path: P
     assert len(lines) == 1 and lines[0].startswith("  wrist_3_joint: kp ") and "target missed" not in lines[0], lines
 
 
+@pytest.mark.e2e
+@pytest.mark.timeout(600)  # the import (shared) and a realtime run of seven processes
+def test_the_ur5_reaches_its_targets_with_its_first_joint_on_a_can_drive(ur5: Path, router: str,
+                                                                          tmp_path: Path) -> None:
+    """``hil-can.yaml`` as written by the import: realtime, seven processes, the shoulder pan joint served over
+    udp_multicast CAN (a port of this test's own) by the bridge and the emulated drive: every target reached in
+    the physics truth, and the joint in the truth is what the drive's encoder estimates said."""
+    import random
+    import threading
+
+    import zenoh
+    from util import finish, up
+
+    from hilsim.core import msgs, transport
+    from hilsim.core.config import ZenohConfig
+    from hilsim.core.keys import Keys
+
+    hil = ur5 / "hil-can.yaml"
+    sc = load_scenario(ur5 / "ur5.yaml", overlays=[hil])
+    keys = Keys.of(sc)
+    lock = threading.Lock()
+    truth: list[tuple[int, list[float]]] = []
+    served: set[float] = set()
+    first: list[int] = []
+    results: dict[str, tuple[int, bool]] = {}
+
+    def on_truth(s: zenoh.Sample) -> None:
+        m = msgs.decode(msgs.JointState, s.payload.to_bytes())
+        with lock:
+            truth.append((msgs.ns_of(m.header.stamp), list(m.position)))
+
+    def on_server(s: zenoh.Sample) -> None:
+        m = msgs.decode(msgs.JointState, s.payload.to_bytes())
+        with lock:
+            served.add(m.position[0])
+            first.append(msgs.ns_of(m.header.stamp))
+
+    def on_result(s: zenoh.Sample) -> None:
+        m = msgs.decode(msgs.MoveResult, s.payload.to_bytes())
+        with lock:
+            results[m.goal_id] = (msgs.ns_of(m.header.stamp), m.success)
+
+    session = transport.open_session(ZenohConfig(connect=[router]))
+    subs = [session.declare_subscriber(keys.truth("joint_states"), on_truth),
+            session.declare_subscriber(keys.server_state("bridge-can"), on_server),
+            session.declare_subscriber(keys.topic("planner/result"), on_result)]
+    try:
+        port = random.SystemRandom().randint(20000, 60000)  # a bus of this test's own
+        p = up(str(ur5 / "ur5.yaml"), "--hil", str(hil), "--router", router, "--no-logger", "--out",
+               str(tmp_path / "run"), "--set", f"bridge-can.bus.port={port}",
+               "--set", "bridge-can.heartbeat_misses=10")  # a starved drive process is not what is tested
+        out = finish(p, 420)
+    finally:
+        for sub in subs:
+            sub.undeclare()
+        session.close()
+    # a fault makes the run FAILED (README: exit codes), even one the bridge recovered from
+    assert p.returncode == (1 if "  fault: " in out else 0), out
+    assert "bridge-can (pid " in out and "drive-emulator (pid " in out and "clock realtime" in out, out
+    assert "targets reached: 3/3" in out, out
+    for i, target in enumerate(sc.task.targets, 1):
+        stamp, ok = results[f"task-{i}"]
+        assert ok
+        at = min(truth, key=lambda t: abs(t[0] - stamp))[1]
+        err = np.abs(np.asarray(at) - np.asarray(target))
+        assert err.max() <= sc.task.tolerance + 0.002, (i, err)
+    # physics moved the shoulder only where the drive said it was
+    followed = [pos[0] for t, pos in truth if t > min(first) + 20_000_000]
+    foreign = [x for x in followed if x not in served]
+    assert len(served) > 500 and len(followed) > 5000, (len(served), len(followed))
+    assert len(foreign) <= len(followed) // 1000, f"physics moved shoulder_pan_joint by itself: {len(foreign)}"
+    assert max(followed) - min(followed) > 1.0  # it really moved (the targets span 2.6 rad)
+    log = (tmp_path / "run" / "bridge-can.log").read_text()
+    assert "shoulder_pan_joint (node 0) in closed-loop control (position)" in log, log
+
+
 def test_the_import_writes_a_can_overlay_for_its_first_joint(ur5: Path) -> None:
     sc = load_scenario(ur5 / "ur5.yaml", overlays=[ur5 / "hil-can.yaml"])
     assert sc.clock.mode == "realtime" and "drive-emulator" in sc.services
     assert sc.joint("shoulder_pan_joint").server == "bridge-can" and sc.joint("elbow_joint").server == "sim"
+    # the lean rates (a small machine keeps the wall clock), the drive where physics starts, bounded by the
+    # URDF's shoulder (velocity 3.15 rad/s; effort 150 N·m over its inertia)
+    assert sc.clock.dt == 0.002 and sc.controller.rate_hz == 250
+    drive = sc.section("drive-emulator")
+    assert drive["initial_position"] == {"shoulder_pan_joint": 0} and drive["max_velocity"] == 3.15, drive
+    assert 5 < drive["max_acceleration"] < 150, drive
+
+
+def test_the_tuner_steps_from_where_physics_starts(panda: Path) -> None:
+    """``hilsim tune`` and ``identify`` step a joint from where physics starts it (``world.home``, else the MJCF's
+    ``home`` keyframe): the Panda's joint 4, whose range excludes zero, is tunable."""
+    from hilsim.sim.control import joint_table
+    from hilsim.tools.rig import _home
+
+    sc = load_scenario(panda / "panda.yaml")
+    names = list(joint_table(sc.world.model).names)
+    assert np.allclose(_home(sc, names), sc.world.home)
+    keyframe_only = sc.model_copy(update={"world": sc.world.model_copy(update={"home": None})})
+    assert np.allclose(_home(keyframe_only, names), sc.world.home, atol=1e-6)  # the import's keyframe is home

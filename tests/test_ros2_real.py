@@ -100,7 +100,9 @@ def check_common(seen: dict[str, Any], robot: str, what: str) -> None:
     # use_sim_time: the node's clock is the simulation's, and it moves
     checks = seen["clock_checks"]
     assert len(checks) >= 5, (what, checks)
-    assert all(abs(now - clock) < 250_000_000 for now, clock in checks), (what, checks)
+    # the node's time is a /clock value the simulation sent, not its own wall clock (a loaded machine may
+    # hand rclpy's /clock subscription and ours a message at different moments: no bound on the gap)
+    assert all(seen["clock_checks_sent"]), (what, checks, seen["clock_checks_sent"])
     assert checks[-1][0] > checks[0][0], (what, checks)
     # the graph as rclpy builds it: the bridge's node, its endpoints with type, hash (rosbags'), QoS
     assert f"/{robot}/bridge_ros2_dds" in seen["nodes"], (what, seen["nodes"])

@@ -271,6 +271,12 @@ class LoggerConfig(_Model):
                               "bytes (as rosbag2's --max-bag-size; 0: no split by size; also '500MB', '2GiB')")
     max_bag_duration: float = Field(0.0, ge=0, description="split the bag: a new file once the current one spans "
                                     "this many seconds of receive time (as rosbag2's --max-bag-duration; 0: none)")
+    max_rrd_size: int = Field(0, ge=0, description="split the Rerun recording: a new file (recording.part-1.rrd, "
+                              "…) once the current one holds this many bytes, checked at each flush (twice a "
+                              "second); the files are one recording, opened together by Rerun's viewer (0: no "
+                              "split by size; also '500MB'; hilsim up --interactive: 500MB unless set)")
+    max_rrd_duration: float = Field(0.0, ge=0, description="split the Rerun recording: a new file once the current "
+                                    "one spans this many seconds of wall time (0: none)")
     max_size: int = Field(0, ge=0, description="cap on the run's recording (recording.rrd and bag/ together, "
                           "bytes; '2GB' too): the recorder stops recording there and the run goes on (0: no cap)")
     max_loss: float = Field(0.05, ge=0, le=1, description="realtime: the largest fraction of the published samples "
@@ -283,7 +289,7 @@ class LoggerConfig(_Model):
     live: LiveConfig = Field(default_factory=LiveConfig)
     foxglove: FoxgloveConfig = Field(default_factory=FoxgloveConfig)
 
-    @field_validator("max_bag_size", "max_size", "min_free", mode="before")
+    @field_validator("max_bag_size", "max_rrd_size", "max_size", "min_free", mode="before")
     @classmethod
     def _bytes(cls, v: Any) -> Any:
         return parse_bytes(v) if isinstance(v, str) else v

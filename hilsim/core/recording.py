@@ -11,6 +11,7 @@ Nothing here imports rerun at module level, so importing this module changes not
 :func:`disable_analytics` must run before ``import rerun`` in a process that records.
 
     hilsim view [RRD] [--runs DIR]     open the viewer on RRD, or on the newest <DIR>/*/recording.rrd
+                                       (a run's recording.rrd or directory: every part of the recording)
 
 A recorder killed with SIGKILL cannot write the RRD footer (Rerun writes it when the file is
 closed), so ``rerun rrd verify`` refuses the file although every message in it is whole up to
@@ -185,20 +186,22 @@ class Contents:
 
 
 def contents(path: str | Path) -> Contents:
-    """Read a recording back with Rerun's Python API; a file without a footer (its writer was
+    """Read a recording back with Rerun's Python API: a file, or a run directory (every part of its
+    recording, :func:`recording_parts`, rows summed); a file without a footer (its writer was
     killed) is read by scanning it, as far as its messages are whole."""
     disable_analytics()
     import pyarrow.compute as pc
     from rerun.chunk import RrdReader  # experimental API of rerun 0.41
 
     p = Path(path)
-    if not p.is_file():
+    files = recording_files(p) if p.is_dir() else [p]
+    if not p.exists():
         raise RecordingError(f"{p}: no such recording")
     rows: Counter[str] = Counter()
     last: dict[str, int] = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # "no footer": expected of a killed recorder's file
-        chunks = RrdReader(p).stream().to_chunks()
+        chunks = (c for f in files for c in RrdReader(f).stream().to_chunks())
         for chunk in chunks:
             rows[chunk.entity_path] += chunk.num_rows
             if "sim_time" in chunk.timeline_names and chunk.num_rows:
@@ -213,12 +216,44 @@ def part_name(attempt: int) -> str:
     return f"recording.restart-{attempt}.rrd"
 
 
+def split_name(first: str | Path, index: int) -> Path:
+    """The ``index``-th file (1, 2, …) a recorder writes on in once ``first`` (``recording.rrd``, or a
+    restarted recorder's ``recording.restart-<n>.rrd``) reached ``logger.max_rrd_size`` or
+    ``max_rrd_duration``: ``recording.part-<index>.rrd`` (``recording.restart-<n>.part-<index>.rrd``)."""
+    p = Path(first)
+    return p.with_name(f"{p.stem}.part-{index}{p.suffix}")
+
+
+# recording.rrd, recording.part-<k>.rrd, recording.restart-<n>.rrd, recording.restart-<n>.part-<k>.rrd
+_PART = re.compile(r"recording(?:\.restart-(\d+))?(?:\.part-(\d+))?\.rrd")
+
+
 def recording_parts(run_dir: str | Path) -> list[Path]:
-    """A run's recording files in order: ``recording.rrd``, then the restarted recorders' parts."""
+    """A run's recording files in order: ``recording.rrd`` and the files it was split into
+    (``recording.part-1.rrd``, …), then each restarted recorder's (:func:`part_name`, :func:`split_name`).
+    They are one Rerun recording per recorder process (one recording id): Rerun's viewer opens them
+    together as one (``rerun recording*.rrd``, ``hilsim view RUN``)."""
     d = Path(run_dir)
-    parts = [p for p in d.glob("recording.restart-*.rrd") if p.stem.rsplit("-", 1)[-1].isdigit()]
-    first = [d / RECORDING_NAME] if (d / RECORDING_NAME).is_file() else []
-    return first + sorted(parts, key=lambda p: int(p.stem.rsplit("-", 1)[-1]))
+    found = []
+    for p in d.glob("recording*.rrd"):
+        m = _PART.fullmatch(p.name)
+        if m and p.is_file():
+            found.append((int(m[1] or 0), int(m[2] or 0), p))
+    return [p for *_, p in sorted(found)]
+
+
+def recording_files(path: str | Path) -> list[Path]:
+    """The files of the recording ``path`` names: a run directory, or its ``recording.rrd``, stands for
+    every part of the run's recording (:func:`recording_parts`); any other file is itself."""
+    p = Path(path)
+    if p.is_dir():
+        files = recording_parts(p)
+        if not files:
+            raise RecordingError(f"{p}: no recording ({p / RECORDING_NAME} does not exist)")
+        return files
+    if not p.is_file():
+        raise RecordingError(f"{p}: no such recording")
+    return recording_parts(p.parent) if p.name == RECORDING_NAME else [p]
 
 
 def _printed_rows(path: Path) -> Counter[str]:
@@ -288,21 +323,16 @@ def _has_display() -> bool:
 def cmd_view(args: argparse.Namespace) -> int:
     """``hilsim view [RRD] [--runs DIR]``: open the Rerun viewer on a recording."""
     try:
-        if args.rrd:
-            rrd = Path(args.rrd)
-            if rrd.is_dir():
-                rrd = rrd / RECORDING_NAME
-            if not rrd.is_file():
-                raise RecordingError(f"{args.rrd}: no such recording")
-        else:
-            rrd = latest_recording(args.runs)
+        rrd = Path(args.rrd) if args.rrd else latest_recording(args.runs)
+        # a split recording (logger.max_rrd_size, max_rrd_duration): every part, which the viewer opens as one
+        files = recording_files(rrd)
         exe = rerun_executable()
     except RecordingError as e:
         print(f"hilsim view: {e}", file=sys.stderr)
         return 1
     home = rerun_config_home()
     # --bind: the viewer's gRPC server listens on loopback only.
-    argv = [exe, "--bind", "127.0.0.1", str(rrd)]
+    argv = [exe, "--bind", "127.0.0.1", *map(str, files)]
     command = f"XDG_CONFIG_HOME={home} " + " ".join(argv)
     if not _has_display():
         print(
@@ -311,7 +341,7 @@ def cmd_view(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 1
-    print(f"opening {rrd}", file=sys.stderr)
+    print(f"opening {rrd}" + (f" and {len(files) - 1} more parts of it" if len(files) > 1 else ""), file=sys.stderr)
     env = {**os.environ, "XDG_CONFIG_HOME": str(home)}
     try:
         return subprocess.call(argv, env=env)

@@ -9,12 +9,19 @@
   closed file: the directory is one bag for ``ros2 bag``, ``rosbags``, ``hilsim play`` and
   ``hilsim bag info`` (:mod:`hilsim.record.bag_read` reads the files in order) at every moment of
   the run, the file being written aside.
+- :class:`RrdSeries` is the recorder's Rerun recording split the same way (``logger.max_rrd_size``,
+  ``max_rrd_duration``): ``recording.rrd``, then ``recording.part-1.rrd``, … (the file sink of the
+  one recording stream moved to the next file after a flush, :func:`hilsim.core.recording.split_name`).
+  Each file is closed whole (Rerun writes its footer as the sink is replaced) and holds every row
+  flushed before the split; all of them are one recording (one recording id), which Rerun's viewer
+  opens as one (``rerun recording*.rrd``). The model, the world and the latched samples are in the
+  first file, so a later part alone shows no robot: open the parts together.
 - :func:`stop_reason` says when the recorder must stop recording: the run's recording (the
   ``.rrd`` and the bag together) reached ``logger.max_size``, or the free space of the file system
   the run directory is on fell below ``logger.min_free``. The recorder then closes its files whole
   and stops receiving; the simulation goes on (``services/logger.py``).
 
-Reads and writes no Zenoh key: only the bag's directory.
+Reads and writes no Zenoh key: only the bag's directory and the run directory's ``.rrd`` files.
 """
 
 from __future__ import annotations
@@ -22,8 +29,10 @@ from __future__ import annotations
 import shutil
 import time
 from collections import Counter
+from collections.abc import Callable
 from pathlib import Path
 
+from hilsim.core.recording import split_name
 from hilsim.record.bag import FILE_PATTERN, BagWriter
 from hilsim.record.bag_read import write_metadata
 
@@ -115,6 +124,63 @@ class BagSeries:
 
     def abandon(self) -> None:
         self.writer.abandon()
+
+
+class RrdSeries:
+    """The ``.rrd`` files of one recorder process, split by size and duration as the bag is.
+
+    ``move(path)`` points the recording stream's file sink at ``path`` (closing the current file whole);
+    :meth:`after_flush` is called once every buffered row reached the file."""
+
+    def __init__(self, first: str | Path, move: Callable[[Path], None], *, max_size: int = 0,
+                 max_duration: float = 0.0) -> None:
+        self.first = Path(first)
+        self.files: list[Path] = [self.first]
+        self._move = move
+        self.max_size, self.max_duration = max_size, max_duration
+        self.closed_bytes = 0  # bytes of this process's files closed so far
+        self._first_ns: int | None = None  # wall time of the current file's first flush
+
+    @property
+    def path(self) -> Path:
+        """The file being written."""
+        return self.files[-1]
+
+    def current_size(self) -> int:
+        try:
+            return self.path.stat().st_size
+        except OSError:
+            return 0
+
+    @property
+    def size(self) -> int:
+        """Bytes this process wrote to the recording, every file of it."""
+        return self.closed_bytes + self.current_size()
+
+    def after_flush(self) -> tuple[Path, int] | None:
+        """Start the next file if the current one is as large or as long as allowed; returns the file
+        closed and its size, or None."""
+        if not (self.max_size or self.max_duration):
+            return None
+        now = time.time_ns()
+        if self._first_ns is None:
+            self._first_ns = now
+        size = self.current_size()
+        if (self.max_size and size >= self.max_size) or (
+                self.max_duration and now - self._first_ns >= self.max_duration * 1e9):
+            return self.split()
+        return None
+
+    def split(self) -> tuple[Path, int]:
+        """Close the current file whole and write on in the next one; returns the closed file and its size."""
+        closed = self.path
+        nxt = split_name(self.first, len(self.files))
+        self._move(nxt)  # the old sink is flushed and its footer written before this returns
+        size = closed.stat().st_size
+        self.closed_bytes += size
+        self.files.append(nxt)
+        self._first_ns = None
+        return closed, size
 
 
 def stop_reason(run_dir: Path, used: int, max_size: int, min_free: int) -> str | None:

@@ -179,7 +179,8 @@ class Follower:
         self.changed.set()
 
     def _on_log(self, sample: zenoh.Sample) -> None:
-        """Faults of any service (a silent joint server, a stalled lockstep) as they happen."""
+        """Faults of any service (a silent joint server, a stalled lockstep) as they happen, and the
+        notices a service publishes at INFO (the recorder's: a file of the recording closed)."""
         if not self._trusted(sample):
             return
         try:
@@ -190,6 +191,8 @@ class Follower:
             with self.lock:
                 self.outcome.faults.append(f"{m.name}: {m.msg}")
             self.say(f"  fault: {m.name}: {m.msg}")
+        elif m.level == 20:  # rcl_interfaces/msg/Log INFO: published only as a notice for the run's screen
+            self.say(f"  {m.name}: {m.msg}")
 
     def _on_health(self, sample: zenoh.Sample) -> None:
         if not self._trusted(sample):

@@ -732,6 +732,19 @@ def up_overrides(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, st
     return overrides, origins
 
 
+# --interactive: a run left up records all the time (an arm run some 1 MB/s to the .rrd); its files are
+# bounded unless the scenario or --set says otherwise: the .rrd and the bag split at this size
+INTERACTIVE_FILE_BYTES = 500 * 1000**2
+
+
+def bound_interactive(sc: Any) -> None:
+    """``hilsim up --interactive``: ``logger.max_rrd_size`` and ``max_bag_size`` at
+    :data:`INTERACTIVE_FILE_BYTES` where the scenario (or ``--set``) leaves them unset."""
+    for name in ("max_rrd_size", "max_bag_size"):
+        if name not in sc.logger.model_fields_set:
+            setattr(sc.logger, name, INTERACTIVE_FILE_BYTES)
+
+
 def cmd_up(args: argparse.Namespace) -> int:
     """``hilsim up``: its exit code is the summary's (:mod:`hilsim.run.summary`): 0 every target
     reached, 1 failed, 3 stopped by ``--duration`` before its task ended, 128 + N interrupted by
@@ -751,6 +764,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     sc = load_scenario(scenario, overrides, overlays=args.hil, origins=origins)
     example = None
     if interactive:  # no task (every robot's), no duration: up until Ctrl-C, for goals and tools
+        bound_interactive(sc)
         example = sc.task.targets[0] if sc.task.targets else None
         sc.task.targets = []
         sc.duration = None

@@ -33,7 +33,7 @@ from typing import Protocol
 
 from hilsim.core.config import Scenario
 from hilsim.core.keys import UnknownKey, topic_name
-from hilsim.core.recording import read_counts
+from hilsim.core.recording import read_counts, recording_parts
 from hilsim.run.follow import Outcome
 
 EXIT_OK, EXIT_FAILED, EXIT_STOPPED = 0, 1, 3  # and 128 + N: interrupted by signal N (SIGINT: 130)
@@ -234,7 +234,13 @@ def summarise(la: FinishedRun) -> int:
         else:
             print("  recording summary missing")
             ok = False
-        print(f"  recording: {rrd}")
+        parts = recording_parts(la.run_dir)
+        if len(parts) > 1:  # split (logger.max_rrd_size, a restarted recorder): one recording for Rerun's viewer
+            more = f"{len(parts) - 1} more file" + ("s" if len(parts) > 2 else "")
+            print(f"  recording: {rrd} and {more} ({', '.join(p.name for p in parts[1:4])}"
+                  f"{', …' if len(parts) > 4 else ''}; opened together: hilsim view {la.run_dir})")
+        else:
+            print(f"  recording: {rrd}")
     print(f"  logs: {la.run_dir}/")
     for name, rc in o.died:
         print(f"  service {name} died (exit code {rc})")

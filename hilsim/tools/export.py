@@ -42,7 +42,13 @@ from typing import Any
 
 from hilsim.core import msgs
 from hilsim.core.keys import Keys
-from hilsim.core.recording import RECORDING_NAME, RecordingError, disable_analytics, latest_recording
+from hilsim.core.recording import (
+    RECORDING_NAME,
+    RecordingError,
+    disable_analytics,
+    latest_recording,
+    recording_files,
+)
 from hilsim.record.bag import BagError, BagWriter
 from hilsim.record.bag_read import write_metadata
 
@@ -60,14 +66,15 @@ Row = tuple[int | None, dict[str, Any]]  # (sim time ns or None for static rows,
 
 
 def read_rows(rrd: Path) -> dict[str, list[Row]]:
-    """Every row of a recording per entity path, in file order."""
+    """Every row of a recording per entity path, in file order: a run's ``recording.rrd`` (or its
+    directory) with every part the recording was split into, in order (``recording_files``)."""
     disable_analytics()
     from rerun.chunk import RrdReader
 
     out: dict[str, list[Row]] = defaultdict(list)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # "no footer": a killed recorder's file
-        for chunk in RrdReader(rrd).stream().to_chunks():
+        for chunk in (c for f in recording_files(rrd) for c in RrdReader(f).stream().to_chunks()):
             rb = chunk.to_record_batch()
             names = [n for n in rb.schema.names if ":" in n]
             sim = rb.column("sim_time").cast("int64").to_pylist() if "sim_time" in rb.schema.names else None

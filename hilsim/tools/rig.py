@@ -490,8 +490,14 @@ def _live(v: float) -> float:
 
 
 def _home(sc: Scenario, names: list[str]) -> np.ndarray:
-    """The joints' positions in the model's reference pose (qpos0): where the controller starts holding."""
+    """The joints' positions where physics starts them (hilsim.sim.world: ``world.home``, else the model's
+    keyframe ``home``, else its zero pose): where the controller starts holding, and what steps are taken from
+    (an imported Panda's joint 4 cannot be at zero)."""
     import mujoco
 
+    if sc.world.home is not None and len(sc.world.home) == len(names):
+        return np.array(sc.world.home, dtype=float)
     m = mujoco.MjModel.from_xml_path(str(sc.world.model))
-    return np.array([m.qpos0[m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n)]] for n in names])
+    k = next((i for i in range(m.nkey) if m.key(i).name == "home"), None)
+    q = m.key_qpos[k] if k is not None else m.qpos0
+    return np.array([q[m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n)]] for n in names])

@@ -183,7 +183,8 @@ def _write_all(u: Urdf, name: str, tmp: Path, link: str, srdf: collisions.Srdf |
 
     load_scenario(scenario)  # a scenario that does not load is never written
     hil = tmp / "hil-can.yaml"
-    scenario_file.write_hil_overlay(hil, scenario.name, joints[0])
+    scenario_file.write_hil_overlay(hil, scenario.name, joints[0], float(home[0]),
+                                    scenario_file.joint_inertia(model, d.qpos.copy(), joints[0]))
     load_scenario(scenario, overlays=[hil])
     if tune:
         say(f"[{time.monotonic() - t0:4.0f} s] tuning {len(joints)} joints on the real services (hilsim tune)")
