@@ -6,6 +6,7 @@ ROS 2 reader); and the URDFs the import cannot take, refused in one line with no
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import subprocess
@@ -317,15 +318,19 @@ def test_the_import_tunes_a_joint_with_the_projects_tuner(ur5: Path, tmp_path: P
     services, writes gains that meet its target into the imported scenario."""
     import shutil
 
-    from hilsim.tools.robot import _tune
-    from hilsim.tools.robot.urdf import read
-
     work = tmp_path / "ur5"
     shutil.copytree(ur5, work)
     before = load_scenario(work / "ur5.yaml").controller.gains["wrist_3_joint"]
-    lines: list[str] = []
-    joint = next(j for j in read(ROBOTS / "ur_description/urdf/ur5_robot.urdf").actuated if j.name == "wrist_3_joint")
-    _tune(work / "ur5.yaml", [joint], lines.append)
+    # in a fresh interpreter, as `hilsim robot import` runs it: the tuning forks its worker processes, and a
+    # fork of this pytest worker (which holds earlier tests' Zenoh threads) deadlocked in open_router
+    code = ("import json, sys; from pathlib import Path; from hilsim.tools.robot import _tune; "
+            "from hilsim.tools.robot.urdf import read; lines = []; "
+            "j = next(j for j in read(Path(sys.argv[1])).actuated if j.name == 'wrist_3_joint'); "
+            "_tune(Path(sys.argv[2]), [j], lines.append); print(json.dumps(lines))")
+    p = subprocess.run([sys.executable, "-c", code, str(ROBOTS / "ur_description/urdf/ur5_robot.urdf"),
+                        str(work / "ur5.yaml")], capture_output=True, text=True, cwd=REPO, timeout=800)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    lines = json.loads(p.stdout.strip().splitlines()[-1])
     after = load_scenario(work / "ur5.yaml").controller.gains["wrist_3_joint"]
     assert (after.kp, after.kd) != (before.kp, before.kd)
     assert len(lines) == 1 and lines[0].startswith("  wrist_3_joint: kp ") and "target missed" not in lines[0], lines
