@@ -22,14 +22,12 @@ import json
 import math
 import os
 import re
-import shutil
 import socket
 import subprocess
 from pathlib import Path
-from typing import Any
 
 import pytest
-from util import LEAN, Observer, wait_until
+from util import LEAN, Observer, chromium, wait_until
 
 from hilsim.core.recording import rerun_env
 from hilsim.core.scenario import load_scenario
@@ -38,24 +36,6 @@ from hilsim.record import live
 # what the run records (and so streams): the robot's transforms (/tf, 50 Hz) and the planned path; the model,
 # the world and the layout are the recorder's own setup, always sent. Every key at 1 kHz is not needed here.
 LIVE_KEYS = '["tf/**", "arm/planner/path/**"]'
-
-
-def _browser() -> tuple[Any, str]:
-    """Playwright's sync API and the system chromium; skip (fail under CI=true) without them."""
-    why = ""
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        why = "playwright is not installed (pip install -e '.[test]')"
-        sync_playwright = None
-    exe = shutil.which("chromium") or shutil.which("chromium-browser") or ""
-    if not why and not exe:
-        why = "no chromium on PATH (apt-get install chromium; scripts/test.sh does it as root)"
-    if why:
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(f"CI=true: the browser test must run, but {why}")
-        pytest.skip(why)
-    return sync_playwright, exe
 
 
 def _listening(port: int) -> bool:
@@ -98,7 +78,7 @@ def test_the_panel_and_rerun_see_the_arm_live(tmp_path: Path) -> None:
     from test_live import live_wait
     from test_panel import PanelProc, _http
 
-    sync_playwright, exe = _browser()
+    sync_playwright, exe = chromium()
     run = tmp_path / "run"
     panel = PanelProc(up=[LEAN, "--interactive", "--out", str(run), "--set", f"logger.record={LIVE_KEYS}"])
     saved = tmp_path / "client.rrd"

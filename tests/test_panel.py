@@ -14,7 +14,6 @@ import json
 import math
 import os
 import re
-import shutil
 import signal
 import subprocess
 import sys
@@ -29,7 +28,7 @@ from typing import Any
 import psutil
 import pytest
 import zenoh
-from util import LEAN, REPO, Observer, finish, network_namespace, up, wait_until
+from util import LEAN, REPO, Observer, chromium, finish, network_namespace, up, wait_until
 
 from hilsim.core import msgs, transport
 
@@ -182,24 +181,6 @@ def test_bad_requests_get_a_message_and_the_server_keeps_answering(idle_panel: P
     assert second.returncode == 2 and "cannot listen on 127.0.0.1:" in second.stderr, second
 
 
-def _browser() -> tuple[Any, str]:
-    """Playwright's sync API and the system chromium; skip (fail under CI=true) without them."""
-    why = ""
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        why = "playwright is not installed (pip install -e '.[test]')"
-        sync_playwright = None
-    exe = shutil.which("chromium") or shutil.which("chromium-browser") or ""
-    if not why and not exe:
-        why = "no chromium on PATH (apt-get install chromium; scripts/test.sh does it as root)"
-    if why:
-        if os.environ.get("CI", "").lower() == "true":
-            pytest.fail(f"CI=true: the browser test must run, but {why}")
-        pytest.skip(why)
-    return sync_playwright, exe
-
-
 GOAL = [0.5, -0.3, 0.1, 0.2, -0.3, 0.1]  # a free pose of the arm (no collision with the table)
 
 
@@ -207,7 +188,7 @@ GOAL = [0.5, -0.3, 0.1, 0.2, -0.3, 0.1]  # a free pose of the arm (no collision 
                    "goal form timed out at 30 s after the page was visible and stable (a busy page thread?); not "
                    "diagnosed (closing note of stop 47)")
 def test_browser_start_run_goal_gain_stop(tmp_path: Path, router: str) -> None:
-    sync_playwright, exe = _browser()
+    sync_playwright, exe = chromium()
     panel = PanelProc("--connect", router)
     obs: Observer | None = None
     pids: list[int] = []
@@ -449,7 +430,7 @@ def test_hilsim_ui_finds_a_run_of_a_terminal_and_its_sliders_follow_the_joints(t
     namespace of their own, so the well-known port 7447 is theirs): the panel joins that run's
     router by itself and shows the run; a goal moves the joints and the sliders follow them, except
     the one the user has set and not sent; the run's end (Ctrl-C in its terminal) is no fault."""
-    sync_playwright, exe = _browser()
+    sync_playwright, exe = chromium()
     with network_namespace("ui") as ns:
         here = ["ip", "netns", "exec", ns, sys.executable, "-m", "hilsim.cli"]
         run = Lines(subprocess.Popen([*here, "up", LEAN, "--clock", "realtime", "--set", "task.targets=[]",
@@ -528,7 +509,7 @@ def test_up_ui_prints_the_runs_progress_and_a_normal_end_is_no_fault(tmp_path: P
     """``hilsim up … --ui`` prints the run's progress beside the panel's URL; a run that ends by
     itself (its duration) stops its services, the recorder last (seconds before the summary), and the
     page lists no fault for them."""
-    sync_playwright, exe = _browser()
+    sync_playwright, exe = chromium()
     panel = PanelProc(up=[LEAN, "--clock", "realtime", "--set", "task.targets=[]", "--duration", "3",
                           "--out", str(tmp_path / "run")])
     try:
@@ -655,7 +636,7 @@ def test_a_page_of_another_origin_cannot_move_the_arm_through_the_panel(tmp_path
     import functools
     import http.server
 
-    sync_playwright, exe = _browser()
+    sync_playwright, exe = chromium()
     run = up(LEAN, "--clock", "realtime", "--set", "task.targets=[]", "--router", router, "--wait", "60")
     panel: PanelProc | None = None
     obs: Observer | None = None

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 import zenoh
 
 from hilsim.core import geometry, msgs, transport
@@ -287,3 +288,21 @@ def lan_netns(tag: str) -> contextlib.AbstractContextManager[str]:
                 subprocess.run(["ip", "-n", ns, *args], check=True, capture_output=True, timeout=20)
             yield ns
     return make()
+
+
+def chromium() -> tuple[Any, str]:
+    """Playwright's sync API and the system chromium; skip (fail under CI=true) without them."""
+    why = ""
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        why = "playwright is not installed (pip install -e '.[test]')"
+        sync_playwright = None
+    exe = shutil.which("chromium") or shutil.which("chromium-browser") or ""
+    if not why and not exe:
+        why = "no chromium on PATH (apt-get install chromium; scripts/test.sh does it as root)"
+    if why:
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(f"CI=true: the browser test must run, but {why}")
+        pytest.skip(why)
+    return sync_playwright, exe
