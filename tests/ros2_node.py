@@ -106,13 +106,17 @@ class Ros2Node:
             self.session, topic_key(self.domain, topic, ros_type), on_sample,
             history=zenoh.ext.HistoryConfig(detect_late_publishers=True)))
 
-    def publisher(self, topic: str, ros_type: str) -> Callable[[Any], None]:
+    def publisher(self, topic: str, ros_type: str, *, keep_all: bool = False) -> Callable[[Any], None]:
+        """``keep_all``: reliable, keep-all history, which rmw_zenoh sends with congestion control BLOCK
+        (its samples are not dropped on a congested link); else keep-last 10, sent with DROP (qos.cpp)."""
         eid = next(self._ids)
+        qos = "::2,10:,:,:,," if keep_all else DEFAULT_QOS
         token = (f"@ros2_lv/{self.domain}/{self.zid}/{self.node_id}/{eid}/MP/%/{mangle(self.namespace)}/{self.name}/"
-                 f"{mangle(topic)}/{dds_name(ros_type)}/{STORE.hash_rihs01(ros_type)}/{DEFAULT_QOS}")
+                 f"{mangle(topic)}/{dds_name(ros_type)}/{STORE.hash_rihs01(ros_type)}/{qos}")
         gid = xxhash.xxh3_128_intdigest(token.encode()).to_bytes(16, "little")
         self._decl.append(self.session.liveliness().declare_token(token))
-        pub = self.session.declare_publisher(topic_key(self.domain, topic, ros_type))
+        cc = zenoh.CongestionControl.BLOCK if keep_all else zenoh.CongestionControl.DROP
+        pub = self.session.declare_publisher(topic_key(self.domain, topic, ros_type), congestion_control=cc)
         self._decl.append(pub)
         seq = [0]
 

@@ -272,9 +272,9 @@ def _act(ses: zenoh.Session, node: Ros2Node, subs: list[Any], keys: Keys, got: l
     clock.undeclare()
     t_sub = time.monotonic()
     subs.append(ses.declare_subscriber(keys.tf, on_tf))
-    chatter = node.publisher("/lab/chatter", "std_msgs/msg/String")
+    chatter = node.publisher("/lab/chatter", "std_msgs/msg/String", keep_all=True)
     chatter_pub = node._decl[-1]
-    tf = node.publisher("/tf", "tf2_msgs/msg/TFMessage")
+    tf = node.publisher("/tf", "tf2_msgs/msg/TFMessage", keep_all=True)
     # the recorder subscribes to the node's keys once it sees their publisher tokens
     # (if it never does, the chatter test says so)
     wait_until(lambda: chatter_pub.matching_status.matching, 10)
@@ -282,10 +282,12 @@ def _act(ses: zenoh.Session, node: Ros2Node, subs: list[Any], keys: Keys, got: l
     for i in range(N_ROS):
         chatter(ros_msg("std_msgs/msg/String", data=f"hello {i}"))
         tf(ros_msg("tf2_msgs/msg/TFMessage", transforms=[]))
+    # (keep-all: reliable and never dropped on a congested link, as rmw_zenoh sends such a writer's samples: the
+    # recorder's promise is about what reaches it; a keep-last writer's drops on a loaded link are its own)
     # a publisher that sends at once, before the recorder can have subscribed to its key; the rest once it
     # has (on a loaded machine the subscription can take longer than the whole burst: nothing would be
     # received, and a key never received is in no summary)
-    burst = node.publisher("/lab/burst", "std_msgs/msg/String")
+    burst = node.publisher("/lab/burst", "std_msgs/msg/String", keep_all=True)
     burst_pub = node._decl[-1]
     for i in range(N_BURST):
         if i == N_BURST // 2:

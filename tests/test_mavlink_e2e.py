@@ -169,6 +169,9 @@ def test_the_bridge_process_turns_a_known_gps_track_into_navsatfix_exactly(route
     assert rc == 0, (tmp_path / "bridge-mavlink.log").read_text()
 
 
+# serial: a GPS on the wall clock (the emulator, 5 Hz) and a 1 s timeout in the bridge; beside another test's
+# processes on 2 cores (CI) the emulator went unscheduled for 1.1-1.9 s, the bridge said NO_FIX, the rover missed
+@pytest.mark.serial
 def test_the_rover_reaches_its_goal_with_its_gps_through_the_bridge(router: str, tmp_path: Path) -> None:
     """``hilsim up rover --world outdoor --hil config/hil/mavlink-emulated.yaml``, realtime, one goal:
     reached; gps/fix comes only from the bridge (the simulated GPS is off), at the emulator's 5 Hz,

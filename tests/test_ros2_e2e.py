@@ -129,11 +129,20 @@ def test_a_ros2_node_sees_the_arm_and_moves_it_with_a_joint_trajectory(router: s
         for topic in ("/clock", "/arm/joint_states", "/arm/truth/joint_states"):
             check_attachments(node, seen, topic)
         # /tf from the URDF's moving joints: joint_1 turns shoulder_link about z by its angle
-        tf = {tr.child_frame_id: tr for m in seen.msgs["/tf"][-5:] for tr in m.transforms}
+        # (/tf is its own key at 50 Hz: its latest sample may be a few steps behind the truth's, so wait for it)
+        def tf_now() -> dict[str, Any]:
+            with seen.lock:
+                return {tr.child_frame_id: tr for m in seen.msgs["/tf"][-5:] for tr in m.transforms}
+
+        def tf_there() -> bool:
+            r = tf_now().get("shoulder_link")
+            q = r.transform.rotation if r is not None else None
+            return q is not None and abs(2 * math.atan2(q.z, q.w) - target[0]) < 0.02
+
+        assert wait_until(tf_there, 10), tf_now().get("shoulder_link")
+        tf = tf_now()
         assert {"shoulder_link", "arm_link", "elbow_link", "forearm_link", "wrist_link", "hand_link"} <= set(tf), tf
-        r = tf["shoulder_link"].transform.rotation
         assert tf["shoulder_link"].header.frame_id == "base_link"
-        assert abs(2 * math.atan2(r.z, r.w) - target[0]) < 0.02, r
         # transient-local, as rviz2 gets them however late it comes: /tf_static and the URDF
         late = Ros2Node(router, name="rviz2", namespace="/")
         statics: list[Any] = []

@@ -180,10 +180,11 @@ class Service(Ros2Node):
         return transport.zenoh_session(self.session)
 
     # ------------------------------------------------------------------ declarations
-    def publisher(self, key: str, *, latched: bool = False) -> Publisher:
-        """A publisher of ``key``; ``latched``: transient-local (its last sample kept for late subscribers)."""
+    def publisher(self, key: str, *, latched: bool = False, never_drop: bool = False) -> Publisher:
+        """A publisher of ``key``; ``latched``: transient-local (its last sample kept for late subscribers);
+        ``never_drop``: not dropped on a congested link even in realtime (each sample an event)."""
         assert self.session is not None
-        p = Publisher(self, key, latched=latched)
+        p = Publisher(self, key, latched=latched, never_drop=never_drop)
         self._declared.append(p)
         return p
 
@@ -433,8 +434,10 @@ class Service(Ros2Node):
         # before any input: who may write which key (history: the writers that exist already)
         self._declared.append(session.liveliness().declare_subscriber(
             self.keys.all_writers, self.provenance.on_token, history=True))
-        self._health_pub = self.publisher(self.keys.health(self.name))
-        self._log_pub = self.publisher(self.keys.log(self.name))
+        # never dropped, even in realtime: a log line is an event, and the last health is the service's
+        # last word (its end state and figures: without it a stopped service looks dead to the panel)
+        self._health_pub = self.publisher(self.keys.health(self.name), never_drop=True)
+        self._log_pub = self.publisher(self.keys.log(self.name), never_drop=True)
         if self.lockstep and self.ack_via == "sync":
             self._sync_pub = self.publisher(self.keys.sync(self.name))
         self.setup()
