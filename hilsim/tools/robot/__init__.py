@@ -227,9 +227,10 @@ def _tune(scenario: Path, joints: list, say: Callable[[str], None]) -> None:
     from hilsim.tools.tuning import write_gains
 
     found: dict[str, dict[str, float] | None] = {}
-    # fork: no resource-tracker process left behind (spawn starts one that outlives the pool); nothing here
-    # holds a thread or a Zenoh session yet
-    ctx = multiprocessing.get_context("fork")
+    # spawn: fresh interpreters. A fork copies the caller's threads' locks mid-call (a Zenoh session's native
+    # runtime: a fork of a pytest worker that held one deadlocked in open_router); its resource tracker ends
+    # with this process
+    ctx = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(TUNING_WORKERS, mp_context=ctx) as pool:
         futures = [pool.submit(_tune_one, scenario, j.name, j.kind == "prismatic") for j in joints]
         for fut in futures:
