@@ -32,9 +32,10 @@ import argparse
 import logging
 import sys
 from collections.abc import Callable, Sequence
+from typing import get_args
 
 from hilsim import __version__
-from hilsim.core.config import ConfigError
+from hilsim.core.config import DEFAULT_CRITERION, ConfigError, Criterion
 from hilsim.core.scenario import load_scenario, parse_overrides
 
 
@@ -265,8 +266,9 @@ def build_parser() -> argparse.ArgumentParser:
     psub = plan.add_subparsers(dest="plan_cmd", required=True)
     ev = psub.add_parser("evaluate", help="plan several targets and compare them (paper Table III)")
     ev.add_argument("--targets", help="targets YAML (required for the arm; a rover scenario: default its task's goals)")
-    ev.add_argument("--criterion", choices=["length", "smoothness", "weighted"], default="weighted",
-                    help="which plan is best: the shortest, the smoothest, or both weighted (default weighted)")
+    ev.add_argument("--criterion", choices=get_args(Criterion), default=DEFAULT_CRITERION,
+                    help="which plan is best: the shortest, the smoothest, or both weighted "
+                    f"(default {DEFAULT_CRITERION})")
     ev.add_argument("--scenario", default="arm", help="the scenario whose robot and world are planned in "
                     "(default arm)")
     ev.add_argument("--csv", help="CSV path; the recording goes next to it (default: OUT/plan_evaluate.csv)")

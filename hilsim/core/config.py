@@ -210,6 +210,11 @@ class ControllerConfig(_Model):
     )
 
 
+# the planner's criterion (hilsim.planning.scoring computes it): the names, and what auto chooses for by default
+Criterion = Literal["length", "smoothness", "weighted"]
+DEFAULT_CRITERION: Criterion = "weighted"
+
+
 class PlannerConfig(_Model):
     planner: str = Field("improved_rrtstar", description="default planner, by name in the planner library (the "
                          "paper's improved RRT*; RRT-Connect's path when it finds none: ±2π and continuous joints)")
@@ -221,8 +226,8 @@ class PlannerConfig(_Model):
         None, gt=0, description="iteration budget per plan: lockstep default the library's; in realtime "
         "only when set, and planning_time still caps it"
     )
-    criterion: Literal["length", "smoothness", "weighted"] = Field(
-        "weighted", description="what planner: auto chooses for: hilsim plan evaluate's criterion "
+    criterion: Criterion = Field(
+        DEFAULT_CRITERION, description="what planner: auto chooses for: hilsim plan evaluate's criterion "
         "(joint path length, acceleration variance, or both), plus planning time"
     )
 

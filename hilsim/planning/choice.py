@@ -34,7 +34,7 @@ from hilsim.core.config import MODELS_DIR
 from hilsim.planning.collision import ArmModel
 from hilsim.planning.features import FEATURES, FeatureModel
 from hilsim.planning.problem import Planner, PlannerConfigError, PlanOutcome, Problem
-from hilsim.planning.scoring import CONSTANTS, CRITERIA, TIME_WEIGHT, check_criterion, scores
+from hilsim.planning.scoring import CONSTANTS, CRITERIA, DEFAULT_CRITERION, TIME_WEIGHT, check_criterion, scores
 
 
 class PlannerLibrary(Protocol):
@@ -50,7 +50,6 @@ class PlannerLibrary(Protocol):
 MODEL_DIR = MODELS_DIR / "planner_choice"
 MODEL_FILE = "model.pkl"
 MANIFEST_FILE = "manifest.json"
-DEFAULT_CRITERION = "weighted"
 DEFAULT_FALLBACK = "improved_rrtstar"  # auto's planner for an arm its model was not trained for
 BOUND_MS = 5.0  # a decision's CPU (features and model) at the 99th percentile, at most
 WARM_DECISIONS = 50  # decisions at start (random queries, a fixed seed) that measure whether the bound holds

@@ -28,6 +28,7 @@ import numpy as np
 from hilsim.planning.collision import ArmModel
 from hilsim.planning.library import PlannerLibrary, reseed_ompl
 from hilsim.planning.problem import Problem
+from hilsim.planning.scoring import DEFAULT_CRITERION
 from hilsim.planning.trajectory import TrajectoryError, acceleration_variance, joint_path_lengths, time_parameterize
 
 WALL_CAP_S = 600.0  # a run stops on its iteration budget; this only ends a hung one
@@ -80,7 +81,7 @@ class RunContext:
     library, the budget, one collision model per scene, the queries."""
 
     def __init__(self, library: PlannerLibrary, models: dict[str, Any], queries: dict[str, list[tuple[Any, Any]]],
-                 clearance: float, iterations: int | None = None, criterion: str = "weighted",
+                 clearance: float, iterations: int | None = None, criterion: str = DEFAULT_CRITERION,
                  warm: Callable[[ArmModel], None] | None = None) -> None:
         # OMPL's modules imported here, once, not by every child (importing seeds nothing)
         import ompl.base

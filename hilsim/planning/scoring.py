@@ -25,10 +25,15 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import get_args
 
 import numpy as np
 
-CRITERIA = ("length", "smoothness", "weighted")
+from hilsim.core.config import DEFAULT_CRITERION as DEFAULT_CRITERION  # re-exported with the names
+from hilsim.core.config import Criterion
+
+# the names are spelled once, in the scenario's schema (the lowest layer that needs them)
+CRITERIA: tuple[str, ...] = get_args(Criterion)
 FAIL_SCORE = 3.0  # a failed run: as bad as a path three times the best one
 TIME_WEIGHT = 2.0  # score per second of planning: 100 ms cost as much as a path 20 % longer than the best
 W_LENGTH = 0.5  # weighted: the share of the normalised length (the rest: the normalised smoothness)

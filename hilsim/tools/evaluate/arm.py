@@ -7,7 +7,8 @@ with ruckig (:mod:`hilsim.planning.trajectory`), and per joint ``i``:
 - ``A_i = D(a_i)`` — the variance of the joint's acceleration along the timed trajectory.
 
 The best target minimises ``Σ_i P_i`` (``length``), ``Σ_i A_i`` (``smoothness``), or a weighted
-sum of both, each normalised by its smallest value over the targets (``weighted``, weights 0.5).
+sum of both, each normalised by its smallest value over the targets (``weighted``, weights ``W_LENGTH`` of
+:mod:`hilsim.planning.scoring`).
 The table goes to a CSV and the chosen plan to a Rerun recording next to it, by default in a new
 ``runs/<timestamp>-plan-evaluate/``; the plan can be executed on a running system.
 

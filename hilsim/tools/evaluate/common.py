@@ -11,7 +11,7 @@ import numpy as np
 import yaml
 
 from hilsim.core.config import ConfigError, Scenario
-from hilsim.planning.scoring import CRITERIA, best
+from hilsim.planning.scoring import best, check_criterion
 from hilsim.run.runs import new_run_dir
 
 if TYPE_CHECKING:
@@ -60,8 +60,7 @@ def choose(evals: Sequence[Scored], criterion: str) -> int | None:
     """Index of the best successful evaluation by the criterion (None if none succeeded): the one
     criterion of :mod:`hilsim.planning.scoring` (the smallest ``length``, ``smoothness``, or their
     normalised weighted sum)."""
-    if criterion not in CRITERIA:
-        raise ValueError(f"criterion must be one of {', '.join(CRITERIA)}")
+    check_criterion(criterion)
     return best([e.ok for e in evals], [e.length if e.ok else np.nan for e in evals],
                 [e.smoothness if e.ok else np.nan for e in evals], criterion)
 
