@@ -423,11 +423,21 @@ class LoggerService(Service):
             if self.stopped is not None:
                 self.after_stop[k] += 1
                 return
-            if self._closed or (self.queue_limit is not None and len(self._queue) >= self.queue_limit):
+            t_ns = time.time_ns()
+            queued = not (self._closed or (self.queue_limit is not None and len(self._queue) >= self.queue_limit))
+            if queued:
+                self.counts_in[k] += 1
+                self._queue.append((k, payload, att, t_ns))
+            else:
                 self.dropped[k] += 1
-                return
-            self.counts_in[k] += 1
-            self._queue.append((k, payload, att, time.time_ns()))
+        fox = self.fox
+        if fox is not None and isinstance(payload, bytes):
+            # Foxglove's clients get it as it arrives, not once the worker wrote it: a live view stays live
+            # when the files fall behind (seen: minutes behind, the queue full, in a realtime run); the
+            # server never waits for a client (its backlog drops a slow one's oldest)
+            fox.add(k, payload, t_ns)
+        if not queued:
+            return
         if k in self.routes.latched:
             self.routes.got(k)  # its publisher's cache need not be asked again
         if self._say_suspect:
@@ -513,7 +523,8 @@ class LoggerService(Service):
     def _handle(self, key: str, payload: Any, att: transport.Attachment | None = None, t_ns: int = 0) -> None:
         rows = self.rows
         assert rows is not None
-        if not isinstance(payload, bytes):  # a message object of this process (_on_local)
+        local = not isinstance(payload, bytes)
+        if local:  # a message object of this process (_on_local)
             try:
                 payload = msgs.encode(payload)  # pycdr2's buffer is per thread (hilsim.core.msgs.codec)
             except Exception as e:  # not encodable: still recorded, as the error and the message's text
@@ -523,7 +534,7 @@ class LoggerService(Service):
                 return  # no bytes: nothing for the bag (bagged < recorded for this key)
         if self.bag is not None:  # every payload as it arrived, valid or not
             self._bag_append((key, payload, NO_ATTACHMENT if att is None else att, t_ns))
-        if self.fox is not None:  # and to Foxglove's clients, as it arrived
+        if self.fox is not None and local:  # a composed service's message: to Foxglove once encoded (_take: the rest)
             self.fox.add(key, payload, t_ns)
         if rows.raw(key, payload):  # a clock, joint state or IMU sample of a layout seen before
             self.sim_ns = rows.clock_ns

@@ -86,22 +86,29 @@ class FoxgloveLive:
         if ch is None:
             ch = self._channel(key)
         ch.log(payload, log_time=log_ns)
-        self.messages += 1
         if key in self.latch:
             with self.lock:
                 self.latched[key] = (payload, log_ns)
+        self.messages += 1  # (called from the recorder's receiving threads: a count, not exact under a race)
 
     def _channel(self, key: str) -> Any:
+        # made outside the lock (the server's callbacks take it); one per key all the same, however many
+        # of the recorder's receiving threads see the key's first sample
         topic, ros_type, schema = channel_of(key)
         fox = self._fox
         sch = fox.Schema(name=ros_type or "unknown", encoding="ros2msg", data=schema) if schema else None
         ch = fox.Channel(topic, schema=sch, message_encoding="cdr", context=self.context,
                          metadata={"hilsim_key": key})
         with self.lock:
-            if topic.endswith(LATCHED):
-                self.latch.add(key)
-            self.channels[key] = ch
-            self.by_id[int(ch.id())] = key
+            got = self.channels.get(key)
+            if got is None:
+                if topic.endswith(LATCHED):
+                    self.latch.add(key)
+                self.channels[key] = ch
+                self.by_id[int(ch.id())] = key
+        if got is not None:
+            ch.close()
+            return got
         return ch
 
     def _resend(self, channel_id: int) -> None:
