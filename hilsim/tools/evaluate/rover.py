@@ -77,7 +77,8 @@ def evaluate_goals(
     """Plan every goal in turn (from the previous goal, or the start), with the navigator's settings."""
     import mujoco
 
-    from hilsim.services.navigator import NavigatorConfig, build, initial_pose
+    from hilsim.core.config import NavigatorConfig
+    from hilsim.services.navigator import build, initial_pose
 
     cfg = NavigatorConfig.model_validate(sc.section("navigator"))
     _, planner = build(sc, cfg)
