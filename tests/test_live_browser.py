@@ -111,6 +111,10 @@ def test_the_panel_and_rerun_see_the_arm_live(tmp_path: Path) -> None:
                 ("http://127.0.0.1", "data:", "blob:", "about:")) and "csp" not in (r.failure or "").lower() else None)
             page.goto(panel.page_url, timeout=300_000, wait_until="domcontentloaded")
             frame = page.locator("#live-view")
+            # offered, not loaded until asked (its wasm would hold a small machine's cores)
+            page.locator("#live-show").wait_for(state="visible", timeout=120_000)
+            assert not frame.is_visible() and frame.get_attribute("src") in (None, "about:blank")
+            page.click("#live-show")
             frame.wait_for(state="visible", timeout=120_000)
             assert frame.get_attribute("src") == url
             box, plot = frame.bounding_box(), page.locator("#plot").bounding_box()

@@ -384,16 +384,24 @@ function connect() {
 
 loadOptions().then(connect);
 
-// The robot, live: Rerun's web viewer on the run's stream (hilsim up --view), beside the joint plots.
-let liveUrl = null;
+// The robot, live: Rerun's web viewer on the run's stream (hilsim up --view), beside the joint plots, once
+// asked for: its wasm and WebGL hold a small machine's cores (seen: a headless browser's page unresponsive
+// for 30 s on 2 busy cores), so the page does not load it by itself
+let liveUrl = null, liveOn = false;
 function showLive(url) {
   if (url === liveUrl) return;
   liveUrl = url;
   $("live").hidden = !url;
-  $("joints-live").classList.toggle("with-live", !!url);
-  $("live-view").src = url || "about:blank";
+  $("joints-live").classList.toggle("with-live", !!url && liveOn);
+  $("live-view").hidden = !liveOn;
+  $("live-view").src = url && liveOn ? url : "about:blank";
   $("live-link").href = url || "#";
+  $("live-show").textContent = liveOn ? "Hide the 3D view" : "Show the robot in 3D";
 }
+$("live-show").addEventListener("click", () => {
+  liveOn = !liveOn;
+  const url = liveUrl; liveUrl = null; showLive(url);
+});
 async function pollLive() {
   try {
     const res = await fetch("/api/live");
