@@ -352,10 +352,7 @@ def test_batches_record_what_samples_record(runs: dict[str, dict[str, Any]]) -> 
 
 
 @pytest.mark.e2e
-@pytest.mark.parametrize("run", ["composed", pytest.param("composed_recorder", marks=pytest.mark.xfail(
-    strict=False, reason="composed with the recorder, the controller's final health (sent at its stop) is not in the "
-    "bag: fails run alone on an idle machine at bd46cb5 too, passed in a two-at-a-time run: a race at the stop "
-    "that depends on speed; not diagnosed (closing note of stop 47)"))])
+@pytest.mark.parametrize("run", ["composed", "composed_recorder"])
 def test_composed_runs_batch_the_same(runs: dict[str, dict[str, Any]], run: str) -> None:
     """Composed apart from the recorder, the process's services send it batches; composed with it,
     they hand it message objects and the planner, apart, sends batches: the same samples either way."""

@@ -215,9 +215,15 @@ def run(names: list[str], sc: Any) -> int:
             t.join(0.01)
     while not stop.wait(0.2):
         pass
-    for s in sorted(services, key=lambda s: s.stop_rank):
-        s.request_stop()
-    for t in threads:
-        t.join(timeout=10.0)
+    # the recorder last, once the others have ended: their final health and last samples are handed to it
+    # before it drains (asked together, it stopped before the controller's final health, which the bag lacked)
+    by_name = {s.name: t for s, t in zip(order, threads, strict=True)}
+    ranked = sorted(services, key=lambda s: s.stop_rank)
+    recorders = [s for s in ranked if getattr(s, "records", False)]
+    for group in ([s for s in ranked if s not in recorders], recorders):
+        for s in group:
+            s.request_stop()
+        for s in group:
+            by_name[s.name].join(timeout=10.0)
     cs.close()
     return max(rcs.values(), default=0)
