@@ -101,6 +101,24 @@ def test_check_parameter() -> None:
     assert "> 0" in control.check_parameter("joint_2.i_limit", 0.0, JOINTS)
 
 
+def test_a_gain_is_checked_by_the_schemas_rule_for_every_caller() -> None:
+    # the live rule is the scenario's (PidGains): what one refuses the other refuses, field by field
+    for f in control.GAIN_FIELDS:
+        for v in (-1.0, 0.0, 2.5, math.inf):
+            why = control.check_gain(f"joint_2.{f}", f, v)
+            try:
+                PidGains(**{"kp": 1.0, f: v})
+                schema_ok = math.isfinite(v)  # the schema allows i_limit inf (its default); a live value is finite
+            except ValueError:
+                schema_ok = False
+            assert (why is None) == schema_ok, (f, v, why)
+    # the panel's case of issue 45: a negative feedforward, refused in one line naming the field
+    assert control.check_gain("joint_2.feedforward", "feedforward", -0.5) == \
+        "joint_2.feedforward: value -0.5 must be >= 0"
+    assert control.check_gain("joint_2.output_limit", "output_limit", 0.0) == \
+        "joint_2.output_limit: value 0.0 must be > 0"
+
+
 def test_gains_fall_back_to_default_and_bad_names_fail() -> None:
     g = {"default": PidGains(kp=1.0), "joint_2": PidGains(kp=2.0)}
     assert [x.kp for x in control.gains_for(g, JOINTS)] == [1.0, 2.0, 1.0]

@@ -170,6 +170,10 @@ def test_bad_requests_get_a_message_and_the_server_keeps_answering(idle_panel: P
     assert status == 400, data  # further hilsim up arguments are for the command line only
     status, data = _http(url + "/api/goal", {"kind": "joints", "positions": [0, 0, 0, 0, 0, 0]})
     assert status == 409 and "no run" in data["error"], data
+    # a gain is checked by the controller's own rule before anything is sent, a run or none
+    status, data = _http(url + "/api/gains", {"joint": "joint_2", "feedforward": -0.5})
+    assert (status, data["field"]) == (400, "gain-joint_2-feedforward"), data
+    assert data["error"] == "joint_2.feedforward: value -0.5 must be >= 0", data
     # after all that it still serves the page and its state, and started nothing
     with urllib.request.urlopen(idle_panel.page_url, timeout=10) as r:
         assert r.status == 200 and b"<title>hilsim control panel</title>" in r.read()
@@ -295,7 +299,7 @@ def test_browser_start_run_goal_gain_stop(tmp_path: Path, router: str) -> None:
             page.fill("#gain-joint_2-kd", "-1")
             page.click("#apply-joint_2")
             page.wait_for_function("(document.getElementById('err-gain-joint_2-kd') || {}).textContent"
-                                   "?.includes('negative')")
+                                   "?.includes('must be >= 0')")
             assert "kd=5.594" in health.get("gains:joint_2", ""), health  # nothing of it was set
 
             page.screenshot(path=str(tmp_path / "panel.png"))

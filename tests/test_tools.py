@@ -170,6 +170,8 @@ def test_a_tool_against_an_empty_port_fails(tmp_path: Path, monkeypatch: pytest.
     # a mistake in what is asked: 2 before connecting anywhere
     assert cli(["gains", "arm", "kp=80", "--connect", empty]) == 2
     assert "'kp=80': expected JOINT.GAIN=NUMBER, a joint's name first" in capsys.readouterr().err
+    assert cli(["gains", "arm", "joint_2.feedforward=-1", "--connect", empty]) == 2  # the controller's rule
+    assert "hilsim gains: joint_2.feedforward: value -1.0 must be >= 0" in capsys.readouterr().err
 
 
 def test_play_says_who_hears_it_and_counts_what_it_played(router: str, tmp_path: Path) -> None:

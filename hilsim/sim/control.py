@@ -29,7 +29,7 @@ import numpy as np
 from hilsim.core import msgs
 from hilsim.core.config import ConfigError, PidGains
 
-GAIN_FIELDS = ("kp", "ki", "kd", "i_limit", "output_limit", "feedforward")
+GAIN_FIELDS: tuple[str, ...] = tuple(PidGains.model_fields)  # kp ki kd i_limit output_limit feedforward
 
 
 class TrajectoryError(ValueError):
@@ -161,18 +161,30 @@ def gains_for(gains: Mapping[str, PidGains], joints: Sequence[str], where: str =
     return out
 
 
+def check_gain(name: str, field: str, value: float) -> str | None:
+    """The rule of one gain, for every caller (the controller, the panel, ``hilsim gains``): a known field,
+    finite, and within the bounds the scenario's schema gives it (:class:`PidGains`: ``ge``/``gt``). The
+    reason it is refused, beginning with ``name`` (how the caller names it), or None when it is good."""
+    if field not in GAIN_FIELDS:
+        return f"{name}: unknown gain {field!r} (gains: {', '.join(GAIN_FIELDS)})"
+    if not math.isfinite(value):
+        return f"{name}: value {value} is not finite"
+    for bound in PidGains.model_fields[field].metadata:
+        ge, gt = getattr(bound, "ge", None), getattr(bound, "gt", None)
+        if ge is not None and not value >= ge:
+            return f"{name}: value {value} must be >= {ge}"
+        if gt is not None and not value > gt:
+            return f"{name}: value {value} must be > {gt}"
+    return None
+
+
 def check_parameter(name: str, value: float, joints: Sequence[str]) -> tuple[int, str] | str:
     """Validate one live parameter ``<joint>.<field>``; return (joint index, field) or a reason."""
     joint, _, field = name.rpartition(".")
     if joint not in joints:
         return f"{name}: unknown joint {joint!r} (joints: {', '.join(joints)})"
-    if field not in GAIN_FIELDS:
-        return f"{name}: unknown gain {field!r} (gains: {', '.join(GAIN_FIELDS)})"
-    if not math.isfinite(value):
-        return f"{name}: value {value} is not finite"
-    if value < 0.0 or (field in ("i_limit", "output_limit") and value == 0.0):
-        return f"{name}: value {value} must be {'> 0' if field in ('i_limit', 'output_limit') else '>= 0'}"
-    return joints.index(joint), field
+    why = check_gain(name, field, value)
+    return why if why is not None else (list(joints).index(joint), field)
 
 
 def set_parameters(pids: Sequence[Pid], joints: Sequence[str], params: Sequence[msgs.Parameter]) -> str | None:

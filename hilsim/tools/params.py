@@ -3,10 +3,11 @@
 - Without assignments: the gains the controller runs with, per joint (``kp ki kd i_limit output_limit
   feedforward``), read from the run's files: its resolved ``scenario.yaml`` and the live changes its
   controller keeps (``<run dir>/state/controller.json``, written at each change for a restart).
-- With assignments: each is checked against the run's joints and gain names before anything is sent
-  (exit code 2, as every tool's usage error); then a SetParameters request goes to
-  ``<prefix>/<robot>/controller/set_parameters``, the controller applies all changes at its next control
-  step, or none (with the reason), and each change is printed ``  joint_2.kp: 32.81 -> 80``.
+- With assignments: each is checked against the run's joints and the controller's own rule for gains
+  (:func:`hilsim.sim.control.check_gain`) before anything is sent (exit code 2, as every tool's usage
+  error); then a SetParameters request goes to ``<prefix>/<robot>/controller/set_parameters``, the
+  controller applies all changes at its next control step, or none (with the reason), and each change is
+  printed ``  joint_2.kp: 32.81 -> 80``.
 
 No run of yours up: exit code 2 (``hilsim goal`` and ``topic`` alike). The controller not answering: 1.
 """
@@ -25,7 +26,7 @@ from hilsim.core import msgs, runs, transport
 from hilsim.core.config import ConfigError
 from hilsim.core.keys import Keys
 from hilsim.core.restart import STATE_DIR
-from hilsim.sim.control import GAIN_FIELDS, check_parameter, gains_for
+from hilsim.sim.control import GAIN_FIELDS, check_gain, check_parameter, gains_for
 
 USAGE = "expected JOINT.GAIN=NUMBER, a joint's name first, e.g. joint_2.kp=80"
 
@@ -78,6 +79,9 @@ def _parse(assignments: list[str]) -> dict[str, float] | str:
         joint, dot, field = name.strip().rpartition(".")
         if not sep or not dot or not joint or not field or not math.isfinite(v):
             return f"{item!r}: {USAGE}"
+        why = check_gain(name.strip(), field, v)  # the controller's own rule, before connecting anywhere
+        if why is not None:
+            return why
         values[name.strip()] = v
     return values
 
@@ -103,7 +107,7 @@ def cmd_gains(args: argparse.Namespace) -> int:
         for joint, gains in table.items():
             print(f"{joint:<10} " + " ".join(f"{_show(gains[f]):>12}" for f in GAIN_FIELDS))
         return 0
-    if table is not None:  # the run is known: every name checked before anything is sent
+    if table is not None:  # the run is known: every joint checked before anything is sent
         for name, value in parsed.items():
             why = check_parameter(name, value, list(table))
             if isinstance(why, str):

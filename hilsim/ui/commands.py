@@ -20,7 +20,7 @@ from typing import Any
 import zenoh
 
 from hilsim.core import msgs, runs
-from hilsim.sim.control import GAIN_FIELDS
+from hilsim.sim.control import GAIN_FIELDS, check_gain
 from hilsim.ui.jsonio import BadInput, number
 from hilsim.ui.options import ScenarioOption
 from hilsim.ui.watch import Monitor
@@ -135,17 +135,18 @@ class Commands:
     def gains(self, body: dict[str, Any]) -> dict[str, Any]:
         from hilsim.tools.params import set_parameters
 
-        opt = self._live_option("gains")
         joint = body.get("joint")
-        if not isinstance(joint, str) or joint not in opt.joints:
-            raise BadInput("gains", f"joint: expected one of {', '.join(opt.joints) or 'the joints'}, got "
-                           f"{str(joint)[:40]!r}")
+        if not isinstance(joint, str):
+            raise BadInput("gains", f"joint: expected a joint's name, got {str(joint)[:40]!r}")
+        # the values first, by the controller's own rule: a bad one is refused with or without a run
         values: dict[str, float] = {}
+        shown = joint[:40]  # not yet known to be a joint: said shortly
         for f in GAIN_FIELDS:
-            v = number(body, f, f"gain-{joint}-{f}", required=False)
+            v = number(body, f, f"gain-{shown}-{f}", required=False)
             if v is not None:
-                if v < 0 and f != "feedforward":
-                    raise BadInput(f"gain-{joint}-{f}", f"{f}: must not be negative, got {v:g}")
+                why = check_gain(f"{shown}.{f}", f, v)
+                if why is not None:
+                    raise BadInput(f"gain-{shown}-{f}", why)
                 values[f"{joint}.{f}"] = v
         unknown = [k for k in body if k not in (*GAIN_FIELDS, "joint")]
         if unknown:
@@ -153,6 +154,10 @@ class Commands:
                            f"{', '.join(GAIN_FIELDS)}")
         if not values:
             raise BadInput("gains", "no gain given")
+        opt = self._live_option("gains")
+        if joint not in opt.joints:
+            raise BadInput("gains", f"joint: expected one of {', '.join(opt.joints) or 'the joints'}, got "
+                           f"{shown!r}")
         res = set_parameters(self.session, runs.tool_keys(self.robot(), self.prefix), values, timeout=10.0)
         if not res.successful:
             raise BadInput("gains", f"not set: {res.reason}", 422)
