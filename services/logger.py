@@ -106,9 +106,9 @@ from typing import Any
 
 import zenoh
 
-from hilsim.core import batch, msgs, transport
+from hilsim.core import batch, msgs, rights, transport
 from hilsim.core.config import Scenario
-from hilsim.core.keys import UnknownKey, message_type
+from hilsim.core.keys import Keys, UnknownKey, message_type
 from hilsim.core.provenance import DUPLICATE, TAKEN, Sequence, digest_of
 from hilsim.core.recording import RECORDING_NAME, SUMMARY_NAME, disable_analytics, part_name
 from hilsim.core.restart import restarted
@@ -205,6 +205,9 @@ class LoggerService(Service):
         # logger.batch: the services send batches; keys are subscribed one by one for the other writers
         self.batching = scenario.logger.batch > 0
         self.duplicates: Counter[str] = Counter()  # samples that came both ways (batching, latched), taken once
+        # samples in a service's batch of a key the key table does not let it write (hilsim.core.rights)
+        self.batch_refused: Counter[str] = Counter()
+        self._batch_rights: dict[tuple[str, str], bool] = {}
         self.routes = KeyRoutes(self.keys, scenario.logger.record, batching=self.batching)  # key by key
         self._malformed_warned = False
         # keys with a late-joiner subscription beside `**` (latched writers, without batches): their
@@ -381,9 +384,32 @@ class LoggerService(Service):
                 self.warn(f"malformed batch on {sample.key_expr}: {e} (further ones are only counted)")
             self._take(str(sample.key_expr), None, raw)
             return
+        service = Keys.batch_service(str(sample.key_expr)) or ""
         for r in records:
-            if self.routes.covers(r.key):
-                self._take(r.key, transport.Attachment(r.seq, r.source_ns, r.gid), r.payload)
+            if not self.routes.covers(r.key):
+                continue
+            if not self._batch_may_hold(service, r.key):
+                # the router lets a service put only its own batches; what one holds is checked against the key
+                # table as a sample on the key itself would be at the router: not the run's, not recorded
+                with self.lock:
+                    self.batch_refused[r.key] += 1
+                    first = self.batch_refused[r.key] == 1
+                if first:
+                    self.warn(f"a batch of {service or '?'} holds a sample of {r.key}, which the key table does not "
+                              f"let {service or 'it'} write: not recorded (further ones are only counted)")
+                continue
+            self._take(r.key, transport.Attachment(r.seq, r.source_ns, r.gid), r.payload)
+
+    def _batch_may_hold(self, service: str, key: str) -> bool:
+        """Whether ``service`` may write ``key`` (hilsim.core.rights, as its identity at the router), cached."""
+        got = self._batch_rights.get((service, key))
+        if got is None:
+            try:
+                got = bool(service) and rights.service_rights(self.sc, service).may_put(key)
+            except Exception:  # a service name the scenario does not know: nobody's batch
+                got = False
+            self._batch_rights[(service, key)] = got
+        return got
 
     # ------------------------------------------------------------------ receiving (Zenoh thread)
     def _on_sample(self, sample: zenoh.Sample) -> None:
@@ -719,6 +745,7 @@ class LoggerService(Service):
             "queue": len(self._queue),
             "queue_limit": self.queue_limit or "none",
             "recorded": sum(self.recorded.values()),
+            "batch_refused": sum(self.batch_refused.values()),
             "lost": sum(lost.values()),
             "dropped": sum(self.dropped.values()),
             "suspect": sum(self.suspect.values()),

@@ -294,7 +294,11 @@ def _act(ses: zenoh.Session, node: Ros2Node, subs: list[Any], keys: Keys, got: l
             wait_until(lambda: burst_pub.matching_status.matching, 10)
         burst(ros_msg("std_msgs/msg/String", data=f"burst {i}"))
         time.sleep(0.001)
-    ses.put(keys.batch("feedbeef", 99), b"HSB\x01 not a batch at all")
+    ses.put(keys.batch("feedbeef", 99, "physics"), b"HSB\x01 not a batch at all")
+    # a well-formed batch on physics' batch key holding a sample of a key the key table does not give physics
+    forged = msgs.encode(msgs.Twist())
+    ses.put(keys.batch("feedbeef", 98, "physics"),
+            batch.encode([(keys.topic("cmd_vel"), b"\x07" * batch.GID_SIZE)], [(0, 1, 0, forged)]))
     assert wait_until(lambda: len(got) > 0, 5)
 
     return {"tf_first_s": got[0] - t_sub, "tf_got": got}
@@ -439,7 +443,10 @@ def test_a_writer_that_sends_at_once_is_recorded_from_the_recorders_subscription
 @pytest.mark.e2e
 def test_a_malformed_batch_is_rejected_and_the_recording_goes_on(runs: dict[str, dict[str, Any]]) -> None:
     on = runs["on"]
-    bad = Keys().batch("feedbeef", 99)
+    bad = Keys().batch("feedbeef", 99, "physics")
     assert on["summary"][bad]["received"] == on["summary"][bad]["rejected"] == 1, on["summary"][bad]
     assert on["summary"][Keys().clock]["received"] == 4001  # every step after it recorded too
     assert "malformed batch on" in (on["out"] / "logger.log").read_text()
+    # a batch holds only what its service may write (the key table): the forged cmd_vel in physics' is not recorded
+    assert Keys().topic("cmd_vel") not in on["summary"], on["summary"].get(Keys().topic("cmd_vel"))
+    assert "a batch of physics holds a sample of 0/arm/cmd_vel/" in (on["out"] / "logger.log").read_text()

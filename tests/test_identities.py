@@ -36,7 +36,9 @@ TABLE = "### Each identity, probed against a live router"
 
 def _probes(k: Keys) -> tuple[dict[str, str], dict[str, str]]:
     """(put probes, serve/query probes): the name the table uses -> the key."""
-    puts = {"/clock": k.clock, "batch": f"{k.prefix}/batch/{k.domain}/probe/1", "health/physics": k.health("physics")}
+    # batch: the identity's own batch key (its name a chunk of it); batch/physics: physics' own
+    puts = {"/clock": k.clock, "batch": k.all_batches, "batch/physics": k.batch("probe", 1, "physics"),
+            "health/physics": k.health("physics")}
     puts |= {t: k.topic(t) for t in ("truth/joint_states", "joint_states", "joint_commands", "joint_trajectory",
                                       "planner/joint_trajectory", "cmd_vel", "task/result", "navigator/result")}
     served = {n: k.service(n) for n in ("planner/goal", "controller/set_parameters", "controller/has_trajectory")}
@@ -102,12 +104,12 @@ def test_each_identity_may_put_serve_and_query_exactly_what_this_table_says(
         with lock:
             got.add(tuple(sample.payload.to_string().split(" ", 1)))
 
-    subs = [reader.declare_subscriber(key, on) for key in puts.values()]
+    subs = [reader.declare_subscriber(key, on) for key in puts.values()]  # all_batches: every batch key
     try:
         time.sleep(0.5)  # the subscriptions reach the router before the first put (else nothing is judged)
         for who, s in sessions.items():
             for name, key in puts.items():
-                s.put(key, f"{who} {name}")
+                s.put(Keys().batch("probe", 1, who) if name == "batch" else key, f"{who} {name}")
         expected = {(who, name) for who, row in table.items() for name in row["put"]}
         assert wait_until(lambda: expected <= got, 20), sorted(expected - got)
         time.sleep(1.0)  # the refused ones would have come by now (the allowed ones took one path with them)

@@ -61,7 +61,7 @@ def test_a_batching_token_seen_after_the_latched_writers_keeps_their_subscriptio
         routes._on_sample = lambda s: got.append(str(s.key_expr))
         for t in latched:
             routes._on_writer_token(_Token(t))
-        routes._on_batch_token(_Token(writer.keys.batch(writer._zid, writer._node_id)))
+        routes._on_batch_token(_Token(writer.keys.batch(writer._zid, writer._node_id, writer.name)))
         wanted = {keys.tf_static, keys.topic("robot_description")}
         assert set(routes.key_subs) == wanted and set(routes.latched) == wanted
         deadline = time.monotonic() + 10

@@ -4,7 +4,7 @@ When the run's recorder takes batches, every hilsim service (but the recorder) k
 :class:`Batcher`: each sample a publisher of the service sends is appended to it, with
 its key, sequence number, source time and writer gid (the attachment it would carry on its own
 key), and the batch is put on the service's batch key (``Keys.batch``:
-``<prefix>/batch/<domain>/<zid>/<node id>``) once it holds ``logger.batch`` samples or its first
+``<prefix>/batch/<domain>/<service>/<zid>/<node id>``) once it holds ``logger.batch`` samples or its first
 sample is ``logger.batch_max_age_ms`` old, and at the service's stop before its publishers go. The
 recorder unpacks it into the same path as a sample it received on the key itself
 (``services/logger.py``). The same key is the batcher's liveliness token, declared before the

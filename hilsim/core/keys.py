@@ -305,23 +305,35 @@ class Keys:
     def all_alive(self) -> str:
         return f"{self.prefix}/{self.robot}/alive/*"
 
-    def batch(self, zid: str, node_id: int | str) -> str:
-        """The key on which the ROS 2 node ``node_id`` of Zenoh session ``zid`` (a hilsim service) sends
-        the recorder its samples in batches (``logger.batch``, :mod:`hilsim.core.batch`); the same key
-        is its liveliness token, which tells the recorder that this node's publishers need no
-        subscription of their own. Under the prefix, not the domain: no ROS 2 tool takes it for a topic."""
-        return f"{self.prefix}/batch/{self.domain}/{zid}/{node_id}"
+    def batch(self, zid: str, node_id: int | str, service: str) -> str:
+        """The key on which the ROS 2 node ``node_id`` of Zenoh session ``zid`` (the hilsim service
+        ``service``) sends the recorder its samples in batches (``logger.batch``, :mod:`hilsim.core.batch`);
+        the same key is its liveliness token, which tells the recorder that this node's publishers need no
+        subscription of their own. Under the prefix, not the domain: no ROS 2 tool takes it for a topic.
+        The service's name is a chunk of it, so the router lets each service put only its own batches
+        (hilsim.core.rights), and the recorder takes from them only the keys the table lets it write."""
+        return f"{self.prefix}/batch/{self.domain}/{service}/{zid}/{node_id}"
 
     @property
     def all_batches(self) -> str:
         """Every batch key (and batching node's token) of the domain, all robots."""
-        return f"{self.prefix}/batch/{self.domain}/*/*"
+        return f"{self.prefix}/batch/{self.domain}/*/*/*"
+
+    def service_batches(self, service: str) -> str:
+        """Every batch key (and token) of ``service``: what the router lets it put."""
+        return f"{self.prefix}/batch/{self.domain}/{service}/**"
+
+    @staticmethod
+    def batch_service(key: str) -> str | None:
+        """The service whose batch key (or token) ``key`` is (:meth:`batch`); None for any other key."""
+        parts = key.split("/")
+        return parts[-3] if len(parts) >= 6 and parts[-5] == "batch" else None
 
     @staticmethod
     def batch_node(key: str) -> tuple[str, str] | None:
         """(zid, node id) of a batch key or token (:meth:`batch`); None for any other key."""
         parts = key.split("/")
-        if len(parts) < 5 or parts[-4] != "batch":
+        if len(parts) < 6 or parts[-5] != "batch":
             return None
         return parts[-2], parts[-1]
 

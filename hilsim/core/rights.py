@@ -147,7 +147,7 @@ def service_rights(sc: Scenario, service: str) -> Rights:
     r.tokens |= {k.alive(svc), f"{sc.prefix}/{fleet.ALL}/lockstep/{svc}/**"}
     records = svc == "logger"
     if not records:  # logger.batch: its batches, and the batching token of the same name
-        batches = f"{sc.prefix}/batch/{sc.ros2.domain_id}/**"
+        batches = k.service_batches(svc)  # its own only: the recorder takes from it what the table gives it
         r.put.add(batches)
         r.tokens.add(batches)
     for name, row in keyscheme.SERVED_TABLE.items():

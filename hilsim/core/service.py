@@ -16,7 +16,7 @@ What the base does once for all:
 - a liveliness token ``<prefix>/<robot>/alive/<service>`` is declared once inputs exist,
   which is how ``hilsim up`` knows the service is ready;
 - when the run's recorder takes batches (``logger.batch``), every sample also goes into the
-  service's batch, sent on ``<prefix>/batch/<domain>/<zid>/<node id>`` (:mod:`hilsim.core.batch`; its
+  service's batch, sent on ``<prefix>/batch/<domain>/<service>/<zid>/<node id>`` (:mod:`hilsim.core.batch`; its
   liveliness token of the same name is declared before any publisher), and is put on its own key
   only while a subscriber matches it; health then says per key how many were put (``put:<key>``);
 - SIGINT / SIGTERM end :meth:`loop`; everything declared is undeclared and the session closed (the
@@ -156,7 +156,7 @@ class Service(Ros2Node):
         if self._takes_batches(session):
             # before any publisher announces itself: the recorder learns this node batches first
             # (a race would only cost it a subscription it drops again, and duplicates it drops)
-            key = self.keys.batch(self._zid, self._node_id)
+            key = self.keys.batch(self._zid, self._node_id, self.name)
             pub = transport.publisher(session, key, drop_when_congested=self.sc.clock.mode == "realtime")
             token = session.liveliness().declare_token(key)
             lc = self.sc.logger
