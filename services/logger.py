@@ -4,7 +4,7 @@ rosbag2 bag (MCAP) of the raw samples.
 Reads: every data key of the domain (``logger.record`` key expressions under ``<domain>/``, ``**`` by
 default), including each sample's attachment (sequence number and writer id, ``hilsim.core.transport``).
 With ``logger.batch`` > 0 instead: the services' batches and batching tokens
-(``<prefix>/batch/<domain>/<zid>/<node id>``, ``hilsim.core.batch``), the ROS 2 graph's publisher
+(``<prefix>/batch/<domain>/<service>/<zid>/<node id>``, ``hilsim.core.batch``), the ROS 2 graph's publisher
 tokens (``@ros2_lv/<domain>/…/MP/…``), and key by key, the keys with a writer no batch covers.
 Writes: only its own health and log keys (``<prefix>/<robot>/health/logger``,
 ``<prefix>/<robot>/log/logger``), and files in the run directory (``logger.run_dir``, or
@@ -23,8 +23,9 @@ Writes: only its own health and log keys (``<prefix>/<robot>/health/logger``,
   unannounced}}`` (``bagged``: messages of the key written to the bag, counted as the batches
   reached the file; ``unannounced``: samples from a writer that did not announce itself for the key,
   recorded all the same; their sequence numbers are not ours to count losses by; with batches also
-  ``duplicates``; where some arrived ``suspect`` and ``contested``; ``lost`` never more than the key's
-  services say they published and did not reach it: their final health) written at exit.
+  ``duplicates``; where some arrived ``suspect`` and ``contested``; ``batch_refused``: samples of the key
+  in a service's batch that the key table does not let that service write, not recorded; ``lost`` never
+  more than the key's services say they published and did not reach it: their final health) written at exit.
 
 This module is the service's wiring: subscriptions, the queue, the worker thread, loss
 accounting (judged at the end by ``hilsim.record.loss``), health and lifecycle. What is written for
@@ -207,7 +208,8 @@ class LoggerService(Service):
         self.duplicates: Counter[str] = Counter()  # samples that came both ways (batching, latched), taken once
         # samples in a service's batch of a key the key table does not let it write (hilsim.core.rights)
         self.batch_refused: Counter[str] = Counter()
-        self._batch_rights: dict[tuple[str, str], bool] = {}
+        self._batch_rights: dict[tuple[str, str], bool] = {}  # (service, key) -> may it write it
+        self._service_rights: dict[str, rights.Rights | None] = {}
         self.routes = KeyRoutes(self.keys, scenario.logger.record, batching=self.batching)  # key by key
         self._malformed_warned = False
         # keys with a late-joiner subscription beside `**` (latched writers, without batches): their
@@ -404,10 +406,13 @@ class LoggerService(Service):
         """Whether ``service`` may write ``key`` (hilsim.core.rights, as its identity at the router), cached."""
         got = self._batch_rights.get((service, key))
         if got is None:
-            try:
-                got = bool(service) and rights.service_rights(self.sc, service).may_put(key)
-            except Exception:  # a service name the scenario does not know: nobody's batch
-                got = False
+            if service not in self._service_rights:  # derived once per service (the type hashes are not free)
+                try:
+                    self._service_rights[service] = rights.service_rights(self.sc, service) if service else None
+                except Exception:  # a service name the scenario does not know: nobody's batch
+                    self._service_rights[service] = None
+            r = self._service_rights[service]
+            got = r is not None and r.may_put(key)
             self._batch_rights[(service, key)] = got
         return got
 
@@ -834,7 +839,7 @@ class LoggerService(Service):
                 rejected=Counter(self.rejected), lost=Counter(), dropped=Counter(self.dropped),
                 before_first=Counter(self.before_first), unannounced=Counter(self.unannounced),
                 duplicates=Counter(self.duplicates), after_stop=Counter(self.after_stop),
-                suspect=Counter(self.suspect), contested=Counter())
+                suspect=Counter(self.suspect), contested=Counter(), batch_refused=Counter(self.batch_refused))
         c.plain = self.routes.plain_keys()
         c.expected = loss.expected_keys(self.sc, self.keys, self.routes.covers) if self.stopped is None else set()
         with self.lock:

@@ -177,6 +177,34 @@ def take_on(svc: Any, key: str, *seqs: int) -> list[bool]:
     return [svc._sequence(key, Attachment(s, 0, GID_A), None) for s in seqs]
 
 
+def test_a_batch_is_taken_only_for_keys_its_service_may_write(scenario: Any, tmp_path: Path) -> None:
+    """The service named in the batch key may write truth and the clock (physics), not cmd_vel: the rest of
+    its batch is taken, that sample is counted as batch_refused and said once; a name nobody has: nothing."""
+    from hilsim.services.logger import LoggerService
+
+    svc = LoggerService(scenario("arm", {"logger.run_dir": str(tmp_path / "run"), "logger.batch": 8}))
+    keys = Keys()
+    taken: list[str] = []
+    said: list[str] = []
+    svc._take = lambda k, att, payload: taken.append(k)  # type: ignore[method-assign]
+    svc.warn = said.append  # type: ignore[method-assign]
+
+    class _Sample:
+        def __init__(self, key: str, data: bytes) -> None:
+            self.key_expr, self.payload = key, zenoh.ZBytes(data)
+
+    writers = [(keys.clock, GID_A), (keys.topic("cmd_vel"), GID_B), (keys.truth("joint_states"), GID_A)]
+    frame = batch.encode(writers, [(0, 1, 0, b"c"), (1, 1, 0, b"v"), (2, 1, 0, b"t"), (1, 2, 0, b"v")])
+    svc._on_batch(_Sample(keys.batch("feedbeef", 1, "physics"), frame))
+    assert taken == [keys.clock, keys.truth("joint_states")], taken
+    assert svc.batch_refused == {keys.topic("cmd_vel"): 2}
+    assert len(said) == 1 and "a batch of physics holds a sample of 0/arm/cmd_vel/" in said[0], said
+    taken.clear()
+    svc._on_batch(_Sample(keys.batch("feedbeef", 2, "nobody"), frame))  # no service of that name: nobody's batch
+    assert taken == [] and sum(svc.batch_refused.values()) == 2 + 4, svc.batch_refused
+    assert svc.health_values()["batch_refused"] == 6
+
+
 def test_batches_are_recorded_within_logger_record(scenario: Any, tmp_path: Path) -> None:
     from hilsim.services.logger import LoggerService
 
@@ -295,10 +323,10 @@ def _act(ses: zenoh.Session, node: Ros2Node, subs: list[Any], keys: Keys, got: l
         burst(ros_msg("std_msgs/msg/String", data=f"burst {i}"))
         time.sleep(0.001)
     ses.put(keys.batch("feedbeef", 99, "physics"), b"HSB\x01 not a batch at all")
-    # a well-formed batch on physics' batch key holding a sample of a key the key table does not give physics
+    # a well-formed batch on physics' batch key holding two samples of a key the key table does not give physics
     forged = msgs.encode(msgs.Twist())
     ses.put(keys.batch("feedbeef", 98, "physics"),
-            batch.encode([(keys.topic("cmd_vel"), b"\x07" * batch.GID_SIZE)], [(0, 1, 0, forged)]))
+            batch.encode([(keys.topic("cmd_vel"), b"\x07" * batch.GID_SIZE)], [(0, 1, 0, forged), (0, 2, 0, forged)]))
     assert wait_until(lambda: len(got) > 0, 5)
 
     return {"tf_first_s": got[0] - t_sub, "tf_got": got}
@@ -317,7 +345,7 @@ def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[str, Any]]:
 def _sim_keys(summary: dict[str, Any]) -> set[str]:
     keys = Keys()
     return {k for k in summary if "/health/" not in k and "/log/" not in k and k != keys.tf
-            and not k.startswith("0/lab/") and not k.startswith(keys.prefix)}
+            and not k.startswith("0/lab/") and not k.startswith(keys.prefix) and not summary[k].get("batch_refused")}
 
 
 @pytest.mark.e2e
@@ -447,6 +475,15 @@ def test_a_malformed_batch_is_rejected_and_the_recording_goes_on(runs: dict[str,
     assert on["summary"][bad]["received"] == on["summary"][bad]["rejected"] == 1, on["summary"][bad]
     assert on["summary"][Keys().clock]["received"] == 4001  # every step after it recorded too
     assert "malformed batch on" in (on["out"] / "logger.log").read_text()
-    # a batch holds only what its service may write (the key table): the forged cmd_vel in physics' is not recorded
-    assert Keys().topic("cmd_vel") not in on["summary"], on["summary"].get(Keys().topic("cmd_vel"))
-    assert "a batch of physics holds a sample of 0/arm/cmd_vel/" in (on["out"] / "logger.log").read_text()
+    # a batch holds only what its service may write (the key table): the forged cmd_vel in physics' is not recorded,
+    # counted per key in the summary, said once in the recorder's log and in the run's summary
+    cmd_vel = Keys().topic("cmd_vel")
+    assert on["summary"][cmd_vel]["batch_refused"] == 2, on["summary"][cmd_vel]
+    assert on["summary"][cmd_vel]["received"] == on["summary"][cmd_vel]["recorded"] == 0, on["summary"][cmd_vel]
+    assert cmd_vel not in on["bag"]
+    assert (on["out"] / "logger.log").read_text().count("a batch of physics holds a sample of 0/arm/cmd_vel/") == 1
+    assert "not recorded: 2 samples in batches of services the key table does not let write them" in on["text"]
+    # and nothing a service may write was refused, in any run (the services' own batches hold only their keys)
+    for name, r in runs.items():
+        refused = {k: c["batch_refused"] for k, c in r["summary"].items() if c.get("batch_refused")}
+        assert refused == ({cmd_vel: 2} if name == "on" else {}), (name, refused)

@@ -35,9 +35,12 @@ class Counts:
     contested: Counter[str]
     plain: set[str] = field(default_factory=set)  # keys subscribed one by one (batching)
     expected: set[str] = field(default_factory=set)  # latched keys the run publishes: each must come
+    # samples in a service's batch of a key the key table does not let that service write: not recorded
+    batch_refused: Counter[str] = field(default_factory=Counter)
 
     def keys(self) -> list[str]:
-        return sorted(set(self.received) | set(self.recorded) | set(self.lost) | self.expected)
+        return sorted(set(self.received) | set(self.recorded) | set(self.lost) | self.expected
+                      | set(self.batch_refused))
 
     def missing(self) -> list[str]:
         """Expected keys of which nothing was recorded."""
@@ -66,6 +69,8 @@ def summary(c: Counts, *, bag: bool, batching: bool, stopped_at: dict[str, Any] 
             **({"contested": c.contested[k]} if c.contested[k] else {}),
             # a latched key the run publishes once (/tf_static, robot_description): the summary says if it is missing
             **({"expected": True} if k in c.expected else {}),
+            # in a batch of a service the key table does not let write it: not recorded (docs/recording.md)
+            **({"batch_refused": c.batch_refused[k]} if c.batch_refused[k] else {}),
         }
         for k in c.keys()
     }
@@ -92,6 +97,10 @@ def lines(c: Counts, *, rrd: Path, bag_dir: Path | None, clock: str, stopped_at:
     if early:
         out.append(f"not recorded: {sum(early.values())} samples their writers published before the recorder's "
                    "subscription reached them (logger.batch): " + ", ".join(f"{k} {n}" for k, n in early.items()))
+    refused = {k: n for k, n in sorted(c.batch_refused.items()) if n}
+    if refused:
+        out.append(f"not recorded: {sum(refused.values())} samples in batches of services the key table does not let "
+                   "write them (batch_refused): " + ", ".join(f"{k} {n}" for k, n in refused.items()))
     if stopped_at is not None:
         out.append(f"recording stopped at sim time {stopped_at.get('sim_time')} s: {stopped_at.get('reason')}; "
                    f"{sum(c.after_stop.values())} samples after it not recorded")

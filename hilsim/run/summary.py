@@ -171,6 +171,12 @@ def summarise(la: FinishedRun) -> int:
                 keys = ", ".join(f"{short(k)} {n}" for k, n in sorted(early.items(), key=lambda kv: -kv[1])[:8])
                 print(f"  not recorded: {sum(early.values())} samples their writers published before the recorder "
                       f"subscribed to them (logger.batch: docs/recording.md, \"Batches\"): {keys}")
+            # a service's batch holding a key the key table does not let it write (a forged or foreign sample)
+            refused = {k: v["batch_refused"] for k, v in counts.items() if v.get("batch_refused")}
+            if refused:
+                keys = ", ".join(f"{short(k)} {n}" for k, n in sorted(refused.items(), key=lambda kv: -kv[1])[:8])
+                print(f"  not recorded: {sum(refused.values())} samples in batches of services the key table does not "
+                      f"let write them (batch_refused; docs/security.md): {keys}")
             if stopped is not None:  # logger.max_size or min_free: the files hold the run up to there, whole
                 print(f"  recording stopped at sim time {stopped.get('sim_time')} s: {stopped.get('reason')}; "
                       f"{stopped.get('after_stop', 0)} samples after it not recorded (the run went on)")
