@@ -264,3 +264,29 @@ def test_hilsim_up_says_a_bad_set_in_one_line_and_exits_2() -> None:
         lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
         assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith(line), (r.returncode, r.stderr)
         assert "arm.yaml" not in lines[0] and not r.stdout, r.stdout
+
+
+def test_health_and_log_are_never_dropped_in_realtime() -> None:
+    """A realtime service's streams are DROP on a congested link, but its health and log are not: a log line is
+    an event, and its last health is its last word (its end state: without it the panel saw a stopped
+    service as dead, stop 47's CI)."""
+    import zenoh
+
+    from hilsim.core import transport
+    from hilsim.core.config import ZenohConfig
+    from hilsim.core.publisher import Publisher
+    from hilsim.core.scenario import load_scenario
+    from hilsim.core.service import instantiate
+
+    svc = instantiate("controller", load_scenario("arm", {"clock": {"mode": "realtime"}}))
+    ses = transport.open_session(ZenohConfig(connect=[], listen=[]))  # alone: no router, no peer
+    try:
+        svc.attach(ses)
+        pubs = {p.key: p._pub.congestion_control for p in svc._declared if isinstance(p, Publisher)}
+        assert pubs[svc.keys.health("controller")] == zenoh.CongestionControl.BLOCK
+        assert pubs[svc.keys.log("controller")] == zenoh.CongestionControl.BLOCK
+        assert pubs[svc.keys.topic("joint_commands")] == zenoh.CongestionControl.DROP  # a stream
+    finally:
+        for d in reversed(svc._declared):
+            d.undeclare()
+        ses.close()
