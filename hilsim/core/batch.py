@@ -29,6 +29,7 @@ from __future__ import annotations
 import struct
 import threading
 import time
+from collections.abc import Callable
 from typing import Any, NamedTuple
 
 MAGIC = b"HSB"
@@ -127,8 +128,12 @@ class Batcher:
     """One service's batch: :meth:`add` from its publishers, sent by :meth:`flush` when full, by a
     thread when ``max_age_s`` old, and at :meth:`undeclare` (the service stopping)."""
 
-    def __init__(self, pub: Any, token: Any, size: int, max_age_s: float) -> None:
+    def __init__(self, pub: Any, token: Any, size: int, max_age_s: float,
+                 last_put: Callable[[bytes], None] | None = None) -> None:
         self._pub = pub  # a Zenoh publisher of the batch key (hilsim.core.transport.publisher)
+        # the last batch's put where the publisher's would drop it on a congested link (realtime): it holds
+        # the service's last health, its last word
+        self._last_put = last_put
         self._token = token
         self.size = size
         self.max_age_s = max_age_s
@@ -168,16 +173,21 @@ class Batcher:
             self._size += size
             return len(recs) >= self.size or self._writers_size + self._size >= MAX_FRAME
 
-    def flush(self, older_than: float | None = None) -> None:
-        """Send what is held (with ``older_than``: only if its first sample is at least that old)."""
+    def flush(self, older_than: float | None = None, *, last: bool = False) -> None:
+        """Send what is held (with ``older_than``: only if its first sample is at least that old; ``last``:
+        the service's last batch, never dropped)."""
         with self._lock:
             if not self._records or (older_than is not None and time.monotonic() - self._first < older_than):
                 return
-            self._send()
+            self._send(last)
 
-    def _send(self) -> None:
+    def _send(self, last: bool = False) -> None:
         recs, self._records, self._size = self._records, [], 0
-        self._pub.put(encode(self.writers, recs))
+        data = encode(self.writers, recs)
+        if last and self._last_put is not None:
+            self._last_put(data)
+        else:
+            self._pub.put(data)
         self.batches += 1
         self.samples += len(recs)
 

@@ -28,13 +28,14 @@ class Publisher:
         # service: the hilsim.core.service.Service it belongs to (above this module in the core)
         self.key = key
         self._svc = service
+        self._drops = False  # samples dropped on a congested link (realtime streams)
         if latched:  # transient-local: the last sample kept for subscribers that come later
             self._pub = transport.latched_publisher(service.session, key)
         else:  # realtime: a subscriber that cannot keep up loses a stream's samples rather than delaying
             # us; never an order given once (a trajectory: nothing would replace it, the arm would not move)
             once = never_drop or keys.given_once(key, service.keys.namespace_template)
-            self._pub = transport.publisher(service.session, key,
-                                            drop_when_congested=service.sc.clock.mode == "realtime" and not once)
+            self._drops = service.sc.clock.mode == "realtime" and not once
+            self._pub = transport.publisher(service.session, key, drop_when_congested=self._drops)
         self.seq = 0
         self._lock = threading.Lock()
         # composed (hilsim.run.compose): also handed, unencoded, to the subscribers in this process
@@ -64,9 +65,11 @@ class Publisher:
     def _on_matching(self, status: Any) -> None:
         self.matching = bool(status.matching)
 
-    def put(self, msg: Any) -> None:
+    def put(self, msg: Any, *, never_drop: bool = False) -> None:
+        """``never_drop``: this one sample waits on a congested link even where the key's samples are
+        dropped (realtime): a service's last health."""
         if self._batch is not None:
-            self._put_batched(msg)
+            self._put_batched(msg, never_drop)
             return
         # one at a time: a key written from two threads (logs, health) must still reach receivers
         # with growing sequence numbers, or they reject one sample as a duplicate or out of order
@@ -77,7 +80,7 @@ class Publisher:
             with self._lock:
                 self.seq += 1
                 if data is not None:
-                    self._pub.put(data, attachment=transport.attachment_bytes(self.seq, self.gid))
+                    self._put_one(data, transport.attachment_bytes(self.seq, self.gid), never_drop)
         else:
             with self._lock:
                 self.seq += 1
@@ -87,7 +90,13 @@ class Publisher:
                     self._pub.put(msgs.encode(msg), attachment=att.encode())
         self._svc.counts_out[self.key] += 1
 
-    def _put_batched(self, msg: Any) -> None:
+    def _put_one(self, data: bytes, att: bytes, never_drop: bool) -> None:
+        if never_drop and self._drops:  # this one waits on a congested link, the key's others are dropped
+            self._svc.session.put(self.key, data, attachment=att, congestion_control=zenoh.CongestionControl.BLOCK)
+        else:
+            self._pub.put(data, attachment=att)
+
+    def _put_batched(self, msg: Any, never_drop: bool = False) -> None:
         # Encoded once, for the batch (the recorder) and, only while some other subscriber matches
         # (the recorder does not subscribe to this key now), for the key itself: a key only the
         # recorder reads costs an append, not a put. Sequence numbers and source times are the same
@@ -101,7 +110,8 @@ class Publisher:
             if self._local is None:
                 data = msgs.encode(msg)
                 if self.matching:
-                    self._pub.put(data, attachment=transport.Attachment(self.seq, t_ns, self.gid).encode())
+                    att = transport.Attachment(self.seq, t_ns, self.gid).encode()
+                    self._put_one(data, att, never_drop)
                     svc.counts_put[self.key] += 1
             else:
                 att = transport.Attachment(self.seq, t_ns, self.gid)

@@ -157,10 +157,16 @@ class Service(Ros2Node):
             # before any publisher announces itself: the recorder learns this node batches first
             # (a race would only cost it a subscription it drops again, and duplicates it drops)
             key = self.keys.batch(self._zid, self._node_id, self.name)
-            pub = transport.publisher(session, key, drop_when_congested=self.sc.clock.mode == "realtime")
+            realtime = self.sc.clock.mode == "realtime"
+            pub = transport.publisher(session, key, drop_when_congested=realtime)
             token = session.liveliness().declare_token(key)
             lc = self.sc.logger
-            self.batcher = batch.Batcher(pub, token, lc.batch, lc.batch_max_age_ms / 1000.0)
+            real = transport.zenoh_session(session)
+            last_put = None
+            if realtime and real is not None:
+                def last_put(data: bytes) -> None:
+                    real.put(key, data, congestion_control=zenoh.CongestionControl.BLOCK)
+            self.batcher = batch.Batcher(pub, token, lc.batch, lc.batch_max_age_ms / 1000.0, last_put)
             self._declared.append(self.batcher)
 
     def _takes_batches(self, session: Any) -> bool:
@@ -412,7 +418,10 @@ class Service(Ros2Node):
             with self._health_lock:
                 with self.lock:
                     h = self.health()
-                self._health_pub.put(h)
+                    last = self.final
+                # the last one is the service's last word (its end state and figures), never dropped on a
+                # congested link: without it the panel saw a stopped service as dead (stop 47's CI)
+                self._health_pub.put(h, never_drop=last)
 
     def _health_thread(self) -> None:
         while not self.stop_event.wait(1.0):
@@ -434,10 +443,10 @@ class Service(Ros2Node):
         # before any input: who may write which key (history: the writers that exist already)
         self._declared.append(session.liveliness().declare_subscriber(
             self.keys.all_writers, self.provenance.on_token, history=True))
-        # never dropped, even in realtime: a log line is an event, and the last health is the service's
-        # last word (its end state and figures: without it a stopped service looks dead to the panel)
-        self._health_pub = self.publisher(self.keys.health(self.name), never_drop=True)
-        self._log_pub = self.publisher(self.keys.log(self.name), never_drop=True)
+        # (DROP in realtime like every stream: a blocking put here slowed a realtime loop whose recorder
+        # fell behind, test_logger_stall; the last health alone is never dropped: publish_health)
+        self._health_pub = self.publisher(self.keys.health(self.name))
+        self._log_pub = self.publisher(self.keys.log(self.name))
         if self.lockstep and self.ack_via == "sync":
             self._sync_pub = self.publisher(self.keys.sync(self.name))
         self.setup()
@@ -515,7 +524,7 @@ class Service(Ros2Node):
                 if self.batcher is not None:
                     # the last batch (final health among it) before any publisher or token goes
                     try:
-                        self.batcher.flush()
+                        self.batcher.flush(last=True)
                     except Exception as e:
                         self.log.warning("last batch not sent: %s", e)
                 for d in reversed(self._declared):
