@@ -303,7 +303,9 @@ def test_browser_start_run_goal_gain_stop(tmp_path: Path, router: str) -> None:
             assert "kd=5.594" in health.get("gains:joint_2", ""), health  # nothing of it was set
 
             page.screenshot(path=str(tmp_path / "panel.png"))
-            page.click("#stop")
+            # (a loaded 2-core machine kept this click from being actionable for 30 s once: the page's
+            # thread busy with its plots and a second run's processes beside it)
+            page.click("#stop", timeout=90_000)
             page.wait_for_function("document.getElementById('run-banner').textContent.startsWith('Finished')",
                                    timeout=90_000)
             final = panel.state()["run"]
