@@ -24,7 +24,7 @@ from hilsim.core.ros2 import wire
 class Publisher:
     """Encodes, sends and counts messages on one key."""
 
-    def __init__(self, service: Any, key: str, *, latched: bool = False, never_drop: bool = False) -> None:
+    def __init__(self, service: Any, key: str, *, latched: bool = False) -> None:
         # service: the hilsim.core.service.Service it belongs to (above this module in the core)
         self.key = key
         self._svc = service
@@ -33,7 +33,7 @@ class Publisher:
             self._pub = transport.latched_publisher(service.session, key)
         else:  # realtime: a subscriber that cannot keep up loses a stream's samples rather than delaying
             # us; never an order given once (a trajectory: nothing would replace it, the arm would not move)
-            once = never_drop or keys.given_once(key, service.keys.namespace_template)
+            once = keys.given_once(key, service.keys.namespace_template)
             self._drops = service.sc.clock.mode == "realtime" and not once
             self._pub = transport.publisher(service.session, key, drop_when_congested=self._drops)
         self.seq = 0

@@ -186,11 +186,10 @@ class Service(Ros2Node):
         return transport.zenoh_session(self.session)
 
     # ------------------------------------------------------------------ declarations
-    def publisher(self, key: str, *, latched: bool = False, never_drop: bool = False) -> Publisher:
-        """A publisher of ``key``; ``latched``: transient-local (its last sample kept for late subscribers);
-        ``never_drop``: not dropped on a congested link even in realtime (each sample an event)."""
+    def publisher(self, key: str, *, latched: bool = False) -> Publisher:
+        """A publisher of ``key``; ``latched``: transient-local (its last sample kept for late subscribers)."""
         assert self.session is not None
-        p = Publisher(self, key, latched=latched, never_drop=never_drop)
+        p = Publisher(self, key, latched=latched)
         self._declared.append(p)
         return p
 
