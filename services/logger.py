@@ -199,6 +199,7 @@ class LoggerService(Service):
         # check the size: the worker's decoding and this process's own health/log publishing
         # (DiagnosticArray, Log) must not interleave, or valid payloads are rejected.
         self._codec_lock = threading.RLock()
+        self._intake_closed = False  # the subscriptions are going: own notices no longer published
         self._finished = False
         self._stopping = False  # set as the recorder stops (its end, or logger.max_size): no file split from here
         self._closed = False  # set once the subscribers are gone: late samples are dropped
@@ -736,6 +737,11 @@ class LoggerService(Service):
 
     def _publish_log(self, level: int, text: str) -> None:
         with self._codec_lock:
+            # once its subscriptions go, a notice of the recorder's own would reach nobody's recording and
+            # be counted published, never recorded (a split the worker finished late, CI): the process log
+            # has it; a fault goes out all the same (the run fails on it anyway)
+            if self._intake_closed and level <= LOG_INFO:
+                return
             super()._publish_log(level, text)
 
     def health(self) -> msgs.DiagnosticArray:  # called under self.lock
@@ -787,6 +793,8 @@ class LoggerService(Service):
         self._begin_stop()
         self._await_quiet()
         key_subs = self.routes.close()  # no key subscription declared after this
+        with self._codec_lock:  # a notice being put now reaches the subscription; none after (_publish_log)
+            self._intake_closed = True
         for sub in [*self._subs, *key_subs]:
             try:
                 sub.undeclare()

@@ -3,6 +3,7 @@ leak checks (no session or child process may outlive its test)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 import time
@@ -98,9 +99,11 @@ def no_leaks() -> Iterator[None]:
         if not kids or time.monotonic() > deadline:
             break
         time.sleep(0.1)
+    said = [(k.pid, _cmd(k)) for k in kids]  # before the kill: a zombie has no command line to read
     for k in kids:
-        k.kill()
-    assert not kids, f"test left processes running: {[(k.pid, ' '.join(k.cmdline()[-4:])) for k in kids]}"
+        with contextlib.suppress(psutil.Error):
+            k.kill()
+    assert not kids, f"test left processes running: {said}"
     leaked = [t for t in threading.enumerate() if t.ident not in before and t.name.startswith("svc:")]
     assert not leaked, f"test left service threads running: {[t.name for t in leaked]}"
     # a real-time scheduling class (physics' realtime loop, as root) must stay in its own process:
@@ -117,6 +120,13 @@ def _started_by(proc: psutil.Process, pids: set[int]) -> bool:
         return proc.pid in pids or any(p.pid in pids for p in proc.parents())
     except psutil.Error:
         return False
+
+
+def _cmd(proc: psutil.Process) -> str:
+    try:
+        return " ".join(proc.cmdline()[-4:])
+    except psutil.Error:  # it ended meanwhile
+        return "?"
 
 
 def _comm(tid: str) -> str:

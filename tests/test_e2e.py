@@ -423,9 +423,18 @@ def test_an_interactive_run_takes_goals_until_ctrl_c(tmp_path: Path) -> None:
         assert goal.returncode == 0 and "succeeded" in goal.stdout, goal.stdout + goal.stderr
         # the learned choice said what it picked and why, in the feedback and in the result
         assert goal.stdout.count("choice: auto (weighted): ") == 2, goal.stdout
-        with obs.lock:
-            last = np.array(obs.truth[-1][1]) if obs.truth else None
-        assert last is not None and np.abs(last - target).max() <= 0.01 + 0.002, last  # the truth, not its word
+        # the truth, not its word: this test's own subscriber may lag the physics by a moment on a busy
+        # machine (CI: its latest sample was mid-motion when the goal ended), so the arm has a few seconds
+        # of truth to be seen at the target; held there, it stays
+        last = None
+        end = time.monotonic() + 10.0
+        while time.monotonic() < end:
+            with obs.lock:
+                last = np.array(obs.truth[-1][1]) if obs.truth else None
+            if last is not None and np.abs(last - target).max() <= 0.01 + 0.002:
+                break
+            time.sleep(0.1)
+        assert last is not None and np.abs(last - target).max() <= 0.01 + 0.002, last
         time.sleep(1.0)
         assert p.poll() is None, "the run ended by itself"
         os.killpg(p.pid, signal.SIGINT)  # Ctrl-C

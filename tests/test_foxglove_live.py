@@ -68,14 +68,19 @@ def test_a_foxglove_client_sees_the_arm_as_the_physics_has_it(tmp_path: Path) ->
     lines: list[str] = []
     url = ""
     assert p.stdout is not None
-    for line in p.stdout:
-        lines.append(line)
-        if line.startswith("foxglove: "):
-            url = line.split(" ", 1)[1].strip()
-            break
-    assert url == f"ws://127.0.0.1:{port}", "".join(lines)  # loopback by default
     rest: list[str] = []
     reader = threading.Thread(target=lambda: rest.extend(p.stdout), daemon=True)  # type: ignore[arg-type]
+    try:
+        for line in p.stdout:
+            lines.append(line)
+            if line.startswith("foxglove: "):
+                url = line.split(" ", 1)[1].strip()
+                break
+        assert url == f"ws://127.0.0.1:{port}", "".join(lines)  # loopback by default
+    except BaseException:
+        os.killpg(p.pid, signal.SIGKILL)  # no run left behind by a failed start
+        finish(p, 60)
+        raise
     reader.start()
     target = load_scenario("arm").task.targets[0]
     got: dict[str, list[bytes]] = {t: [] for t in WANTED}

@@ -798,13 +798,13 @@ def cmd_up(args: argparse.Namespace) -> int:
                         "logger" in u.split("+") for u in la.local):
                     threading.Thread(target=say_viewer, args=(la,), name="viewer", daemon=True).start()
                 if interactive:
-                    print(_interactive_hint(la, example), flush=True)
+                    la.say(_interactive_hint(la, example))  # the viewer thread says its lines too
                 elif not sc.task.targets and sc.duration is None:
                     robot = fleet.robot_names(sc)[0] if sc.robots > 1 else sc.robot  # robots > 1: e.g. arm0
                     how = (f"send goals with `hilsim goal {robot} --joints …`" if "planner" in sc.services
                            else f"send goals with `hilsim goal {robot} --xy X Y`" if "navigator" in sc.services
                            else f"drive it with geometry_msgs/Twist on {Keys.of(sc, robot).topic_name('cmd_vel')}")
-                    print(f"no task targets and no --duration: running until Ctrl-C ({how})", flush=True)
+                    la.say(f"no task targets and no --duration: running until Ctrl-C ({how})")
                 la.follow()
         finally:
             la.stop()
