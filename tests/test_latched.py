@@ -128,3 +128,32 @@ def test_latched_topics_are_recorded_whatever_the_order(scenario: Any, run_servi
             if counts.get(key, {}).get("received") != 1 or not counts[key].get("expected"):
                 missing.append((lead, key, counts.get(key)))
     assert not missing, missing
+
+
+def test_a_latched_cache_that_gave_nothing_is_asked_again_ever_less_often(monkeypatch: Any, scenario: Any) -> None:
+    """An action's status is transient-local but put only once a goal comes: its cache is asked again after
+    1 s, then 2, 4, … at most 30 s apart (each ask is a new subscription: at 1 s for a whole run it cost the
+    realtime recorder a tenth of its time), and never again once a sample came."""
+    from hilsim.record import routes as routes_mod
+
+    now = [100.0]
+    monkeypatch.setattr(routes_mod.time, "monotonic", lambda: now[0])
+    routes = KeyRoutes(Keys.of(scenario("arm")), ["**"], batching=True)
+    routes._subscribe_key = lambda key, latched: _Undeclarable()  # type: ignore[method-assign]
+    routes.latched = {"k": now[0]}
+    asks = []
+    for _ in range(1200):  # 10 minutes in 0.5 s steps
+        now[0] += 0.5
+        if routes.ask_again():
+            asks.append(now[0] - 100.0)
+    gaps = [b - a for a, b in zip([0.0, *asks], asks, strict=False)]
+    assert gaps[:6] == [1.0, 2.0, 4.0, 8.0, 16.0, 30.0], gaps
+    assert set(gaps[5:]) == {30.0}, gaps
+    routes.got("k")
+    now[0] += 100
+    assert routes.ask_again() == []
+
+
+class _Undeclarable:
+    def undeclare(self) -> None:
+        pass

@@ -8,7 +8,9 @@ batches ``**`` takes every key and only the transient-local writers get a subscr
 A transient-local key keeps its subscription even once a batch covers its writer (a latched sample is put
 once, at its writer's start: a batch sent before the recorder listened is gone, the cache is not; a
 batching token seen after the writer's own once dropped it, and the bag had no ``/tf_static``), and its
-cache is asked again every ``LATCHED_RETRY_S`` until its sample came (:meth:`KeyRoutes.ask_again`).
+cache is asked again until its sample came (:meth:`KeyRoutes.ask_again`): after ``LATCHED_RETRY_S``, then
+twice as long each time, at most ``LATCHED_RETRY_MAX_S`` (an action's status is put only once a goal comes;
+each ask declares a subscription, which cost the realtime recorder a tenth of its time at 1 s).
 
 Reads (liveliness): the batching services' tokens (``Keys.batch``: which nodes batch) and the ROS 2
 graph's publisher tokens (``@ros2_lv/<domain>/…/MP/…``: who writes what, hilsim.core.provenance).
@@ -28,7 +30,8 @@ import zenoh.ext as zenoh_ext
 from hilsim.core.keys import Keys
 from hilsim.core.ros2 import wire
 
-LATCHED_RETRY_S = 1.0  # wall seconds between asks of a transient-local publisher's cache that gave nothing yet
+LATCHED_RETRY_S = 1.0  # wall seconds before the first ask again of a transient-local cache that gave nothing yet
+LATCHED_RETRY_MAX_S = 30.0  # …doubling up to this
 Node = tuple[str, str]  # (zid, node id) of a ROS 2 node (hilsim's services are nodes too)
 
 
@@ -54,6 +57,7 @@ class KeyRoutes:
         # transient-local keys: their subscription stays whoever else covers them (a batch sent before this
         # recorder listened is gone; the publisher's cache is not), asked again until a sample came
         self.latched: dict[str, float] = {}  # key -> when (monotonic) its cache was last asked
+        self._wait: dict[str, float] = {}  # key -> seconds until its next ask (doubling)
         self.latched_got: set[str] = set()
 
     def start(self, session: Any, real: zenoh.Session | None, zid: str, *, composed: bool,
@@ -167,17 +171,20 @@ class KeyRoutes:
 
     def ask_again(self, period: float = LATCHED_RETRY_S) -> list[str]:
         """Ask the cache of each transient-local key without a sample again (a new late-joiner subscription,
-        the old one undeclared), at most once per ``period``; the keys asked. A late joiner's one query can
-        cross the publisher's put (the put before our subscription reached it, the query before the put)."""
+        the old one undeclared), first after ``period``, then twice as long each time; the keys asked. A
+        late joiner's one query can cross the publisher's put (the put before our subscription reached it,
+        the query before the put)."""
         now = time.monotonic()
         asked, old = [], []
         with self.lock:
             if self.closed:
                 return []
             for key, at in self.latched.items():
-                if key in self.latched_got or now - at < period:
+                wait = self._wait.get(key, period)
+                if key in self.latched_got or now - at < wait:
                     continue
                 self.latched[key] = now
+                self._wait[key] = min(2 * wait, max(period, LATCHED_RETRY_MAX_S))
                 old.extend(self.key_subs.get(key, []))
                 self.key_subs[key] = [self._subscribe_key(key, True)]
                 asked.append(key)
