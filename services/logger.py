@@ -27,8 +27,9 @@ Writes: only its own health and log keys (``<prefix>/<robot>/health/logger``,
   in a service's batch that the key table does not let that service write, not recorded; ``lost`` never
   more than the key's services say they published and did not reach it: their final health) written at exit.
 
-This module is the service's wiring: subscriptions, the queue, the worker thread, loss
-accounting (judged at the end by ``hilsim.record.loss``), health and lifecycle. What is written for
+This module is the service's wiring: subscriptions, the queue, the worker thread, health and
+lifecycle. Each writer's sequence and the loss accounting is ``hilsim.record.accounting`` (judged at
+the end by ``hilsim.record.loss``); what is written for
 each kind of message (and the entity layout) is ``hilsim.record.rows``; which keys are subscribed one
 by one ``hilsim.record.routes``; what the summary file and lines say ``hilsim.record.report``; the
 robot model and tool kinematics ``hilsim.sim.kinematics``.
@@ -64,7 +65,7 @@ the publisher's cache then gives it; such keys are taken once per writer and seq
 Each sample unpacked from a batch goes through
 :meth:`_take` like one received on its key; since one can come both ways (a key written by a batching
 service and another writer, or a batching token seen after the node's publisher tokens), samples are
-taken once per (key, writer gid, sequence number, payload) (:meth:`_sequence`, each writer's
+taken once per (key, writer gid, sequence number, payload) (``hilsim.record.accounting``, each writer's
 :class:`hilsim.core.provenance.Sequence`; ``duplicates``). A sample that does not fit its writer's
 sequence (a forged number, a replay) is recorded and counted as ``suspect``, its writer's gaps then
 ``contested``, not ``lost`` (docs/keys.md, "Suspect samples"). A frame
@@ -110,7 +111,6 @@ import zenoh
 from hilsim.core import batch, msgs, rights, transport
 from hilsim.core.config import Scenario
 from hilsim.core.keys import Keys, UnknownKey, message_type
-from hilsim.core.provenance import DUPLICATE, TAKEN, Sequence, digest_of
 from hilsim.core.recording import RECORDING_NAME, SUMMARY_NAME, disable_analytics, part_name
 from hilsim.core.restart import restarted
 from hilsim.core.scenario import write_scenario
@@ -120,6 +120,7 @@ disable_analytics()  # before rerun is imported: its SDK reads the analytics con
 import rerun as rr  # noqa: E402
 
 from hilsim.record import foxglove_live, live, loss, report  # noqa: E402
+from hilsim.record.accounting import LossAccounts  # noqa: E402
 from hilsim.record.bag import NO_ATTACHMENT, TIME_NOTE, BagError  # noqa: E402
 from hilsim.record.bag_read import BAG_DIR, bag_paths, recover_file  # noqa: E402
 from hilsim.record.limits import BagSeries, RrdSeries, human_bytes, stop_reason  # noqa: E402
@@ -181,14 +182,7 @@ class LoggerService(Service):
         self._key_names: dict[str, str] = {}
         self.recorded: Counter[str] = Counter()
         self._pending: Counter[str] = Counter()  # samples whose rows are buffered, not yet sent, per key
-        # loss accounting (under self.lock): each writer's sequence (hilsim.core.provenance.Sequence)
-        self._streams: dict[tuple[str, bytes], Sequence] = {}
-        self.gaps: Counter[str] = Counter()  # lost in transport: sequence numbers never received
-        self.suspect: Counter[str] = Counter()  # samples that do not fit their writer's sequence (recorded)
-        self._published: dict[str, dict[str, int]] = {}  # health key -> its final health's published:<key>
-        self._say_suspect = ""  # a warning to publish once self.lock is released
         self.dropped: Counter[str] = Counter()  # arrived at a full queue (or as the subscriber closed)
-        self.before_first: Counter[str] = Counter()  # published before a writer's first received sample
         self.unannounced: Counter[str] = Counter()  # from writers that did not announce themselves for the key
         self.delay_s = self._delay_from_env()
         self._subs: list[Any] = []
@@ -206,6 +200,11 @@ class LoggerService(Service):
         self._last_arrival = 0.0  # time.monotonic() of the latest sample
         # logger.batch: the services send batches; keys are subscribed one by one for the other writers
         self.batching = scenario.logger.batch > 0
+        # loss accounting (under self.lock): each writer's sequence, gaps, suspect samples (hilsim.record.accounting)
+        self.accounts = LossAccounts(self.lock, batching=self.batching)
+        self.gaps = self.accounts.gaps  # lost in transport: sequence numbers never received
+        self.suspect = self.accounts.suspect  # samples that do not fit their writer's sequence (recorded)
+        self.before_first = self.accounts.before_first  # published before a writer's first received sample
         self.duplicates: Counter[str] = Counter()  # samples that came both ways (batching, latched), taken once
         # samples in a service's batch of a key the key table does not let it write (hilsim.core.rights)
         self.batch_refused: Counter[str] = Counter()
@@ -213,9 +212,6 @@ class LoggerService(Service):
         self._service_rights: dict[str, rights.Rights | None] = {}
         self.routes = KeyRoutes(self.keys, scenario.logger.record, batching=self.batching)  # key by key
         self._malformed_warned = False
-        # keys with a late-joiner subscription beside `**` (latched writers, without batches): their
-        # samples can come both ways and are taken once, as batches are
-        self._twice: set[str] = set()
         # logger.max_size, logger.min_free: why the recording stopped (None: it goes on), when, what came after
         self.stopped: str | None = None
         self.stopped_at: dict[str, Any] = {}
@@ -296,7 +292,7 @@ class LoggerService(Service):
         # before `**` reaches its publisher: a late-joiner subscription per latched writer asks its cache
         self._declared.extend(self.routes.start(
             self.session, self.zenoh_session, self._zid, composed=local is not None,
-            on_sample=self._on_sample, on_twice=self._takes_twice))
+            on_sample=self._on_sample, on_twice=self.accounts.takes_twice))
         limit = f"queue limit {self.queue_limit}" if self.queue_limit else "unbounded queue"
         self.log.info(
             "recording %s to %s (clock %s, %s)",
@@ -371,11 +367,6 @@ class LoggerService(Service):
             return None
 
     # ------------------------------------------------------------------ batches (logger.batch)
-    def _takes_twice(self, key: str) -> None:
-        """A key whose samples can come two ways (``**`` and a latched writer's cache): taken once."""
-        with self.lock:
-            self._twice.add(key)
-
     def _on_batch(self, sample: zenoh.Sample) -> None:
         raw = sample.payload.to_bytes()
         try:
@@ -440,14 +431,14 @@ class LoggerService(Service):
         with self.lock:
             prov = self.provenance
             if att is not None and (k not in prov.restricted or att.gid in prov.writers.get(k, ())):
-                if not self._sequence(k, att, payload):
+                if not self.accounts.sequence(k, att, payload):
                     # it came both ways (in a batch, or from a latched writer's cache, and on its key): once
                     self.duplicates[k] += 1
                     return
             elif k in prov.restricted:
                 # Batching: a writer whose token is not known yet (a race at its start) can send a sample
                 # both ways too; taken once all the same, its gaps not counted (not announced yet)
-                if att is not None and self.batching and not self._sequence(k, att, payload, counted=False):
+                if att is not None and self.batching and not self.accounts.sequence(k, att, payload, counted=False):
                     self.duplicates[k] += 1
                     return
                 # recorded like everything received, but a stranger's gaps are no loss of ours
@@ -472,41 +463,9 @@ class LoggerService(Service):
             return
         if k in self.routes.latched:
             self.routes.got(k)  # its publisher's cache need not be asked again
-        if self._say_suspect:
-            said, self._say_suspect = self._say_suspect, ""
+        if self.accounts.say_suspect:
+            said, self.accounts.say_suspect = self.accounts.say_suspect, ""
             self.warn(said)
-
-    def _sequence(self, key: str, att: transport.Attachment, payload: Any, *, counted: bool = True) -> bool:
-        """Count the samples of this sample's writer that never arrived, and those that do not fit its
-        sequence (suspect: recorded all the same), under self.lock (hilsim.core.provenance.Sequence).
-        False for a sample taken already: one that came both ways (batches, a latched writer's cache;
-        same number, same payload). Taken one way only, such a repeat is a replay: recorded, suspect."""
-        w = (key, att.gid)
-        st = self._streams.get(w)
-        if st is None:
-            st = self._streams[w] = Sequence()
-        lost0, before0 = st.counted_lost, 0 if st.contested else st.before
-        two_ways = self.batching or key in self._twice
-        verdict, why = st.take(att.seq, digest_of(payload if isinstance(payload, bytes) else None),
-                               time.monotonic(), one_way=not two_ways, counted=counted)
-        if verdict == DUPLICATE and two_ways:
-            return False
-        self.gaps[key] += st.counted_lost - lost0
-        self.before_first[key] += (0 if st.contested else st.before) - before0
-        if verdict != TAKEN and counted:
-            self.suspect[key] += 1
-            if self.suspect[key] == 1:  # said once self.lock is released: the recorder receives its own log
-                self._say_suspect = f"suspect sample on {key}: {why} (recorded; further ones are counted)"
-        return True
-
-    def contested(self) -> Counter[str]:
-        """Gaps of writers with suspect samples, per key: not counted as lost (hilsim.core.provenance)."""
-        out: Counter[str] = Counter()
-        with self.lock:
-            for (k, _), st in self._streams.items():
-                if st.contested_lost:
-                    out[k] += st.contested_lost
-        return out
 
     def lost(self) -> Counter[str]:
         """Samples lost per key: gaps in the sequence numbers plus drops at the full queue."""
@@ -582,7 +541,7 @@ class LoggerService(Service):
             self._pending[key] += 1
             return
         if isinstance(msg, msgs.DiagnosticArray) and "/health/" in key:
-            self._note_published(key, msg)
+            self.accounts.note_published(key, msg)
         try:
             rows.message(key, msg)
             rows.learn(key, payload, msg)
@@ -591,26 +550,6 @@ class LoggerService(Service):
             rows.error(key, e, msg)
         self.sim_ns = rows.clock_ns
         self._pending[key] += 1
-
-    def _note_published(self, key: str, msg: msgs.DiagnosticArray) -> None:
-        """A service's final health (``final: 1``, only it may write its health): what it published per key,
-        against which a gap in its sequence is judged at the end (:meth:`_judged_lost`)."""
-        for st in msg.status:
-            values = {kv.key: kv.value for kv in st.values}
-            if values.get("final") != "1":
-                continue
-            with self.lock:
-                self._published[key] = {k[10:]: int(v) for k, v in values.items()
-                                        if k.startswith("published:") and v.isdigit()}
-
-    def _judged_lost(self, gaps: Counter[str], dropped: Counter[str], received: Counter[str]) -> Counter[str]:
-        """The losses per key, one count per cause (:func:`hilsim.record.loss.judged_lost`)."""
-        published: Counter[str] = Counter()
-        with self.lock:
-            for counts in self._published.values():
-                published.update(counts)
-            suspect, before = Counter(self.suspect), Counter(self.before_first)
-        return loss.judged_lost(gaps, dropped, received, suspect, before, published)
 
     def _reject(self, key: str, e: Exception) -> None:
         with self.lock:
@@ -852,8 +791,8 @@ class LoggerService(Service):
         c.expected = loss.expected_keys(self.sc, self.keys, self.routes.covers) if self.stopped is None else set()
         with self.lock:
             gaps = Counter(self.gaps)
-        c.lost = self._judged_lost(gaps, c.dropped, c.received)
-        c.contested = self.contested()
+        c.lost = self.accounts.judged_lost(gaps, c.dropped, c.received)
+        c.contested = self.accounts.contested()
         for k in gaps:  # gaps its writers' own counts say are not losses: said apart, as contested ones
             c.contested[k] += gaps[k] - (c.lost[k] - c.dropped[k])
         bag = self.sc.logger.bag

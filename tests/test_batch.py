@@ -135,7 +135,7 @@ def test_a_sample_that_comes_twice_is_taken_once(scenario: Any, tmp_path: Path) 
     key = Keys().clock
 
     def take(*seqs: int) -> list[bool]:
-        return [svc._sequence(key, Attachment(s, 0, GID_A), None) for s in seqs]
+        return [svc.accounts.sequence(key, Attachment(s, 0, GID_A), None) for s in seqs]
 
     # first seen on the key at 5 (the batch with 1..4 comes later): those fill "before the first"
     assert take(5, 6, 1, 2, 3, 4) == [True] * 6
@@ -144,12 +144,12 @@ def test_a_sample_that_comes_twice_is_taken_once(scenario: Any, tmp_path: Path) 
     assert take(9) == [True] and svc.gaps[key] == 2  # 7 and 8 missing
     assert take(8, 8, 7, 9, 10) == [True, False, True, False, True]
     assert svc.gaps[key] == 0 and svc.before_first[key] == 0
-    assert svc._sequence(key, Attachment(3, 0, GID_B), None)  # another writer counts on its own
+    assert svc.accounts.sequence(key, Attachment(3, 0, GID_B), None)  # another writer counts on its own
     assert svc.before_first[key] == 2
     # a writer whose token comes after its first samples (unannounced then): taken once all the same,
     # and what it missed before it was announced is neither a loss nor "before the first"
     tf = Keys().tf
-    assert [svc._sequence(tf, Attachment(s, 0, GID_A), None, counted=False) for s in (3, 6)] == [True, True]
+    assert [svc.accounts.sequence(tf, Attachment(s, 0, GID_A), None, counted=False) for s in (3, 6)] == [True, True]
     assert svc.before_first[tf] == svc.gaps[tf] == 0
     assert take_on(svc, tf, 1, 2, 3, 4, 5, 6, 7) == [True, True, False, True, True, False, True]
     assert svc.before_first[tf] == svc.gaps[tf] == 0
@@ -174,7 +174,7 @@ def test_a_batched_sample_from_a_writer_announced_late_is_recorded_once(scenario
 
 
 def take_on(svc: Any, key: str, *seqs: int) -> list[bool]:
-    return [svc._sequence(key, Attachment(s, 0, GID_A), None) for s in seqs]
+    return [svc.accounts.sequence(key, Attachment(s, 0, GID_A), None) for s in seqs]
 
 
 def test_a_batch_is_taken_only_for_keys_its_service_may_write(scenario: Any, tmp_path: Path) -> None:

@@ -425,16 +425,16 @@ def test_losses_are_counted_once_per_cause_and_never_negative(scenario: Any, tmp
     svc = LoggerService(sc)
     k = Keys.of(sc).clock
     # the writer says it published 1000; 600 arrived, 300 dropped at the full queue, gaps of 103 seen
-    svc._published = {"h": {k: 1000}}
-    lost = svc._judged_lost(Counter({k: 103}), Counter({k: 300}), Counter({k: 600}))
+    svc.accounts.published = {"h": {k: 1000}}
+    lost = svc.accounts.judged_lost(Counter({k: 103}), Counter({k: 300}), Counter({k: 600}))
     assert lost[k] == 100 + 300  # 100 gaps at most (1000 - 600 - 300), the 300 dropped once
     # every sample the writer published arrived or was dropped: the gaps are no loss (forged numbers), drops are
-    lost = svc._judged_lost(Counter({k: 5}), Counter({k: 400}), Counter({k: 600}))
+    lost = svc.accounts.judged_lost(Counter({k: 5}), Counter({k: 400}), Counter({k: 600}))
     assert lost[k] == 400
     # the writer's count short of what arrived and was dropped (its count taken before its last samples):
     # the drops stand whole, the gaps count nothing (the old cap said 400 lost, 403 of them dropped: -3)
-    lost = svc._judged_lost(Counter({k: 2}), Counter({k: 403}), Counter({k: 600}))
+    lost = svc.accounts.judged_lost(Counter({k: 2}), Counter({k: 403}), Counter({k: 600}))
     assert lost[k] == 403
     # a key no service counts for: gaps and drops as seen
     other = Keys.of(sc).topic("cmd_vel")
-    assert svc._judged_lost(Counter({other: 7}), Counter({other: 2}), Counter({other: 10}))[other] == 9
+    assert svc.accounts.judged_lost(Counter({other: 7}), Counter({other: 2}), Counter({other: 10}))[other] == 9
