@@ -22,16 +22,17 @@ import pytest
 import zenoh
 from util import REPO, wait_until
 
-from hilsim.core import runs, transport
+from hilsim.core import rights, runs, transport
 from hilsim.core.config import ConfigError, ZenohConfig
 from hilsim.core.keys import Keys
-from hilsim.core.scenario import load_scenario
+from hilsim.core.scenario import load_scenario, parse_overrides
 from hilsim.run import creds
 from hilsim.run.router import RunRouter, identity_file, open_run_router
 
 FJT = "control_msgs/action/FollowJointTrajectory"
 DOC = REPO / "docs" / "security.md"
 TABLE = "### Each identity, probed against a live router"
+BRIDGE = "bridge-ros2-dds"
 
 
 def _probes(k: Keys) -> tuple[dict[str, str], dict[str, str]]:
@@ -59,12 +60,23 @@ def _table() -> dict[str, dict[str, set[str]]]:
     return out
 
 
+def _own_pointer_and_creds(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """This router's pointer and lab credentials in ``tmp_path``: nobody else's tools, none of this user's creds."""
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / "xdg"))
+    (tmp_path / "xdg").mkdir(mode=0o700)
+    monkeypatch.setenv(creds.ENV, str(tmp_path / "creds"))
+
+
+def _close(rr: RunRouter) -> None:
+    if rr.pointer is not None:
+        rr.pointer.unlink(missing_ok=True)
+    rr.session.close()
+
+
 @pytest.fixture
 def run_router(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple[RunRouter, dict[str, Path]]]:
     """The arm's run router with a guest and two lab credentials; identity -> its client config."""
-    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path / "xdg"))  # this router's pointer: nobody else's tools
-    (tmp_path / "xdg").mkdir(mode=0o700)
-    monkeypatch.setenv(creds.ENV, str(tmp_path / "creds"))
+    _own_pointer_and_creds(tmp_path, monkeypatch)
     files = {"teleop": creds.add("teleop", ["cmd_vel"], [], connect="tcp/127.0.0.1:7447"),
              "viewer": creds.add("viewer", [], [], connect="tcp/127.0.0.1:7447")}
     sc = load_scenario("arm", {"zenoh.guests": "read"})
@@ -76,9 +88,7 @@ def run_router(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[tupl
     try:
         yield rr, files
     finally:
-        if rr.pointer is not None:
-            rr.pointer.unlink(missing_ok=True)
-        rr.session.close()
+        _close(rr)
 
 
 def test_each_identity_may_put_serve_and_query_exactly_what_this_table_says(
@@ -174,3 +184,39 @@ def test_a_credential_is_given_only_what_a_person_may_command(tmp_path: Path, mo
     (path.parent / "ok.json").chmod(0o644)
     with pytest.raises(ConfigError, match="must be this user's and mode 0600"):
         creds.load_all()
+
+
+def test_the_dds_bridge_puts_only_what_its_from_dds_names(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """DDS has no identities (no SROS2 in the wheels): the bridge's ``from_dds`` is what every DDS node of the
+    domain may send. ``hilsim up rover --hil config/ros2/dds.yaml --set bridge-ros2-dds.from_dds=[cmd_vel]``
+    narrows it, and the run's router holds the bridge's identity to it: its ``cmd_vel`` reaches a subscriber,
+    its ``joint_trajectory`` (the table's, without that line) and ``odom`` (the controller's) do not."""
+    _own_pointer_and_creds(tmp_path, monkeypatch)
+    overlay = [REPO / "config" / "ros2" / "dds.yaml"]
+    sc = load_scenario("rover", parse_overrides(["bridge-ros2-dds.from_dds=[cmd_vel]"]), overlay)
+    k = Keys.of(sc)
+    # the overlay alone takes both of the table's topics from DDS, and its identity may put both
+    assert rights.unit_rights(load_scenario("rover", {}, overlay), BRIDGE).may_put(k.topic("joint_trajectory"))
+    rr = open_run_router(tmp_path / "run", sc)
+    cfg = {who: ZenohConfig(mode="client", connect=[rr.endpoint], auth=f)
+           for who, f in (("bridge", rr.identities[BRIDGE]), ("tools", rr.client_config),
+                          ("reader", rr.launcher_config))}
+    sessions = {who: transport.open_session(c) for who, c in cfg.items()}
+    got: list[tuple[str, str]] = []  # (who, topic) of every put that reached the reader, in order
+    probes = ("odom", "joint_trajectory", "cmd_vel")
+    # joint_trajectory's last: once the tools' put on it arrives, every subscription has reached the router
+    subs = [sessions["reader"].declare_subscriber(k.topic(t), lambda s: got.append(
+        tuple(s.payload.to_string().split(" ", 1)))) for t in probes]
+    try:
+        assert wait_until(lambda: sessions["tools"].put(k.topic("joint_trajectory"), "tools joint_trajectory")
+                          or ("tools", "joint_trajectory") in got, 10), "the control never arrived"
+        for t in probes:  # in this order on one session and one path: the refused ones would come before cmd_vel
+            sessions["bridge"].put(k.topic(t), f"bridge {t}")
+        assert wait_until(lambda: ("bridge", "cmd_vel") in got, 10), got
+        assert {g for g in got if g[0] == "bridge"} == {("bridge", "cmd_vel")}, got
+    finally:
+        for sub in subs:
+            sub.undeclare()
+        for s in sessions.values():
+            s.close()
+        _close(rr)

@@ -10,7 +10,9 @@ scenario's services, robots, domain and namespace (docs/security.md, "Who may wr
   ``health``, ``log``, ``sync`` and ``hw/<itself>/joint_states``, ``…/setpoints``; declare its liveliness (``alive``,
   ``lockstep``), its batch key (``logger.batch``; not the recorder) and the ROS 2 graph's tokens; serve
   the queryables and ROS 2 actions the table names it the server of, and ask those it is named an asker
-  of. The recorder writes nothing but its own health and log;
+  of. The recorder writes nothing but its own health and log. The ROS 2 bridge to DDS puts, of the topics the
+  table gives it (``cmd_vel``, ``joint_trajectory``), only those of its ``from_dds`` (DDS has no identities
+  of its own: that list is what every DDS node of the domain may send);
 - the **tools** (``hilsim topic``, ``goal``, ``gains``, ``play``, ``ui``; and the ROS 2 nodes given the same
   file) may put what a person is meant to command (``USER`` in the table: ``cmd_vel``,
   ``joint_trajectory``) and the topics no service of this run writes (a run without the sensors: its
@@ -139,8 +141,13 @@ def service_rights(sc: Scenario, service: str) -> Rights:
     svc = fleet.split_id(service)[0]
     k = every_robot(sc)
     r = _common(sc)
-    puts = [k.topic(t) for t, row in keyscheme.TOPIC_TABLE.items() if svc in row.writers]
-    puts += [getattr(k, t) for t, row in keyscheme.GLOBAL_TABLE.items() if svc in row.writers]
+    mine = configured_writes(sc, svc)  # the DDS bridge: only what it is configured to take from DDS
+
+    def writes(t: str, row: keyscheme.Topic) -> bool:
+        return svc in row.writers and (mine is None or t in mine)
+
+    puts = [k.topic(t) for t, row in keyscheme.TOPIC_TABLE.items() if writes(t, row)]
+    puts += [getattr(k, t) for t, row in keyscheme.GLOBAL_TABLE.items() if writes(t, row)]
     puts += [k.topic(t) for t in keyscheme.plugin_topics()]  # a plug-in's topics: no writer named, any service's
     puts += [k.health(svc), k.log(svc), k.sync(svc), k.server_state(svc), k.server_setpoints(svc)]  # its own
     _writable(r, puts)
@@ -257,6 +264,16 @@ def owners(sc: Scenario, topic: str) -> list[str]:
         return []
     here = running(sc)
     return [w for w in row.writers if w in here]
+
+
+def configured_writes(sc: Scenario, service: str) -> set[str] | None:
+    """The topics of the table that ``service`` (base name) may put in this run: for a service whose
+    configuration names what it writes (``CONFIGURED_WRITES``: the ROS 2 bridge's ``from_dds``) those it
+    names, when it names them (unset: the service's default, every topic the table gives it); for any other,
+    every topic the table gives it (None)."""
+    fieldname = CONFIGURED_WRITES.get(service)
+    names = sc.section(service).get(fieldname) if fieldname is not None else None
+    return {str(n).strip("/") for n in names} if isinstance(names, list) else None
 
 
 def check_configured_writes(sc: Scenario) -> None:
