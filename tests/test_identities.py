@@ -4,7 +4,8 @@ The router is ``hilsim up``'s own (:func:`hilsim.run.router.open_run_router`: a 
 access control of every identity of the arm scenario, with two lab credentials from ``hilsim creds`` and a
 guest). Each identity connects with its own file and tries every probed key; what it may do is read from
 docs/security.md ("Each identity, probed against a live router"), so the document says exactly what the
-router enforces: every cell holds, and every probed key not in a cell is refused.
+router enforces: every cell holds, and every probed key not in a cell is refused. The ROS 2 bridge to DDS (not
+in the arm's table) is held to its ``from_dds`` on the rover's run router, narrowed as a lab narrows it.
 """
 
 from __future__ import annotations
