@@ -97,7 +97,7 @@ def _view(args: argparse.Namespace) -> int:
 
 def _up(args: argparse.Namespace) -> int:
     """``hilsim up``; with ``--ui`` the panel starts the run and stays (hilsim.ui.server)."""
-    return _lazy("hilsim.ui.server", "cmd_up_ui")(args) if args.ui else _lazy("hilsim.run.launcher", "cmd_up")(args)
+    return _lazy("hilsim.ui.server", "cmd_up_ui")(args) if args.ui else _lazy("hilsim.run.up", "cmd_up")(args)
 
 
 def build_parser() -> argparse.ArgumentParser:

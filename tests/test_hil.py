@@ -119,16 +119,17 @@ def test_the_routers_process_runs_realtime_and_its_children_do_not_inherit_it() 
     faulted silent while its estimates waited there); threads it makes later (Zenoh starts its receive
     runtime with the first link) are realtime too, and a service it starts is an ordinary process."""
     code = (
-        "import os, subprocess, sys, threading, types\n"
-        "from hilsim.run.launcher import ROUTER_PRIORITY, Launcher, _pdeathsig\n"
+        "import os, subprocess, sys, threading\n"
+        "from hilsim.run.priorities import ROUTER_PRIORITY, raise_router_priority\n"
+        "from hilsim.run.processes import pdeathsig\n"
         "said = []\n"
-        "Launcher._raise_router_priority(types.SimpleNamespace(say=said.append))\n"
+        "raise_router_priority(said.append)\n"
         "later = []\n"
         "t = threading.Thread(target=lambda: later.append(os.sched_getscheduler(0)))\n"
         "t.start(); t.join()\n"
         "mine = {os.sched_getscheduler(int(t)) for t in os.listdir('/proc/self/task')}\n"
         "child = subprocess.run([sys.executable, '-c', 'import os; print(os.sched_getscheduler(0))'],\n"
-        "                       capture_output=True, text=True, preexec_fn=_pdeathsig).stdout.strip()\n"
+        "                       capture_output=True, text=True, preexec_fn=pdeathsig).stdout.strip()\n"
         "print(mine == {os.SCHED_FIFO}, later == [os.SCHED_FIFO], os.sched_getparam(0).sched_priority == \n"
         "      ROUTER_PRIORITY, child == str(os.SCHED_OTHER), said)\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
@@ -141,11 +142,11 @@ def test_the_routers_process_runs_realtime_and_its_children_do_not_inherit_it() 
 def test_the_launcher_makes_the_loops_services_realtime_and_leaves_their_own_class() -> None:
     """Realtime with its own router: each service of the loop, once set up, on SCHED_FIFO (the planner
     lowest), so that other work on the machine holds no step; one that asked for more keeps it."""
-    from hilsim.run.launcher import LOOP_PRIORITY, _realtime_process
+    from hilsim.run.priorities import LOOP_PRIORITY, realtime_process
 
     plain = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
     if os.geteuid() != 0:  # not permitted: said by the result, nothing changed
-        assert not _realtime_process(plain.pid, LOOP_PRIORITY) and os.sched_getscheduler(plain.pid) == os.SCHED_OTHER
+        assert not realtime_process(plain.pid, LOOP_PRIORITY) and os.sched_getscheduler(plain.pid) == os.SCHED_OTHER
         plain.kill()
         plain.wait()
         return
@@ -154,7 +155,7 @@ def test_the_launcher_makes_the_loops_services_realtime_and_leaves_their_own_cla
                            text=True)
     try:
         assert own.stdout is not None and own.stdout.readline().strip() == "ok"
-        assert _realtime_process(plain.pid, LOOP_PRIORITY) and _realtime_process(own.pid, LOOP_PRIORITY)
+        assert realtime_process(plain.pid, LOOP_PRIORITY) and realtime_process(own.pid, LOOP_PRIORITY)
         assert os.sched_getscheduler(plain.pid) == os.SCHED_FIFO
         assert os.sched_getparam(plain.pid).sched_priority == LOOP_PRIORITY
         assert os.sched_getparam(own.pid).sched_priority == 20  # its own, not lowered

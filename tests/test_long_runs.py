@@ -23,7 +23,7 @@ from hilsim.core.keys import Keys
 from hilsim.core.recording import read_counts
 from hilsim.record.bag_read import info, open_bag
 from hilsim.record.limits import BagSeries, stop_reason
-from hilsim.run.launcher import up_overrides
+from hilsim.run.up import up_overrides
 from hilsim.tools.play import Selector, schedule
 
 

@@ -28,7 +28,7 @@ from hilsim.core.recording import (
 )
 from hilsim.core.scenario import load_scenario
 from hilsim.record.bag_read import open_bag
-from hilsim.run.launcher import INTERACTIVE_FILE_BYTES, bound_interactive
+from hilsim.run.up import INTERACTIVE_FILE_BYTES, bound_interactive
 
 # entities of the .rrd whose rows are one per sample of a bag topic (hilsim.record.rows)
 PAIRS = {

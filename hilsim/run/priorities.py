@@ -1,0 +1,93 @@
+"""The scheduling of a run's processes: who runs on SCHED_FIFO at which priority, who is niced.
+
+The launcher's own process (the run's router) asks for SCHED_FIFO below physics in a realtime run
+(:func:`raise_router_priority`); each service, once it has announced itself, gets its class here
+(:func:`prioritise_ready`): realtime, the loop's services on SCHED_FIFO (the planner or navigator
+lowest) and the recorder's receiving too, its writing threads left ordinary; lockstep, the recorder
+niced. The children start in an ordinary class whatever the launcher's (:mod:`hilsim.run.processes`).
+Reads and writes no key.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+LOGGER_NICE = 10
+ROUTER_PRIORITY = 5  # realtime: SCHED_FIFO of the run's router (physics 10, the HIL bridges 20)
+LOOP_PRIORITY = 8  # realtime: SCHED_FIFO the launcher gives the loop's services that asked for none
+PLANNING_PRIORITY = 1  # …and the planner or navigator: below every other, its plans are bursts of CPU
+LOGGER_PRIORITY = 1  # realtime: the recorder's receiving (its worker stays in the ordinary class)
+# the recorder's writing threads (its worker, Rerun's), left in the ordinary class
+RERUN_THREADS = ("logger-worker", "ChunkBatcher", "RecordingStream", "file_writer", "jemalloc")
+
+
+def realtime_process(pid: int, priority: int, skip: tuple[str, ...] = ()) -> bool:
+    """Give every thread of a process that has an ordinary scheduling class SCHED_FIFO ``priority``
+    (threads it makes later inherit it; one that asked for its own class keeps it), but those whose name
+    starts with one of ``skip``. False: not permitted (root or CAP_SYS_NICE) or gone."""
+    try:
+        for tid in os.listdir(f"/proc/{pid}/task"):
+            if skip and Path(f"/proc/{pid}/task/{tid}/comm").read_text().startswith(skip):
+                continue
+            if os.sched_getscheduler(int(tid)) == os.SCHED_OTHER:
+                os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(priority))
+    except OSError:
+        return False
+    return True
+
+
+def renice(pid: int, nice: int) -> None:
+    """Give every thread of a process the niceness ``nice`` (Linux keeps it per thread; threads made
+    later inherit their maker's). Gone or not permitted: left as it is."""
+    try:
+        for tid in os.listdir(f"/proc/{pid}/task"):
+            os.setpriority(os.PRIO_PROCESS, int(tid), nice)
+    except OSError:
+        pass
+
+
+def raise_router_priority(say: Callable[[str], None]) -> None:
+    """Realtime: every sample of the loop crosses the run's router, in this process. Physics steps
+    with SCHED_FIFO, and so do the HIL bridges (config/hil/can.yaml), but on a machine busy with
+    other work the router's threads waited for a CPU for a quarter of a second at a time, and
+    physics faulted a joint server as silent whose estimates were on their way (issue 36). So the
+    router gets SCHED_FIFO too, below physics, and so do the threads Zenoh starts later (its receive
+    and send runtimes start with their first link: with SCHED_RESET_ON_FORK they came up ordinary);
+    the processes this one starts are set back to an ordinary class
+    (:func:`hilsim.run.processes.pdeathsig`). Without the privilege (root or CAP_SYS_NICE) it stays as
+    it is."""
+    try:
+        for tid in sorted(int(t) for t in os.listdir("/proc/self/task")):
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(ROUTER_PRIORITY))
+    except (PermissionError, AttributeError, OSError) as e:
+        say(f"  (the router could not get a real-time scheduling class: {e}; on a busy machine the "
+            "realtime loop's samples may wait for it)")
+
+
+def prioritise_ready(name: str, pid: int, realtime: bool, own_router: bool) -> None:
+    """The scheduling of launch unit ``name`` (process ``pid``) once every service of it has announced
+    itself; ``own_router``: the run's router is this process's, on SCHED_FIFO."""
+    if realtime and name != "logger" and own_router:
+        # realtime, with the run's own router on SCHED_FIFO: the loop's services too, once set
+        # up (physics and the HIL bridges ask for more themselves), so that other work on the
+        # machine cannot hold a step; the planner or navigator lowest (its plans are bursts)
+        units = name.split("+")
+        planning = {"planner", "navigator"}.intersection(u.split("@")[0] for u in units)
+        realtime_process(pid, PLANNING_PRIORITY if planning and len(units) == 1 else LOOP_PRIORITY)
+    if name == "logger" and realtime:
+        # Realtime: the recorder's receiving on SCHED_FIFO like the loop's services (lowest), so that
+        # no other work on the machine makes it drop samples; its worker (writing the files, the
+        # bulk of its CPU) puts itself back to the ordinary class (services/logger.py), and is not
+        # niced: its queue is bounded, what it cannot write in time is lost. Niced, two runs' recorders
+        # each lost a quarter of their samples.
+        if own_router:
+            realtime_process(pid, LOGGER_PRIORITY, skip=RERUN_THREADS)
+    elif name == "logger":
+        # Lockstep: the recorder runs at a lower CPU priority once it is set up: it buffers what it
+        # receives, so on a small machine the loop's services get the cores first and it
+        # catches up when idle. Not before: niced from its start, on a machine busy with
+        # other work it took minutes to import and set up, and the whole run (and a HIL
+        # device's start-up timeouts) waited for it.
+        renice(pid, LOGGER_NICE)
