@@ -68,7 +68,7 @@ NODE = "hilsim_play"
 # types whose header.stamp says when they take effect, not when they were sent
 STARTS_AT_STAMP = frozenset({"trajectory_msgs/msg/JointTrajectory"})
 # a trajectory is played at least this long (sim) before its start: the lead hilsim's planner sends it
-# with (services/planner.py, START_DELAY_NS)
+# with (services/planner_worker.py, START_DELAY_NS)
 TRAJECTORY_LEAD_NS = 20_000_000
 
 
