@@ -26,10 +26,11 @@ import numpy as np
 from hilsim.tools import progress
 from hilsim.tools.robot import collisions, description, mjcf, poses, scenario_file
 from hilsim.tools.robot.meshes import Meshes
-from hilsim.tools.robot.urdf import ImportFailure, Urdf, package_roots, read
+from hilsim.tools.robot.urdf import ImportFailure, Joint, Urdf, package_roots, read
 
 TOOL_NAMES = ("tcp", "tool", "ee", "flange", "end_effector", "eef", "hand")
 COLLISION_SAMPLES = 3000
+PEDESTAL_SAMPLES = 300  # poses sampled for the links always near the pedestal (collisions.near_pedestal)
 
 
 def tool_link(u: Urdf, given: str | None, srdf: collisions.Srdf | None) -> tuple[str, str]:
@@ -150,6 +151,11 @@ def _write_all(u: Urdf, name: str, tmp: Path, link: str, srdf: collisions.Srdf |
         pairs = set(why)
         counts = {r: sum(v == r for v in why.values()) for r in ("adjacent", "default", "always", "never")}
         say(f"  {COLLISION_SAMPLES} sampled poses: " + ", ".join(f"{n} {r}" for r, n in counts.items()) + " disabled")
+    near = collisions.near_pedestal(model, u, mjcf.PEDESTAL, poses.CLEARANCE, PEDESTAL_SAMPLES, seed)
+    if near:
+        say(f"  always within {poses.CLEARANCE * 1000:.0f} mm of the pedestal, never touching it: {', '.join(near)} "
+            "(not checked against the pedestal and floor)")
+    pairs |= {frozenset((mjcf.WORLD, link)) for link in near}
     mjcf.exclude(spec, sorted(tuple(sorted(p)) for p in pairs if len(p) == 2))  # type: ignore[misc]
     model = _compile(spec, u.path)
     xml = tmp / f"{name}.xml"
@@ -188,7 +194,7 @@ def _write_all(u: Urdf, name: str, tmp: Path, link: str, srdf: collisions.Srdf |
     load_scenario(scenario, overlays=[hil])
     if tune:
         say(f"[{time.monotonic() - t0:4.0f} s] tuning {len(joints)} joints on the real services (hilsim tune)")
-        _tune(scenario, joints, say)
+        _tune(scenario, joints, [float(v) for v in home], say)
     return scenario
 
 
@@ -198,14 +204,20 @@ TUNING_COMPOSE = {"compose": [["physics", "sensors", "controller"]]}
 TUNING_WORKERS = 2  # joints tuned at once (each its own run of the services, the others held at home)
 
 
-def _tune_one(scenario: Path, joint: str, prismatic: bool) -> tuple[str, dict[str, float] | None, str]:
+def tuning_step(joint: Joint, home: float) -> float:
+    """The tuner's step from home: 0.2 rad (a prismatic joint: 0.01 m), towards the side of the joint's range
+    with room for it (a gripper closed at home, at its upper limit, steps down)."""
+    size = 0.01 if joint.kind == "prismatic" else 0.2
+    return size if not joint.limited or home + size <= joint.upper or home - size < joint.lower else -size
+
+
+def _tune_one(scenario: Path, joint: str, step: float) -> tuple[str, dict[str, float] | None, str]:
     """One joint tuned (in a worker process): its gains (None: the tuner could not, the starting gains stay)
     and the line that says how they do."""
     from hilsim.core.config import ConfigError
     from hilsim.tools.rig import RigError
     from hilsim.tools.tuning import Target, tune
 
-    step = 0.01 if prismatic else 0.2
     try:
         r = tune(str(scenario), joint, "relay", step, Target(),
                  lambda s: print(f"    {joint}: {s.strip()}", flush=True), overrides=TUNING_COMPOSE)
@@ -218,7 +230,7 @@ def _tune_one(scenario: Path, joint: str, prismatic: bool) -> tuple[str, dict[st
     return joint, r.gains, line
 
 
-def _tune(scenario: Path, joints: list, say: Callable[[str], None]) -> None:
+def _tune(scenario: Path, joints: list[Joint], home: list[float], say: Callable[[str], None]) -> None:
     """Every joint tuned, :data:`TUNING_WORKERS` at a time, each with the others held by the starting gains (so
     the result does not depend on the order); the gains written once all are found."""
     import multiprocessing
@@ -232,7 +244,8 @@ def _tune(scenario: Path, joints: list, say: Callable[[str], None]) -> None:
     # with this process
     ctx = multiprocessing.get_context("spawn")
     with ProcessPoolExecutor(TUNING_WORKERS, mp_context=ctx) as pool:
-        futures = [pool.submit(_tune_one, scenario, j.name, j.kind == "prismatic") for j in joints]
+        futures = [pool.submit(_tune_one, scenario, j.name, tuning_step(j, q))
+                   for j, q in zip(joints, home, strict=True)]
         for fut in futures:
             joint, gains, line = fut.result()
             found[joint] = gains

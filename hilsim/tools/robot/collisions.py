@@ -175,3 +175,31 @@ def matrix(model: mujoco.MjModel, urdf: Urdf, default_q: np.ndarray, samples: in
         elif counts[p] == 0:
             why[p] = "never"
     return why
+
+
+def near_pedestal(model: mujoco.MjModel, urdf: Urdf, pedestal: str, clearance: float, samples: int,
+                  seed: int = 0) -> list[str]:
+    """The links always nearer the pedestal than the planner's ``clearance`` (in at least :data:`ALWAYS` of
+    ``samples`` random poses) and never touching it: a small arm's shoulder turning just above its mount
+    (the SO-101's, 16 mm). Checked against the pedestal, they would leave no pose valid; they cannot hit it.
+    The planner's check (ArmModel, each geom's margin the clearance) reports a pair within the sum of the two
+    margins in MuJoCo: twice the clearance, as here."""
+    within = 2 * clearance
+    gid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, pedestal)
+    geoms: dict[str, list[int]] = {}
+    for g in range(model.ngeom):
+        name = model.body(model.geom_bodyid[g]).name
+        if model.geom_contype[g] and name in urdf.links and name != urdf.root:
+            geoms.setdefault(name, []).append(g)
+    near = dict.fromkeys(geoms, 0)
+    touched: set[str] = set()
+    s = Sampler(model, urdf, seed)
+    fromto = np.zeros(6)
+    for _ in range(samples):
+        s.set(s.random())
+        for link, gs in geoms.items():
+            d = min(mujoco.mj_geomDistance(model, s.d, gid, g, within, fromto) for g in gs)
+            near[link] += d < within
+            if d <= 0:
+                touched.add(link)
+    return sorted(k for k, n in near.items() if n >= ALWAYS * samples and k not in touched)

@@ -38,6 +38,8 @@ DEFAULT_VELOCITY = 3.0  # [rad/s] a joint whose URDF gives no velocity limit
 ARMATURE = 0.01  # rotor inertia [kg m²], as the built-in arm: steadies light distal links
 COLLISION_GROUP, VISUAL_GROUP = 3, 2
 TOOL_SITE, IMU_SITE = "tool", "imu"
+PEDESTAL = "pedestal"  # the pedestal's geom, in the world body (as the floor)
+WORLD = "world"  # MuJoCo's world body: a link excluded from the pedestal is excluded from it (and the floor)
 VELOCITY_NUMERIC = "arm_joint_velocity_limit"
 
 
@@ -148,7 +150,7 @@ def build(urdf: Urdf, meshes: Meshes, tool_link: str, base_half: float) -> mujoc
     world.add_geom(name="floor", type=mujoco.mjtGeom.mjGEOM_PLANE, pos=[0, 0, -FLOOR_DEPTH], size=[3, 3, 0.05],
                    rgba=[0.3, 0.33, 0.36, 1])
     # the pedestal: under the base, its top at the base's origin (z = 0)
-    world.add_geom(name="pedestal", type=mujoco.mjtGeom.mjGEOM_BOX, pos=[0, 0, -FLOOR_DEPTH / 2],
+    world.add_geom(name=PEDESTAL, type=mujoco.mjtGeom.mjGEOM_BOX, pos=[0, 0, -FLOOR_DEPTH / 2],
                    size=[base_half, base_half, FLOOR_DEPTH / 2], rgba=[0.45, 0.45, 0.5, 1])
 
     bodies: dict[str, mujoco.MjsBody] = {}

@@ -63,7 +63,9 @@ def choose_home(arm: ArmModel, joints: list[Joint], states: dict[str, dict[str, 
             q = np.clip(zero + rng.normal(0.0, spread, len(zero)), lo, hi)
             if arm.is_valid(q):
                 return q, f"the nearest collision-free pose to zero found (spread {spread} rad)"
-    raise ImportFailure(f"{arm.path}: no collision-free home pose found near zero: does the robot fit its pedestal?")
+    near = sorted({f"{c.geom1}–{c.geom2} {c.dist * 1000:.0f} mm" for c in arm.contacts(zero)})
+    raise ImportFailure(f"{arm.path}: no collision-free home pose found near zero (too near at zero: "
+                        f"{', '.join(near[:4]) or 'none'}): does the robot fit its pedestal?")
 
 
 def _plan_ok(lib: PlannerLibrary, planner: str, arm: ArmModel, a: np.ndarray, b: np.ndarray, seed: int) -> bool:
