@@ -33,7 +33,7 @@ from hilsim.core.keys import message_type  # noqa: E402
 from hilsim.record.rows import RowWriter, rr  # noqa: E402
 from hilsim.sim.kinematics import RobotModel  # noqa: E402
 
-FLUSH_ROWS = 20_000  # as services/logger.py
+FLUSH_ROWS = 20_000  # as services/logger_worker.py
 
 
 def rover_mix(steps: int, prefix: str) -> list[tuple[str, Any]]:

@@ -27,9 +27,13 @@ Writes: only its own health and log keys (``<prefix>/<robot>/health/logger``,
   in a service's batch that the key table does not let that service write, not recorded; ``lost`` never
   more than the key's services say they published and did not reach it: their final health) written at exit.
 
-This module is the service's wiring: subscriptions, the queue, the worker thread, health and
-lifecycle. Each writer's sequence and the loss accounting is ``hilsim.record.accounting`` (judged at
-the end by ``hilsim.record.loss``); what is written for
+This module is the service's wiring: its setup (subscriptions, files, the worker thread), health and
+lifecycle; its parts are its bases, each in a module of its own: the intake (the subscriptions'
+callbacks, taking a sample once into the queue) ``hilsim.services.logger_intake``; the worker (the queue
+into rows and the bag, flushing) ``hilsim.services.logger_worker``; the files (the ``.rrd``'s and the bag's,
+split and closed) ``hilsim.services.logger_files``; the stop (at ``logger.max_size`` / ``min_free``, or at the
+end: draining, the summary) ``hilsim.services.logger_stop``. Each writer's sequence and the loss accounting
+is ``hilsim.record.accounting`` (judged at the end by ``hilsim.record.loss``); what is written for
 each kind of message (and the entity layout) is ``hilsim.record.rows``; which keys are subscribed one
 by one ``hilsim.record.routes``; what the summary file and lines say ``hilsim.record.report``; the
 robot model and tool kinematics ``hilsim.sim.kinematics``.
@@ -97,8 +101,6 @@ stream only saves to the file.
 
 from __future__ import annotations
 
-import ctypes
-import json
 import os
 import threading
 import time
@@ -106,52 +108,36 @@ from collections import Counter, deque
 from pathlib import Path
 from typing import Any
 
-import zenoh
-
-from hilsim.core import batch, msgs, rights, transport
+from hilsim.core import msgs, rights, transport
 from hilsim.core.config import Scenario
-from hilsim.core.keys import Keys, UnknownKey, message_type
 from hilsim.core.recording import RECORDING_NAME, SUMMARY_NAME, disable_analytics, part_name
 from hilsim.core.restart import restarted
 from hilsim.core.scenario import write_scenario
-from hilsim.core.service import LEVEL_WARN, Service
+from hilsim.core.service import LEVEL_WARN
 
 disable_analytics()  # before rerun is imported: its SDK reads the analytics config at start-up
 import rerun as rr  # noqa: E402
 
-from hilsim.record import foxglove_live, live, loss, report  # noqa: E402
+from hilsim.record import foxglove_live, live  # noqa: E402
 from hilsim.record.accounting import LossAccounts  # noqa: E402
-from hilsim.record.bag import NO_ATTACHMENT, TIME_NOTE, BagError  # noqa: E402
-from hilsim.record.bag_read import BAG_DIR, bag_paths, recover_file  # noqa: E402
-from hilsim.record.limits import BagSeries, RrdSeries, human_bytes, stop_reason  # noqa: E402
+from hilsim.record.bag_read import BAG_DIR  # noqa: E402
+from hilsim.record.limits import BagSeries, RrdSeries  # noqa: E402
 from hilsim.record.routes import KeyRoutes  # noqa: E402
 from hilsim.record.rows import RowWriter  # noqa: E402
 from hilsim.record.viewer import default_blueprint  # noqa: E402
+from hilsim.services.logger_files import LOG_INFO  # noqa: E402
+from hilsim.services.logger_intake import LoggerIntake  # noqa: E402
+from hilsim.services.logger_stop import LoggerStop  # noqa: E402
 from hilsim.sim.kinematics import RobotModel  # noqa: E402
 from hilsim.sim.scene import Scene  # noqa: E402
 
-FLUSH_PERIOD_S = 0.5  # wall seconds between send_columns batches
-FLUSH_ROWS = 20_000  # …or earlier when this many rows are buffered
-FILE_FLUSH_TIMEOUT_S = 5.0  # at most this long waiting for a batch to reach the file
 # Realtime: samples waiting for the worker at most (about 2 s of its work, some 25 MB for the
 # arm's messages); a sample arriving at a full queue is dropped and counted as lost.
 REALTIME_QUEUE_LIMIT = 50_000
-# At exit: wait for what is still in flight until nothing arrived for QUIET_S, at most DRAIN_LIMIT_S.
-QUIET_S = 0.25
-DRAIN_LIMIT_S = 5.0
 DELAY_ENV = "HILSIM_LOGGER_DELAY_US"  # fault injection: slow the receive callback (µs per sample)
-LOG_INFO = 20  # rcl_interfaces/msg/Log's INFO: a notice hilsim up prints (a file of the recording closed)
 
 
-def _name_thread(name: bytes) -> None:
-    """Name the calling thread for the OS (``/proc/<pid>/task/<tid>/comm``, 15 bytes); Linux only, else nothing."""
-    try:
-        ctypes.CDLL(None, use_errno=True).prctl(15, ctypes.c_char_p(name[:15]), 0, 0, 0)  # PR_SET_NAME
-    except (OSError, AttributeError):
-        pass
-
-
-class LoggerService(Service):
+class LoggerService(LoggerIntake, LoggerStop):
     name = "logger"
     stop_rank = 100  # stopped last: it drains and closes the recording
     records = True
@@ -302,52 +288,6 @@ class LoggerService(Service):
             limit,
         )
 
-    def _move_rrd(self, path: Path) -> None:
-        """The recording's file sink to ``path`` (the live viewer's sink kept): the current file is
-        closed whole, with its footer; the stream (one recording id) goes on in the new one, the
-        viewer's layout written to it as well."""
-        assert self.rec is not None
-        sink = getattr(self.live, "sink", None)
-        rr.set_sinks(rr.FileSink(path), *([sink] if sink is not None else []), default_blueprint=self._blueprint,
-                     recording=self.rec)
-        self.rrd_path = path
-
-    def _say_closed(self, path: Path, size: int, nxt: Path | None) -> None:
-        """A file of the recording closed (a split): one line in the log, and on the run's screen (a
-        notice on the log key, which ``hilsim up`` prints)."""
-        def name(p: Path) -> str:
-            return str(p.relative_to(self.run_dir)) if p.is_relative_to(self.run_dir) else str(p)
-
-        text = f"closed {name(path)} ({human_bytes(size)}, up to sim time {self.written_ns / 1e9:.3f} s)" + (
-            f"; recording on in {name(nxt)}" if nxt is not None else "")
-        self.log.info(text)
-        self._publish_log(LOG_INFO, text)
-
-    def _open_bag(self) -> BagSeries:
-        """The bag's files of this process: ``bag_0.mcap`` (and on, split by ``logger.max_bag_size`` and
-        ``max_bag_duration``); a restarted recorder (hilsim up) first makes its predecessors' files whole
-        (a SIGKILL leaves no footer), then writes the next one."""
-        index = 0
-        if self.bag_dir.is_dir():
-            try:
-                _, files = bag_paths(self.bag_dir)
-            except BagError:
-                files = []
-            for f in files:
-                try:
-                    got = recover_file(f)
-                    if got.rewritten:
-                        self.log.info("bag file %s of the killed recorder recovered: %d messages", f, got.messages)
-                except BagError as e:
-                    self.warn(f"bag file {f} of the killed recorder not recovered: {e}")
-            index = len(files)
-            while (self.bag_dir / f"bag_{index}.mcap").exists():
-                index += 1
-        lc = self.sc.logger
-        return BagSeries(self.bag_dir, index, max_size=lc.max_bag_size, max_duration=lc.max_bag_duration,
-                         custom={"scenario": self.sc.name, "robot": self.sc.robot},
-                         metadata={"scenario": self.sc.name, "robot": self.sc.robot, "times": TIME_NOTE})
-
     def _load_model(self) -> None:
         urdf = self.sc.world.urdf
         if urdf is None:
@@ -365,309 +305,6 @@ class LoggerService(Service):
         except Exception as e:  # the recording goes on without the world's geometry
             self.warn(f"world geometry of {self.sc.world.model} not recorded: {type(e).__name__}: {e}")
             return None
-
-    # ------------------------------------------------------------------ batches (logger.batch)
-    def _on_batch(self, sample: zenoh.Sample) -> None:
-        raw = sample.payload.to_bytes()
-        try:
-            records = batch.decode(raw)
-        except batch.BatchError as e:
-            # recorded as a rejected sample of the batch key (bag and rows), and the recording goes on
-            if not self._malformed_warned:
-                self._malformed_warned = True
-                self.warn(f"malformed batch on {sample.key_expr}: {e} (further ones are only counted)")
-            self._take(str(sample.key_expr), None, raw)
-            return
-        service = Keys.batch_service(str(sample.key_expr)) or ""
-        for r in records:
-            if not self.routes.covers(r.key):
-                continue
-            if not self._batch_may_hold(service, r.key):
-                # the router lets a service put only its own batches; what one holds is checked against the key
-                # table as a sample on the key itself would be at the router: not the run's, not recorded
-                with self.lock:
-                    self.batch_refused[r.key] += 1
-                    first = self.batch_refused[r.key] == 1
-                if first:
-                    self.warn(f"a batch of {service or '?'} holds a sample of {r.key}, which the key table does not "
-                              f"let {service or 'it'} write: not recorded (further ones are only counted)")
-                continue
-            self._take(r.key, transport.Attachment(r.seq, r.source_ns, r.gid), r.payload)
-
-    def _batch_may_hold(self, service: str, key: str) -> bool:
-        """Whether ``service`` may write ``key`` (hilsim.core.rights, as its identity at the router), cached."""
-        got = self._batch_rights.get((service, key))
-        if got is None:
-            if service not in self._service_rights:  # derived once per service (the type hashes are not free)
-                try:
-                    self._service_rights[service] = rights.service_rights(self.sc, service) if service else None
-                except Exception:  # a service name the scenario does not know: nobody's batch
-                    self._service_rights[service] = None
-            r = self._service_rights[service]
-            got = r is not None and r.may_put(key)
-            self._batch_rights[(service, key)] = got
-        return got
-
-    # ------------------------------------------------------------------ receiving (Zenoh thread)
-    def _on_sample(self, sample: zenoh.Sample) -> None:
-        # Only queue: decoding here would slow Zenoh's delivery to every other subscriber.
-        self._take(str(sample.key_expr), transport.read_attachment(sample), sample.payload.to_bytes())
-
-    def _on_local(self, key: str, msg: Any, att: transport.Attachment) -> None:
-        # composed (hilsim.run.compose): a message object from a service of this process; encoded by
-        # the worker, so it is recorded from the same bytes (and rows) as one that came over Zenoh
-        self._take(key, att, msg)
-
-    def _take(self, k: str, att: transport.Attachment | None, payload: Any) -> None:
-        if self.delay_s and not self.stop_event.is_set():
-            time.sleep(self.delay_s)
-        k = self._key_names.setdefault(k, k)  # one string per key, not one per queued sample
-        self._last_arrival = time.monotonic()
-        if self.stopped is not None:  # the recording stopped (logger.max_size, min_free): not taken in
-            with self.lock:
-                self.after_stop[k] += 1
-            return
-        # The base's health thread iterates these counters under self.lock.
-        with self.lock:
-            prov = self.provenance
-            if att is not None and (k not in prov.restricted or att.gid in prov.writers.get(k, ())):
-                if not self.accounts.sequence(k, att, payload):
-                    # it came both ways (in a batch, or from a latched writer's cache, and on its key): once
-                    self.duplicates[k] += 1
-                    return
-            elif k in prov.restricted:
-                # Batching: a writer whose token is not known yet (a race at its start) can send a sample
-                # both ways too; taken once all the same, its gaps not counted (not announced yet)
-                if att is not None and self.batching and not self.accounts.sequence(k, att, payload, counted=False):
-                    self.duplicates[k] += 1
-                    return
-                # recorded like everything received, but a stranger's gaps are no loss of ours
-                self.unannounced[k] += 1
-            if self.stopped is not None:
-                self.after_stop[k] += 1
-                return
-            t_ns = time.time_ns()
-            queued = not (self._closed or (self.queue_limit is not None and len(self._queue) >= self.queue_limit))
-            if queued:
-                self.counts_in[k] += 1
-                self._queue.append((k, payload, att, t_ns))
-            else:
-                self.dropped[k] += 1
-        fox = self.fox
-        if fox is not None and isinstance(payload, bytes):
-            # Foxglove's clients get it as it arrives, not once the worker wrote it: a live view stays live
-            # when the files fall behind (seen: minutes behind, the queue full, in a realtime run); the
-            # server never waits for a client (its backlog drops a slow one's oldest)
-            fox.add(k, payload, t_ns)
-        if not queued:
-            return
-        if k in self.routes.latched:
-            self.routes.got(k)  # its publisher's cache need not be asked again
-        if self.accounts.say_suspect:
-            said, self.accounts.say_suspect = self.accounts.say_suspect, ""
-            self.warn(said)
-
-    def lost(self) -> Counter[str]:
-        """Samples lost per key: gaps in the sequence numbers plus drops at the full queue."""
-        with self.lock:
-            return self.gaps + self.dropped
-
-    # ------------------------------------------------------------------ the worker
-    def _ordinary_class(self) -> None:
-        """The worker (this thread) in the ordinary scheduling class: hilsim up gives the recorder's threads
-        SCHED_FIFO in realtime for its receiving; writing the files must not take a core from the loop."""
-        try:
-            if os.sched_getscheduler(0) != os.SCHED_OTHER:
-                os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
-        except OSError:
-            pass
-
-    def _work(self) -> None:
-        _name_thread(b"logger-worker")  # as the OS sees it: hilsim up leaves it out of SCHED_FIFO
-        q = self._queue
-        rows = self.rows
-        assert rows is not None
-        last_flush = time.monotonic()
-        period = live.FLUSH_PERIOD_S if self.live is not None else FLUSH_PERIOD_S
-        while True:
-            try:
-                key, payload, att, t = q.popleft()
-            except IndexError:
-                if self._worker_stop.is_set():
-                    break
-                if rows.buffered and time.monotonic() - last_flush >= period:
-                    self._ordinary_class()
-                    self._flush()
-                    last_flush = time.monotonic()
-                    if self._limit_reached():
-                        break
-                time.sleep(0.002)
-                continue
-            self._handle(key, payload, att, t)
-            if rows.buffered >= FLUSH_ROWS or time.monotonic() - last_flush >= period:
-                self._ordinary_class()
-                self._flush()
-                last_flush = time.monotonic()
-                if self._limit_reached():
-                    break
-
-    def _handle(self, key: str, payload: Any, att: transport.Attachment | None = None, t_ns: int = 0) -> None:
-        rows = self.rows
-        assert rows is not None
-        local = not isinstance(payload, bytes)
-        if local:  # a message object of this process (_on_local)
-            try:
-                payload = msgs.encode(payload)  # pycdr2's buffer is per thread (hilsim.core.msgs.codec)
-            except Exception as e:  # not encodable: still recorded, as the error and the message's text
-                self.fault(f"cannot encode {key} from this process: {type(e).__name__}: {e}", exc=e)
-                rows.error(key, e, payload)
-                self._pending[key] += 1
-                return  # no bytes: nothing for the bag (bagged < recorded for this key)
-        if self.bag is not None:  # every payload as it arrived, valid or not
-            self._bag_append((key, payload, NO_ATTACHMENT if att is None else att, t_ns))
-        if self.fox is not None and local:  # a composed service's message: to Foxglove once encoded (_take: the rest)
-            self.fox.add(key, payload, t_ns)
-        if rows.raw(key, payload):  # a clock, joint state or IMU sample of a layout seen before
-            self.sim_ns = rows.clock_ns
-            self._pending[key] += 1
-            return
-        try:
-            cls = message_type(key)
-            with self._codec_lock:
-                msg = msgs.decode(cls, payload)
-        except (UnknownKey, msgs.BadMessage) as e:
-            self._reject(key, e)
-            rows.rejected(key, len(payload), e)
-            self._pending[key] += 1
-            return
-        if isinstance(msg, msgs.DiagnosticArray) and "/health/" in key:
-            self.accounts.note_published(key, msg)
-        try:
-            rows.message(key, msg)
-            rows.learn(key, payload, msg)
-        except Exception as e:  # a bug here must not lose the sample: record it as text
-            self.fault(f"cannot turn {key} into rows: {type(e).__name__}: {e}", exc=e)
-            rows.error(key, e, msg)
-        self.sim_ns = rows.clock_ns
-        self._pending[key] += 1
-
-    def _reject(self, key: str, e: Exception) -> None:
-        with self.lock:
-            self.rejected[key] += 1
-        if key not in self._warned:  # one warning per key; the rest are counted
-            self._warned.add(key)
-            self.warn(f"rejected payload on {key}: {e} (further ones on this key are only counted)")
-
-    def _flush(self) -> None:
-        """Send every buffered row and push it through Rerun's batcher into the file, then count
-        the samples they came from as recorded. A recorder killed with SIGKILL (no footer
-        written) thus leaves a file that holds everything up to its last flush, FLUSH_PERIOD_S
-        ago at most; ``hilsim.core.recording.recover_rrd`` makes it a complete .rrd again."""
-        assert self.rows is not None and self.rec is not None
-        ok = self.rows.flush()
-        for key, e in self.rows.rejections:  # found while the fast path's batches were turned into rows
-            self._reject(key, e)
-        self.rows.rejections.clear()
-        if ok:
-            try:
-                self.rec.flush(timeout_sec=FILE_FLUSH_TIMEOUT_S)
-            except Exception as e:  # a slow disk: the rows are still on their way to the file
-                self.warn(f"the recording was not written to {self.rrd_path} within {FILE_FLUSH_TIMEOUT_S:g} s: {e}")
-            if self.live is not None:
-                self.live.pump()  # never waits: a slow viewer's frames are dropped, counted in health
-            with self.lock:
-                self.recorded.update(self._pending)
-                self.written_ns = self.rows.clock_ns  # every row up to this sim time is in the file now
-            self._split_rrd()
-        self._pending.clear()
-        if self.bag is not None:
-            n_files, closed_bytes = len(self.bag.files), self.bag.closed_bytes
-            try:
-                wrote = self.bag.flush()  # and on in a new file, if this one is as large or long as allowed
-            except Exception as e:  # a full disk, a bug: the .rrd goes on, the bag stops here (a fault)
-                self.fault(f"the bag {self.bag.path} stopped: {type(e).__name__}: {e}", exc=e)
-                self.bag.abandon()
-                self.bag = None
-                return
-            self._bag_append = self.bag.append
-            with self.lock:
-                self.bagged.update(wrote)
-            if len(self.bag.files) > n_files:  # split: the bag's file before the current one closed
-                self._say_closed(self.bag.files[-2], self.bag.closed_bytes - closed_bytes, self.bag.path)
-
-    def _begin_stop(self) -> None:
-        """The recorder stops: no file of the .rrd or the bag split from here (see :meth:`_split_rrd`)."""
-        self._stopping = True
-        if self.bag is not None:
-            self.bag.max_size, self.bag.max_duration = 0, 0.0
-
-    def _split_rrd(self) -> None:
-        """After a flush: on in the next ``.rrd`` file if this one is as large or as long as allowed. Not
-        once the recorder is stopping: its files close anyway, and a notice published then would no
-        longer reach its own subscription (a sample of log/logger published, never recorded)."""
-        if self.rrd is None or self._stopping:
-            return
-        try:
-            closed = self.rrd.after_flush()
-        except Exception as e:  # the file sink could not move: the recording goes on in the current file
-            self.fault(f"the recording could not go on in a new file after {self.rrd_path}: {type(e).__name__}: {e}",
-                       exc=e)
-            self.rrd.max_size = self.rrd.max_duration = 0
-            return
-        if closed is not None:
-            self._say_closed(*closed, self.rrd.path)
-
-    # ------------------------------------------------------------------ limits (logger.max_size, min_free)
-    def recording_bytes(self) -> int:
-        """Bytes of this run's recording on disk: the ``.rrd``'s and the bag's files of this process."""
-        rrd = self.rrd.size if self.rrd is not None else 0
-        return rrd + (self.bag.size if self.bag is not None else 0)
-
-    def _limit_reached(self) -> bool:
-        """In the worker, after a flush: if the recording reached ``logger.max_size`` or the disk's free
-        space ``logger.min_free``, stop recording (:meth:`_stop_recording`) and return True (the worker ends)."""
-        lc = self.sc.logger
-        if not (lc.max_size or lc.min_free):
-            return False
-        why = stop_reason(self.run_dir, self.recording_bytes(), lc.max_size, lc.min_free)
-        if why is None:
-            return False
-        self._stop_recording(why)
-        return True
-
-    def _stop_recording(self, why: str) -> None:
-        """Stop recording, cleanly, while the run goes on: no sample is taken in from here (the
-        subscriptions go; samples still queued are counted as ``after_stop``, not received), what was
-        taken in is written, and both files are closed whole (the bag's summary, footer and
-        ``metadata.yaml``; the ``.rrd``'s footer). Said in one line (log and health) and in
-        ``record_summary.json``."""
-        self._begin_stop()
-        with self.lock:  # _take checks it under the lock: nothing is queued after this
-            self.stopped = why
-            while self._queue:  # taken in, not written: no longer counted as received
-                k = self._queue.popleft()[0]
-                self.counts_in[k] -= 1
-                self.after_stop[k] += 1
-        subs = [*self._subs, *self.routes.close()]
-        for sub in subs:
-            try:
-                sub.undeclare()
-            except zenoh.ZError:
-                pass
-        self._subs.clear()
-        assert self.rec is not None
-        self._flush()
-        self.rec.flush()
-        self.rec.disconnect()
-        self._close_bag()
-        live.stop(self.live)
-        foxglove_live.stop(self.fox)
-        self.fox = None
-        used = self.recording_bytes()
-        self.stopped_at = {"reason": why, "sim_time": round(self.sim_ns / 1e9, 3), "bytes": used,
-                           "wall_time": time.strftime("%Y-%m-%dT%H:%M:%S")}
-        self.warn(f"recording stopped at sim time {self.sim_ns / 1e9:.3f} s: {why}; the files hold the run up to "
-                  f"here ({human_bytes(used)}, closed whole), the run goes on")
 
     # ------------------------------------------------------------------ health
     def publish_health(self) -> None:
@@ -723,97 +360,3 @@ class LoggerService(Service):
 
     def teardown(self) -> None:
         self._finish()
-
-    def _finish(self) -> None:
-        """Stop receiving, record everything queued, close the file, report the counts."""
-        if self._finished:
-            return
-        self._finished = True
-        self._begin_stop()
-        self._await_quiet()
-        key_subs = self.routes.close()  # no key subscription declared after this
-        with self._codec_lock:  # a notice being put now reaches the subscription; none after (_publish_log)
-            self._intake_closed = True
-        for sub in [*self._subs, *key_subs]:
-            try:
-                sub.undeclare()
-            except zenoh.ZError:
-                pass  # already gone with the session
-        with self.lock:  # a callback still running now counts its sample as dropped
-            self._closed = True
-        self._worker_stop.set()
-        if self._worker is not None:
-            self._worker.join()
-        if self.rec is None:
-            return
-        if self.stopped is None:
-            while self._queue:  # anything that arrived while the worker was stopping
-                self._handle(*self._queue.popleft())
-            self._flush()
-            self.rec.flush()
-            self.rec.disconnect()
-            self._close_bag()
-        live.stop(self.live)
-        foxglove_live.stop(self.fox)
-        self._report()
-
-    def _close_bag(self) -> None:
-        """Write the bag's summary and footer, then its ``metadata.yaml`` over all its files."""
-        if self.bag is None:
-            return
-        try:
-            self.bag.close()
-        except (OSError, BagError) as e:
-            self.fault(f"the bag {self.bag_dir} was not closed: {type(e).__name__}: {e}", exc=e)
-
-    def _await_quiet(self) -> None:
-        """Before closing: keep receiving what is still in flight (samples a realtime publisher's
-        link holds for a slow logger, up to the kernel's socket buffers) until nothing arrived
-        for ``QUIET_S``, at most ``DRAIN_LIMIT_S``. What is still in flight then is not seen."""
-        t0 = time.monotonic()
-        with self.lock:
-            n0 = sum(self.counts_in.values()) + sum(self.dropped.values())
-        while time.monotonic() - t0 < DRAIN_LIMIT_S and time.monotonic() - self._last_arrival < QUIET_S:
-            time.sleep(0.02)
-        with self.lock:
-            n = sum(self.counts_in.values()) + sum(self.dropped.values()) - n0
-        self.log.info("stopping: %d samples still arrived in %.2f s", n, time.monotonic() - t0)
-
-    def _report(self) -> None:
-        with self.lock:
-            c = report.Counts(
-                received=Counter(self.counts_in), recorded=Counter(self.recorded), bagged=Counter(self.bagged),
-                rejected=Counter(self.rejected), lost=Counter(), dropped=Counter(self.dropped),
-                before_first=Counter(self.before_first), unannounced=Counter(self.unannounced),
-                duplicates=Counter(self.duplicates), after_stop=Counter(self.after_stop),
-                suspect=Counter(self.suspect), contested=Counter(), batch_refused=Counter(self.batch_refused))
-        c.plain = self.routes.plain_keys()
-        c.expected = loss.expected_keys(self.sc, self.keys, self.routes.covers) if self.stopped is None else set()
-        with self.lock:
-            gaps = Counter(self.gaps)
-        c.lost = self.accounts.judged_lost(gaps, c.dropped, c.received)
-        c.contested = self.accounts.contested()
-        for k in gaps:  # gaps its writers' own counts say are not losses: said apart, as contested ones
-            c.contested[k] += gaps[k] - (c.lost[k] - c.dropped[k])
-        bag = self.sc.logger.bag
-        stopped_at = self.stopped_at if self.stopped is not None else None
-        tmp = self.summary_path.with_suffix(".json.tmp")
-        tmp.write_text(json.dumps(report.summary(c, bag=bag, batching=self.batching, stopped_at=stopped_at),
-                                  indent=1, sort_keys=True) + "\n")
-        tmp.replace(self.summary_path)
-        lines = report.lines(c, rrd=self.rrd_path, bag_dir=self.bag_dir if bag else None, clock=self.sc.clock.mode,
-                             stopped_at=stopped_at)
-        total_in, total_rec, total_lost = sum(c.received.values()), sum(c.recorded.values()), sum(c.lost.values())
-        try:
-            print("\n".join(lines), flush=True)
-        except BrokenPipeError:
-            # whoever read our stdout is gone (a killed launcher); the summary file is written
-            self.log.warning("stdout closed; per-key counts are in %s", self.summary_path)
-        if total_in != total_rec:
-            self.fault(f"received {total_in} messages but recorded {total_rec}")
-        if bag and sum(c.bagged.values()) != total_rec:
-            self.fault(f"recorded {total_rec} messages but bagged {sum(c.bagged.values())}")
-        if total_lost and not self.realtime:
-            self.fault(f"lost {total_lost} samples in lockstep, where nothing may be lost")
-        elif total_lost:
-            self.warn(f"lost {total_lost} samples: the recorder could not keep up with the realtime loop")
