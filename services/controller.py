@@ -44,48 +44,44 @@ control, docs/security.md), so a replay of the planner's trajectory can come onl
 ``joint_trajectory``, as any other person's command; the health says whose command the arm follows
 (``command_from``). The planner's own is taken even if it has ended: it hands a restarted controller
 the trajectory under way again, whose end is then held.
+The service is this module (its setup, the control step up to the PID and the commands out, health) and
+its bases, one concern each: :mod:`hilsim.services.controller_trajectories` (which trajectory is taken,
+when it acts, ``controller/has_trajectory``), :mod:`hilsim.services.controller_params` (``controller.params``
+and live gains); the action server is :mod:`hilsim.services.controller_action`, the control law
+:mod:`hilsim.sim.control`; robots as arrays: :mod:`hilsim.services.controller_fleet`.
 """
 
 from __future__ import annotations
 
 import threading
-import time
 from collections import OrderedDict
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import ValidationError
 
 from hilsim.core import msgs, registry
 from hilsim.core.config import ConfigError, Scenario, format_error
-from hilsim.core.keys import NOT_REACHED
-from hilsim.core.restart import keep, kept
+from hilsim.core.restart import kept
 from hilsim.core.service import Publisher, Service
 from hilsim.services.controller_action import FollowJointTrajectory
+from hilsim.services.controller_fleet import FleetControllerService
+from hilsim.services.controller_params import ControllerParameters, Params
+from hilsim.services.controller_trajectories import (
+    HANDOFF_KEPT,
+    JOINT_TRAJECTORY,
+    PLANNER,
+    PLANNER_TRAJECTORY,
+    ControllerTrajectories,
+)
 from hilsim.services.ros2_action import goal_text
 from hilsim.sim import control, jtc
 
-PLANNER, JOINT_TRAJECTORY = "planner", "joint_trajectory"  # who sent a trajectory (health: command_from)
-PLANNER_TRAJECTORY = "planner/joint_trajectory"  # the planner's own key (hilsim.core.keys)
-HANDOFF_KEPT = 64  # the start stamps of the last trajectories taken, each with why it was rejected (or None)
+__all__ = ["HANDOFF_KEPT", "JOINT_TRAJECTORY", "PLANNER", "PLANNER_TRAJECTORY", "ControllerService",
+           "FleetControllerService", "Params"]
 
 
-class Params(BaseModel):
-    """``controller.params`` of the joint_trajectory controller."""
-
-    model_config = ConfigDict(extra="forbid")
-    action_ns: str = Field("follow_joint_trajectory", description="name of the FollowJointTrajectory action below "
-                           "the robot's namespace (absolute if it starts with '/'); empty: no action")
-    action_feedback_hz: float = Field(20.0, gt=0, description="feedback rate of the action [1/s of sim time]")
-    goal_time_tolerance: float = Field(1.0, gt=0, description="how long after a goal's last point the joints "
-                                       "may take to be within tolerance, when the goal gives no time [s]")
-    max_start_ahead: float = Field(30.0, gt=0, description="a trajectory stamped to start later than this after "
-                                   "sim time is refused (a sender not on sim time: use_sim_time) [s]")
-    allow_partial_joints_goal: bool = Field(True, description="take a trajectory that names only some of the "
-                                            "joints (the others keep their command), as ROS 2's JTC parameter")
-
-
-class ControllerService(Service):
+class ControllerService(ControllerTrajectories, ControllerParameters):
     """The ``joint_trajectory`` control law (``controller.type``); other types are other
     :class:`~hilsim.core.service.Service` subclasses named ``controller``, found in the registry."""
 
@@ -299,92 +295,6 @@ class ControllerService(Service):
         else:
             self.ref_pub.skip()
 
-    # ------------------------------------------------------------------ trajectories
-    def on_trajectory(self, msg: msgs.JointTrajectory, key: str) -> None:
-        """``joint_trajectory``: a person's, a tool's or a ROS 2 node's command (anyone the router lets write it)."""
-        self._arrived(msg, key, JOINT_TRAJECTORY)
-
-    def on_planner_trajectory(self, msg: msgs.JointTrajectory, key: str) -> None:
-        """``planner/joint_trajectory``: the planner's own, a key only the planner's identity may write."""
-        self._arrived(msg, key, PLANNER)
-
-    def _arrived(self, msg: msgs.JointTrajectory, key: str, source: str) -> None:
-        if self.timeline is None:
-            # the setpoint to start from is not known yet: taken, in order, before the first step
-            self._early.append((msg, key, source))
-            why = None
-        else:
-            refused = self.take(msg, key, source)
-            why = refused[1] if refused is not None else None
-        if source == PLANNER:  # controller/has_trajectory answers the planner about its own
-            self._taken[msgs.ns_of(msg.header.stamp)] = why
-            while len(self._taken) > HANDOFF_KEPT:
-                self._taken.popitem(last=False)
-            self._took.notify_all()
-
-    def on_has_trajectory(self, start: msgs.Time) -> msgs.GoalResponse:
-        """``controller/has_trajectory`` (see the module docstring); runs under self.lock, which the wait
-        gives up, so the trajectory's own subscriber thread can take it meanwhile."""
-        ns = msgs.ns_of(start)
-        # well within physics' patience, so a trajectory lost on the way is a warning, not a stalled run
-        wait = self.sc.clock.ack_timeout / 3
-        end = time.monotonic() + wait
-        while ns not in self._taken and not self.stop_event.is_set() and (left := end - time.monotonic()) > 0:
-            self._took.wait(min(left, 0.2))
-        if ns not in self._taken:
-            return msgs.GoalResponse(accepted=False, reason=f"{NOT_REACHED} starting at {ns * 1e-9:.3f} s "
-                                     f"reached the controller within {wait:g} s")
-        why = self._taken[ns]
-        return msgs.GoalResponse(accepted=why is None, reason=why or "")
-
-    def take(self, msg: msgs.JointTrajectory, key: str, source: str) -> tuple[str, str] | None:
-        """Follow ``msg`` (from ``source``) under the rules of :mod:`hilsim.sim.jtc`; None, or (what, why)
-        it is refused (a rejected payload of ``key``, said in the log and the health). The planner's own
-        is taken even if it has ended: only it may write its key, and it hands a restarted controller
-        the trajectory under way again (whose end is then held)."""
-        assert self.timeline is not None
-        self.taken = None
-        refused = jtc.refusal(msg, self.sim_ns, self.names, self.rules, ended_ok=source == PLANNER)
-        if refused is None and not msg.points:
-            # ROS convention: an empty trajectory stops the motion where the arm is now.
-            self.stop_here()
-            self.command_from = source
-            return None
-        if refused is None:
-            start = msgs.ns_of(msg.header.stamp) or self.sim_ns
-            # from where the command will be when the new one starts (joints it does not name keep it)
-            base = self.timeline.reference_at(start)
-            try:
-                t = control.TrajectorySampler(msg, self.names, start, base, self.joints.lower, self.joints.upper)
-            except control.TrajectoryError as e:
-                refused = jtc.JOINTS if "joint" in str(e) else "invalid", str(e)
-            else:
-                self.timeline.replace(jtc.Segment(t, source))
-                self.taken = t
-                self.max_tracking_error = 0.0
-                return None
-        self.refused += 1
-        self.last_refused = f"{source}: {refused[1]}"
-        self.reject(key, refused[1])
-        return refused
-
-    def stop_here(self) -> None:
-        """Hold the measured position: nothing followed or pending."""
-        assert self.timeline is not None
-        self.timeline.stop(self.pos.copy())
-
-    # ------------------------------------------------------------------ live gains
-    def on_set_parameters(self, req: msgs.SetParameters) -> msgs.SetParametersResult:
-        why = control.set_parameters(self.pids, self.names, req.parameters)
-        if why is not None:
-            return msgs.SetParametersResult(successful=False, reason=why)
-        if req.parameters:
-            self.log.info("gains changed: %s", ", ".join(f"{p.name}={p.value:g}" for p in req.parameters))
-            self.live_gains.update({p.name: p.value for p in req.parameters})
-            self.gains_version += 1  # the fleet driver (robots as arrays) takes them at its next step
-            keep(self.sc, self.name, {"gains": self.live_gains})
-        return msgs.SetParametersResult(successful=True, reason=f"{len(req.parameters)} parameter(s) set")
-
     # ------------------------------------------------------------------ reporting
     def health_values(self) -> dict[str, Any]:
         tl = self.timeline
@@ -414,121 +324,3 @@ class ControllerService(Service):
                for n, pid in zip(self.names, self.pids, strict=True)},
         }
 
-
-class FleetControllerService(Service):
-    """Robots as arrays (``fleet.arrays``, :mod:`hilsim.core.fleet`): every robot's PID in one step.
-
-    Reads ``<prefix>/<robot>/fleet/joint_states`` (every robot's encoders, joints ``arm<k>/<joint>``).
-    Writes ``<prefix>/<robot>/fleet/joint_commands`` (every robot's command, same layout and stamp: what
-    physics applies and, in lockstep, the acknowledgement of the step for every robot),
-    ``<prefix>/<robot>/fleet/controller/reference`` (every robot's reference position and velocity, same
-    layout; built only while subscribed: the recorder records it robot by robot) and, from the
-    same values, each robot's ``joint_commands`` and ``controller/reference`` through that robot's own
-    publishers whenever anyone subscribes them. Each robot's reference, action goal and live gains
-    stay with its :class:`ControllerService` (:meth:`ControllerService.prepare`); the PID law is
-    :meth:`hilsim.sim.control.Pid.update` written elementwise over (robot, joint) arrays, the same
-    operations in the same order, so its efforts equal the per-robot path's bit for bit.
-    """
-
-    name = "controller"
-    stop_rank = 21  # started before the robots' controllers it drives, stopped after them
-    acks_for_robots = True  # in lockstep its fleet sample is every robot's acknowledgement
-    ack_via = "joint_commands"
-    lockstep_period = ControllerService.lockstep_period
-
-    def __init__(self, scenario: Scenario, members: list[ControllerService]) -> None:
-        super().__init__(scenario)
-        self.members = members
-        m0 = members[0]
-        if any(m.sc.control_decimation != m0.sc.control_decimation or m.names != m0.names for m in members):
-            raise ConfigError(f"{scenario.source}: fleet.arrays: every robot's controller needs the same rate_hz")
-        self.n_robots, self.n = len(members), m0.n
-        self.names = [f"{m.sc.robot}/{j}" for m in members for j in m.names]
-        self.dt = m0.dt
-        self.effort = np.array([m.effort_joint for m in members], bool)
-        self.setpoints = any(m.setpoints for m in members)
-        self.integral = np.zeros((self.n_robots, self.n))
-        self._versions: list[int] = []
-        self._gains()
-
-    def setup(self) -> None:
-        self.cmd_pub = self.publisher(self.keys.fleet("joint_commands"))
-        self.ref_pub = self.publisher(self.keys.fleet("controller/reference"))
-        self.subscribe(self.keys.fleet("joint_states"), msgs.JointState, self.on_joint_states)
-
-    def ack_publisher(self) -> Publisher | None:
-        return self.cmd_pub
-
-    def _gains(self) -> None:
-        """The gains in force, as arrays (robot, joint), from each robot's PIDs (which live gain changes
-        set); the integral clamped as :meth:`hilsim.sim.control.Pid.set` clamps it at a change."""
-        def of(field: str) -> np.ndarray:
-            return np.array([[getattr(p, field) for p in m.pids] for m in self.members], float)
-
-        self.kp, self.ki, self.kd, self.ff = of("kp"), of("ki"), of("kd"), of("feedforward")
-        self.lo, self.hi, i_limit = of("lo"), of("hi"), of("i_limit")
-        self.integrating = self.ki > 0.0
-        with np.errstate(divide="ignore", invalid="ignore"):
-            self.bound = np.where(self.integrating, i_limit / np.where(self.integrating, self.ki, 1.0), np.inf)
-        self.integral = np.where(self.integrating, np.minimum(np.maximum(self.integral, -self.bound), self.bound), 0.0)
-        self._versions = [m.gains_version for m in self.members]
-
-    def pid(self, ref_pos: np.ndarray, ref_vel: np.ndarray, pos: np.ndarray, vel: np.ndarray) -> np.ndarray:
-        """:meth:`hilsim.sim.control.Pid.update` of every (robot, joint) at once; non-effort joints 0."""
-        e = ref_pos - pos
-        u_rest = self.kp * e + self.kd * (ref_vel - vel) + self.ff * ref_vel
-        old = self.integral
-        new = np.minimum(np.maximum(old + e * self.dt, -self.bound), self.bound)
-        u_new = u_rest + self.ki * new
-        # conditional integration: saturated and the error pushes further -> keep the old integral
-        keep = ((u_new > self.hi) & (e > 0.0)) | ((u_new < self.lo) & (e < 0.0))
-        u_int = np.where(keep, u_rest + self.ki * old, u_new)
-        # a joint without effort interface never runs its PID (the per-robot path skips it): no integral
-        self.integral = np.where(self.integrating & self.effort & ~keep, new, old)
-        u = np.where(self.integrating, u_int, u_rest)
-        return np.where(self.effort, np.minimum(np.maximum(u, self.lo), self.hi), 0.0)
-
-    def on_joint_states(self, msg: msgs.JointState, key: str) -> None:
-        stamp = msgs.ns_of(msg.header.stamp)
-        self.sim_ns = stamp
-        if list(msg.name) != self.names or len(msg.position) != len(self.names):
-            self.reject(key, f"fleet JointState of {len(msg.name)} joints is not the fleet's {len(self.names)} "
-                             f"({self.names[0]} …) with positions")
-            return
-        shape = (self.n_robots, self.n)
-        pos = np.asarray(msg.position, float).reshape(shape)
-        vel = np.asarray(msg.velocity, float).reshape(shape) if msg.velocity else None
-        for k, m in enumerate(self.members):
-            with m.lock:  # its trajectory, goal and gain handlers run in other threads
-                if m.stop_event.is_set():
-                    return
-                m.measure_row(pos[k], None if vel is None else vel[k], stamp)
-                m.prepare(stamp)
-        if [m.gains_version for m in self.members] != self._versions:
-            self._gains()
-        ref_pos = np.array([m.ref_pos for m in self.members])
-        ref_vel = np.array([m.ref_vel for m in self.members])
-        mvel = np.array([m.vel for m in self.members])
-        u = self.pid(ref_pos, ref_vel, np.array([m.pos for m in self.members]), mvel)
-        header = msgs.header(stamp)
-        effort = u.ravel().tolist()
-        if self.setpoints:
-            vcmd = np.array([m.velocity_command() for m in self.members])
-            cmd = msgs.JointState(header=header, name=self.names, position=ref_pos.ravel().tolist(),
-                                  velocity=vcmd.ravel().tolist(), effort=effort)
-        else:
-            cmd = msgs.JointState(header=header, name=self.names, effort=effort)
-        self.cmd_pub.put(cmd)  # physics' step (and, in lockstep, every robot's acknowledgement)
-        if self.ref_pub.wanted():  # every robot's reference in one sample: the recorder's, robot by robot
-            self.ref_pub.put(msgs.JointState(header=header, name=self.names, position=ref_pos.ravel().tolist(),
-                                             velocity=ref_vel.ravel().tolist()))
-        else:
-            self.ref_pub.skip()
-        n = self.n
-        for k, m in enumerate(self.members):
-            with m.lock:
-                # lever 1: a robot's own joint_commands are built only for a subscriber of them
-                m.emit(stamp, effort[k * n:(k + 1) * n] if m.cmd_pub.wanted(covered=True) else None)
-
-    def health_values(self) -> dict[str, Any]:
-        return {"robots": self.n_robots, "arrays": "yes"}
