@@ -321,25 +321,45 @@ function drawPlot(h) {
   ctx.setLineDash([]);
 }
 
+function setCell(td, html, cls) {
+  // only what changed is touched: a row rebuilt on every update detached its Cancel button under the
+  // pointer (a click on a busy machine never landed)
+  if (td.dataset.h !== html) { td.innerHTML = html; td.dataset.h = html; }
+  if (cls !== undefined && td.className !== cls) td.className = cls;
+}
+
 function renderGoals(st) {
   const tb = $("goals").querySelector("tbody");
-  tb.replaceChildren(...st.goals.map((g) => {
-    const tr = document.createElement("tr");
-    tr.dataset.goal = g.id; tr.dataset.state = g.state;
+  const rows = new Map([...tb.children].map((tr) => [tr.dataset.goal, tr]));
+  const order = st.goals.map((g) => {
+    let tr = rows.get(g.id);
+    if (!tr) {
+      tr = document.createElement("tr");
+      tr.dataset.goal = g.id;
+      for (let i = 0; i < 6; i++) tr.append(document.createElement("td"));
+    }
+    tr.dataset.state = g.state;
     const err = g.error && g.error.length ? "max error " + Math.max(...g.error.map(Math.abs)).toFixed(4) : "";
     const res = g.done ? (g.success ? "reached" : "failed") + (g.message ? ": " + g.message : "") + (err ? "; " + err : "") : "";
-    tr.innerHTML = `<td>${esc(g.id)}</td><td class="${g.success === false ? "down" : g.success ? "up" : ""}">${esc(g.state)}</td>
-      <td class="num">${Math.round(100 * (Number(g.progress) || 0))} %</td>
-      <td class="planner" title="${esc(g.choice || "")}">${esc(g.planner || "")}${g.choice ? "<br><small>" + esc(g.choice) + "</small>" : ""}</td>
-      <td>${esc(res)}</td><td></td>`;
-    if (!g.done) {
-      const b = document.createElement("button");
-      b.type = "button"; b.className = "small"; b.textContent = "Cancel"; b.setAttribute("aria-label", "cancel goal " + g.id);
-      b.addEventListener("click", async () => { $("err-cancel").textContent = ""; await post("/api/cancel", { goal_id: g.id }, "cancel"); });
-      tr.lastElementChild.append(b);
+    const td = tr.children;
+    setCell(td[0], esc(g.id));
+    setCell(td[1], esc(g.state), g.success === false ? "down" : g.success ? "up" : "");
+    setCell(td[2], `${Math.round(100 * (Number(g.progress) || 0))} %`, "num");
+    setCell(td[3], esc(g.planner || "") + (g.choice ? "<br><small>" + esc(g.choice) + "</small>" : ""), "planner");
+    td[3].title = g.choice || "";
+    setCell(td[4], esc(res));
+    const b = td[5].querySelector("button");
+    if (!g.done && !b) {
+      const nb = document.createElement("button");
+      nb.type = "button"; nb.className = "small"; nb.textContent = "Cancel"; nb.setAttribute("aria-label", "cancel goal " + g.id);
+      nb.addEventListener("click", async () => { $("err-cancel").textContent = ""; await post("/api/cancel", { goal_id: g.id }, "cancel"); });
+      td[5].append(nb);
+    } else if (g.done && b) {
+      b.remove();
     }
     return tr;
-  }));
+  });
+  if (order.length !== tb.children.length || order.some((tr, i) => tb.children[i] !== tr)) tb.replaceChildren(...order);
 }
 
 function renderFaults(st) {
