@@ -32,6 +32,7 @@ def observed(router: str) -> Iterator[tuple[str, Observer]]:
     obs.close()
 
 
+@pytest.mark.serial  # a wall-clock device test: its server went 0.3 s silent beside CI's other tests (stop 49)
 def test_arm_with_joint_1_served_by_the_motor_model(observed: tuple[str, Observer], tmp_path: Path) -> None:
     """Realtime, six processes: every target reached in the physics truth, and joint_1 in the
     truth is exactly what the external server measured (physics follows the real motor)."""

@@ -326,7 +326,7 @@ def test_the_import_tunes_a_joint_with_the_projects_tuner(ur5: Path, tmp_path: P
     code = ("import json, sys; from pathlib import Path; from hilsim.tools.robot import _tune; "
             "from hilsim.tools.robot.urdf import read; lines = []; "
             "j = next(j for j in read(Path(sys.argv[1])).actuated if j.name == 'wrist_3_joint'); "
-            "_tune(Path(sys.argv[2]), [j], lines.append); print(json.dumps(lines))")
+            "_tune(Path(sys.argv[2]), [j], [0.0], lines.append); print(json.dumps(lines))")  # home 0: a step up
     p = subprocess.run([sys.executable, "-c", code, str(ROBOTS / "ur_description/urdf/ur5_robot.urdf"),
                         str(work / "ur5.yaml")], capture_output=True, text=True, cwd=REPO, timeout=800)
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
