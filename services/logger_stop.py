@@ -94,11 +94,7 @@ class LoggerStop(LoggerWorker):
             except zenoh.ZError:
                 pass
         self._subs.clear()
-        assert self.rec is not None
-        self._flush()
-        self.rec.flush()
-        self.rec.disconnect()
-        self._close_bag()
+        self._close_files()
         live.stop(self.live)
         foxglove_live.stop(self.fox)
         self.fox = None
@@ -107,6 +103,14 @@ class LoggerStop(LoggerWorker):
                            "wall_time": time.strftime("%Y-%m-%dT%H:%M:%S")}
         self.warn(f"recording stopped at sim time {self.sim_ns / 1e9:.3f} s: {why}; the files hold the run up to "
                   f"here ({human_bytes(used)}, closed whole), the run goes on")
+
+    def _close_files(self) -> None:
+        """Write what was taken in, then close the ``.rrd`` (its footer) and the bag whole."""
+        assert self.rec is not None
+        self._flush()
+        self.rec.flush()
+        self.rec.disconnect()
+        self._close_bag()
 
     # ------------------------------------------------------------------ stopping
     def _finish(self) -> None:
@@ -134,10 +138,7 @@ class LoggerStop(LoggerWorker):
         if self.stopped is None:
             while self._queue:  # anything that arrived while the worker was stopping
                 self._handle(*self._queue.popleft())
-            self._flush()
-            self.rec.flush()
-            self.rec.disconnect()
-            self._close_bag()
+            self._close_files()
         live.stop(self.live)
         foxglove_live.stop(self.fox)
         self._report()
