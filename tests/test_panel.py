@@ -25,6 +25,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import psutil
 import pytest
 import zenoh
@@ -660,8 +661,16 @@ def test_a_page_of_another_origin_cannot_move_the_arm_through_the_panel(tmp_path
             page = ctx.new_page()
             page.goto(panel.page_url)  # the lab's panel, open in the same browser: its cookie is set
             page.wait_for_selector("#joint-joint_1")
-            # at rest first: the arm settles under gravity in its first second
-            assert wait_until(lambda: bool(obs.truth) and obs.truth[-1][0] >= 2_000_000_000, 30)
+            # at rest first: the arm settles under gravity in its first seconds; on a loaded machine a realtime
+            # run's arm was seen still swinging back from its sag at 2 s (CI): "at rest" is judged, not timed
+            def at_rest() -> bool:
+                if not obs.truth or obs.truth[-1][0] < 2_000_000_000:
+                    return False
+                last = obs.truth[-1]
+                earlier = obs.truth_at(last[0] - 500_000_000)
+                return float(np.max(np.abs(np.array(last[1]) - earlier))) < 0.005
+
+            assert wait_until(at_rest, 60)
             before = obs.truth[-1]
             # what would carry a goal to the arm: the planner's trajectory to the controller (on the wire)
             trajectories: list[int] = []
@@ -682,8 +691,10 @@ def test_a_page_of_another_origin_cannot_move_the_arm_through_the_panel(tmp_path
             def to_goal(q: list[float]) -> float:
                 return max(abs(a - b) for a, b in zip(q, target, strict=True))
 
-            nearer = to_goal(before[1]) - to_goal(obs.truth[-1][1])
+            after = obs.truth[-1][1]
+            nearer = to_goal(before[1]) - to_goal(after)
             assert nearer < 0.05, f"the arm went {nearer:.4f} rad towards the other origin's goal"
+            assert to_goal(after) > 0.3, f"the arm is {to_goal(after):.4f} rad from the other origin's goal"
             assert panel.state()["goals"] == [], panel.state()["goals"]
             # the control: the panel's own page sends the same goal, and the arm gets there
             for name, q in zip(panel.state()["scenario"]["joints"], target, strict=True):
