@@ -286,6 +286,72 @@ def test_a_real_ros2_node_reads_and_drives_the_imported_ur5_over_dds(ur5: Path, 
     assert np.abs(np.asarray(truth) - target).max() < 0.01, (truth, target)
 
 
+@pytest.mark.e2e
+@pytest.mark.timeout(600)  # the import (shared), a lockstep run of the services, the panel and a browser
+def test_the_panel_commands_an_imported_arm_with_its_own_joints(ur5: Path, tmp_path: Path) -> None:
+    """``hilsim ui --connect`` beside a ``hilsim up`` of the imported UR5 (in a terminal, its own router): the
+    UR5 is in no scenario of ``config/``, yet the panel offers its URDF's joints and limits (read from the run's
+    own scenario) and its page's joint goal takes the arm there: judged by the physics truth in the bag."""
+    import signal
+
+    from test_panel import Lines, PanelProc
+    from util import chromium, wait_until
+
+    sc = load_scenario(ur5 / "ur5.yaml")
+    home, first = np.asarray(sc.world.home), np.asarray(sc.task.targets[0])
+    target = np.round(home + 0.3 * (first - home), 3)  # a short move, collision-free all the way (checked)
+    arm = ArmModel(ur5 / "ur5.xml", clearance=0.0)
+    assert all(arm.why_invalid(home + s * (target - home)) is None for s in np.linspace(0, 1, 11))
+    names = [j.name for j in UrdfFrames(ur5 / "ur5.urdf").moving if j.mimic is None]
+    sync_playwright, exe = chromium()
+    run = Lines(subprocess.Popen([*HILSIM, "up", str(ur5 / "ur5.yaml"), "--interactive", "--clock", "lockstep",
+                                  "--out", str(tmp_path / "run")], cwd=REPO, text=True, stdout=subprocess.PIPE,
+                                 stderr=subprocess.STDOUT, start_new_session=True))
+    panel: PanelProc | None = None
+    goal: dict = {}
+    try:
+        endpoint = run.wait("zenoh router: ", 120).split()[2]
+        run.wait("ready:", 120)
+        panel = PanelProc("--connect", endpoint)
+        assert wait_until(lambda: panel.state()["scenario"] is not None, 60), panel.out()
+        offered = panel.state()["scenario"]
+        assert offered["robot"] == "ur5" and offered["joints"] == names, offered
+        limits = {j.get("name"): float(j.find("limit").get("upper"))
+                  for j in ET.parse(ur5 / "ur5.urdf").getroot().iter("joint") if j.find("limit") is not None}
+        assert np.allclose(offered["upper"], [limits[n] for n in names], atol=1e-4), offered  # the URDF's
+        with sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=exe, args=["--no-sandbox"], headless=True)
+            page = browser.new_page(viewport={"width": 1500, "height": 1000})
+            page.goto(panel.page_url)
+            for name, q in zip(names, target, strict=True):
+                page.fill(f"#joint-{name}", f"{q:.3f}")
+            page.click("#send-joints")
+            page.wait_for_selector("#goals tbody tr[data-state='reached']", timeout=120_000)
+            browser.close()
+        goal = panel.state()["goals"][0]
+        assert goal["success"], goal
+    finally:
+        if panel is not None:
+            assert panel.close() == 0, panel.out()
+        run.proc.send_signal(signal.SIGINT)
+        assert run.proc.wait(120) == 0, "\n".join(run.lines)
+    stamps, pos, got_names, _ = _truth_and_results(tmp_path / "run" / "bag", "ur5")
+    assert got_names == names
+    done = int(np.searchsorted(stamps, round(goal["sim"] * 1e9)))
+    assert np.abs(pos[min(done, len(pos) - 1)] - target).max() < 0.01, (pos[done - 1], target)
+
+
+def test_the_panel_offers_the_imported_arms_to_run(ur5: Path) -> None:
+    """``hilsim ui`` lists the arms imported to ``robots/NAME/`` (the import's default place) beside config/'s
+    scenarios, by the path ``hilsim up`` is given; their overlays (``hil-can.yaml``) are not offered."""
+    from hilsim.ui.options import scenario_options
+
+    opts = scenario_options(imported_dir=ur5.parent)
+    assert "arm" in opts and str(ur5 / "ur5.yaml") in opts, list(opts)
+    assert not any("hil-can" in k for k in opts), list(opts)
+    assert opts[str(ur5 / "ur5.yaml")].joints == [j.name for j in UrdfFrames(ur5 / "ur5.urdf").moving]
+
+
 def test_tools_default_to_the_imported_arms_joints(ur5: Path) -> None:
     """No Niryo default: ``hilsim report step`` steps every joint of another arm."""
     from hilsim.tools.step_report import DEFAULT_JOINTS, default_joints

@@ -1,8 +1,9 @@
-"""What the panel can run: the scenarios of ``config/`` (not the overlays) with their worlds,
-services, joints and joint limits (:class:`ScenarioOption`, what goals and gains are checked
-against), and the planner library's names.
+"""What the panel can run: the scenarios of ``config/`` (not the overlays) and the arms a lab
+imported (``robots/NAME/NAME.yaml`` beside where the panel runs: ``hilsim robot import``'s default
+place), with their worlds, services, joints and joint limits (:class:`ScenarioOption`, what goals
+and gains are checked against), and the planner library's names.
 
-No Zenoh keys: read from the YAML files of ``config/`` only.
+No Zenoh keys: read from YAML files only.
 """
 
 from __future__ import annotations
@@ -52,8 +53,13 @@ def _is_scenario_file(p: Path) -> bool:
     return isinstance(data, dict) and ("services" in data or "extends" in data) and "planners" not in data
 
 
-def scenario_options(config_dir: Path = CONFIG_DIR) -> dict[str, ScenarioOption]:
-    """The scenarios of ``config/`` (not the overlays), with their worlds, joints and limits."""
+IMPORTED_DIR = Path("robots")  # hilsim robot import's default --out parent (hilsim.tools.robot)
+
+
+def scenario_options(config_dir: Path = CONFIG_DIR, imported_dir: Path = IMPORTED_DIR) -> dict[str, ScenarioOption]:
+    """The scenarios of ``config/`` (not the overlays), with their worlds, joints and limits; then the
+    imported arms (``imported_dir/NAME/NAME.yaml``; its overlays, such as ``hil-can.yaml``, are not
+    offered), named by their path, which is what ``hilsim up`` is given."""
     out: dict[str, ScenarioOption] = {}
     files = sorted(p for p in config_dir.glob("*.yaml") if _is_scenario_file(p))
     for p in files:
@@ -67,6 +73,13 @@ def scenario_options(config_dir: Path = CONFIG_DIR) -> dict[str, ScenarioOption]
         worlds = [own, *[w for w in variants if _world_stem(config_dir / f"{p.stem}-{w}.yaml") == w]]
         opt = option_of(sc, p.stem, worlds)
         out[p.stem] = opt
+    for p in sorted(imported_dir.glob("*/*.yaml")) if imported_dir.is_dir() else []:
+        if p.stem != p.parent.name or not _is_scenario_file(p):
+            continue
+        try:
+            out[str(p)] = option_of(load_scenario(p), str(p))
+        except ConfigError as e:
+            log.warning("imported arm %s not offered: %s", p, e)
     return out
 
 

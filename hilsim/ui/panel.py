@@ -27,9 +27,11 @@ from typing import Any
 import zenoh
 
 from hilsim.core import runs, transport
+from hilsim.core.config import ConfigError
+from hilsim.core.scenario import load_scenario
 from hilsim.ui.commands import Commands
 from hilsim.ui.jsonio import BadInput
-from hilsim.ui.options import ScenarioOption, planner_names, scenario_options
+from hilsim.ui.options import ScenarioOption, option_of, planner_names, scenario_options
 from hilsim.ui.runs import RunControl
 from hilsim.ui.viewer import Viewer
 from hilsim.ui.watch import Monitor
@@ -70,6 +72,8 @@ class Panel:
         self.default_robot = robot
         self.commands = Commands(self.session, self.prefix, self.monitor, self.planners, self.robot, self.option)
         self.viewer = Viewer()
+        # the scenario of a run started elsewhere, read from its directory: ((path, mtime), what it offers)
+        self._elsewhere: tuple[tuple[str, int] | None, ScenarioOption | None] = (None, None)
 
     def _own_or_join_router(self, attach: bool) -> zenoh.Session | None:
         """The well-known router: opened here when its port is free; else (``attach``) joined, when a
@@ -138,8 +142,33 @@ class Panel:
             alive = {s for s, up in rv.alive.items() if up} if rv is not None else set()
         if not alive & {"planner", "navigator"}:
             return None
+        own = self._run_option()
+        if own is not None and own.robot == robot:
+            return own
         same = [o for o in self.options.values() if o.robot == robot and ("navigator" in alive) == o.mobile]
         return next((o for o in same if o.name == robot), same[0] if same else None)
+
+    def _run_option(self) -> ScenarioOption | None:
+        """The scenario of the run whose router the panel is on, from that run's own directory (its pointer:
+        a ``hilsim up`` of this user with its own router): an arm imported from a lab's URDF, in no scenario
+        of ``config/``, is commanded with its own joints and limits. None when no pointer names a run."""
+        ptr = runs.run_at([self.endpoint])
+        if ptr is None:
+            return None
+        path = ptr.run_dir / "scenario.yaml"  # the run's scenario as resolved (hilsim.run.up)
+        try:
+            key = (str(path), path.stat().st_mtime_ns)
+        except OSError:
+            return None
+        if self._elsewhere[0] != key:  # read once per run (state() asks many times a second)
+            try:
+                opt: ScenarioOption | None = option_of(load_scenario(str(path)), ptr.scenario or path.stem)
+            except (ConfigError, ValueError) as e:
+                print(f"hilsim panel: {path}: {e} (the run is shown by its robot's name only)", file=sys.stderr,
+                      flush=True)
+                opt = None
+            self._elsewhere = (key, opt)
+        return self._elsewhere[1]
 
     def state(self) -> dict[str, Any]:
         robot = self.robot()
