@@ -1,9 +1,10 @@
 """The ROS 2 type descriptions of every interface hilsim puts on the wire, and what is derived from them.
 
-This module owns the ``.msg`` / ``.srv`` / ``.action`` texts (ROS 2 Jazzy, comments stripped) of the
-ROS types hilsim uses and of everything they depend on, plus hilsim's own ``hilsim_msgs/…`` types
-(written field for field after the pycdr2 classes of :mod:`hilsim.core.msgs`). From those texts it
-derives:
+This module reads the ``.msg`` / ``.srv`` / ``.action`` files of ``interfaces/`` (package data, laid
+out as ROS packages ship them: ``<package>/<msg|srv|action>/<Name>.<ext>``; ROS 2 Jazzy's, comments
+stripped) of the ROS types hilsim uses and of everything they depend on, plus hilsim's own
+``hilsim_msgs/…`` types (written field for field after the pycdr2 classes of :mod:`hilsim.core.msgs`).
+From those texts it derives:
 
 - the parsed field lists (:func:`fields`, :func:`parse_msg`);
 - the REP 2011 type hash ``RIHS01_<sha256>`` (:func:`type_hash`), computed the way
@@ -30,6 +31,7 @@ import json
 import re
 from collections.abc import Iterable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Final, Literal
 
 __all__ = [
@@ -442,449 +444,32 @@ def dds_type_name(name: str) -> str:
 
 
 # ------------------------------------------------------------------------------------ definitions
-# ROS 2 Jazzy (common_interfaces, rcl_interfaces, geometry2, unique_identifier_msgs, control_msgs 5.x),
-# comments stripped; names as in the sources (a bare name is in the file's own package).
-_ROS_MSGS: Final[dict[str, str]] = {
-    "builtin_interfaces/msg/Time": """
-int32 sec
-uint32 nanosec
-""",
-    "builtin_interfaces/msg/Duration": """
-int32 sec
-uint32 nanosec
-""",
-    "std_msgs/msg/Header": """
-builtin_interfaces/Time stamp
-string frame_id
-""",
-    "std_msgs/msg/String": """
-string data
-""",
-    "rosgraph_msgs/msg/Clock": """
-builtin_interfaces/Time clock
-""",
-    "unique_identifier_msgs/msg/UUID": """
-uint8[16] uuid
-""",
-    "service_msgs/msg/ServiceEventInfo": """
-uint8 REQUEST_SENT = 0
-uint8 REQUEST_RECEIVED = 1
-uint8 RESPONSE_SENT = 2
-uint8 RESPONSE_RECEIVED = 3
-uint8 event_type
-builtin_interfaces/Time stamp
-char[16] client_gid
-int64 sequence_number
-""",
-    # rmw_dds_common (Jazzy, Kilted): what every ROS 2 participant on DDS publishes on ros_discovery_info,
-    # the nodes it holds and their readers' and writers' gids (how rclpy's graph finds a topic's node)
-    "rmw_dds_common/msg/Gid": """
-char[16] data
-""",
-    "rmw_dds_common/msg/NodeEntitiesInfo": """
-string<=256 node_namespace
-string<=256 node_name
-Gid[] reader_gid_seq
-Gid[] writer_gid_seq
-""",
-    "rmw_dds_common/msg/ParticipantEntitiesInfo": """
-Gid gid
-NodeEntitiesInfo[] node_entities_info_seq
-""",
-    "geometry_msgs/msg/Point": """
-float64 x
-float64 y
-float64 z
-""",
-    "geometry_msgs/msg/Vector3": """
-float64 x
-float64 y
-float64 z
-""",
-    "geometry_msgs/msg/Quaternion": """
-float64 x 0
-float64 y 0
-float64 z 0
-float64 w 1
-""",
-    "geometry_msgs/msg/Pose": """
-Point position
-Quaternion orientation
-""",
-    "geometry_msgs/msg/PoseStamped": """
-std_msgs/Header header
-Pose pose
-""",
-    "geometry_msgs/msg/PoseWithCovariance": """
-Pose pose
-float64[36] covariance
-""",
-    "geometry_msgs/msg/Twist": """
-Vector3 linear
-Vector3 angular
-""",
-    "geometry_msgs/msg/TwistWithCovariance": """
-Twist twist
-float64[36] covariance
-""",
-    "geometry_msgs/msg/Transform": """
-Vector3 translation
-Quaternion rotation
-""",
-    "geometry_msgs/msg/TransformStamped": """
-std_msgs/Header header
-string child_frame_id
-Transform transform
-""",
-    "tf2_msgs/msg/TFMessage": """
-geometry_msgs/TransformStamped[] transforms
-""",
-    "nav_msgs/msg/Odometry": """
-std_msgs/Header header
-string child_frame_id
-geometry_msgs/PoseWithCovariance pose
-geometry_msgs/TwistWithCovariance twist
-""",
-    "nav_msgs/msg/Path": """
-std_msgs/Header header
-geometry_msgs/PoseStamped[] poses
-""",
-    "nav_msgs/msg/MapMetaData": """
-builtin_interfaces/Time map_load_time
-float32 resolution
-uint32 width
-uint32 height
-geometry_msgs/Pose origin
-""",
-    "nav_msgs/msg/OccupancyGrid": """
-std_msgs/Header header
-MapMetaData info
-int8[] data
-""",
-    "sensor_msgs/msg/JointState": """
-std_msgs/Header header
-string[] name
-float64[] position
-float64[] velocity
-float64[] effort
-""",
-    "sensor_msgs/msg/Imu": """
-std_msgs/Header header
-geometry_msgs/Quaternion orientation
-float64[9] orientation_covariance
-geometry_msgs/Vector3 angular_velocity
-float64[9] angular_velocity_covariance
-geometry_msgs/Vector3 linear_acceleration
-float64[9] linear_acceleration_covariance
-""",
-    "sensor_msgs/msg/LaserScan": """
-std_msgs/Header header
-float32 angle_min
-float32 angle_max
-float32 angle_increment
-float32 time_increment
-float32 scan_time
-float32 range_min
-float32 range_max
-float32[] ranges
-float32[] intensities
-""",
-    "sensor_msgs/msg/NavSatStatus": """
-int8 STATUS_UNKNOWN = -2
-int8 STATUS_NO_FIX =  -1
-int8 STATUS_FIX =      0
-int8 STATUS_SBAS_FIX = 1
-int8 STATUS_GBAS_FIX = 2
-int8 status -2
-uint16 SERVICE_UNKNOWN = 0
-uint16 SERVICE_GPS =     1
-uint16 SERVICE_GLONASS = 2
-uint16 SERVICE_COMPASS = 4
-uint16 SERVICE_GALILEO = 8
-uint16 service
-""",
-    "sensor_msgs/msg/NavSatFix": """
-std_msgs/Header header
-NavSatStatus status
-float64 latitude
-float64 longitude
-float64 altitude
-float64[9] position_covariance
-uint8 COVARIANCE_TYPE_UNKNOWN = 0
-uint8 COVARIANCE_TYPE_APPROXIMATED = 1
-uint8 COVARIANCE_TYPE_DIAGONAL_KNOWN = 2
-uint8 COVARIANCE_TYPE_KNOWN = 3
-uint8 position_covariance_type
-""",
-    "trajectory_msgs/msg/JointTrajectoryPoint": """
-float64[] positions
-float64[] velocities
-float64[] accelerations
-float64[] effort
-builtin_interfaces/Duration time_from_start
-""",
-    "trajectory_msgs/msg/JointTrajectory": """
-std_msgs/Header header
-string[] joint_names
-JointTrajectoryPoint[] points
-""",
-    "trajectory_msgs/msg/MultiDOFJointTrajectoryPoint": """
-geometry_msgs/Transform[] transforms
-geometry_msgs/Twist[] velocities
-geometry_msgs/Twist[] accelerations
-builtin_interfaces/Duration time_from_start
-""",
-    "trajectory_msgs/msg/MultiDOFJointTrajectory": """
-std_msgs/Header header
-string[] joint_names
-MultiDOFJointTrajectoryPoint[] points
-""",
-    "diagnostic_msgs/msg/KeyValue": """
-string key
-string value
-""",
-    "diagnostic_msgs/msg/DiagnosticStatus": """
-byte OK=0
-byte WARN=1
-byte ERROR=2
-byte STALE=3
-byte level
-string name
-string message
-string hardware_id
-KeyValue[] values
-""",
-    "diagnostic_msgs/msg/DiagnosticArray": """
-std_msgs/Header header
-DiagnosticStatus[] status
-""",
-    "rcl_interfaces/msg/Log": """
-uint8 DEBUG=10
-uint8 INFO=20
-uint8 WARN=30
-uint8 ERROR=40
-uint8 FATAL=50
-builtin_interfaces/Time stamp
-uint8 level
-string name
-string msg
-string file
-string function
-uint32 line
-""",
-    "rcl_interfaces/msg/ParameterType": """
-uint8 PARAMETER_NOT_SET=0
-uint8 PARAMETER_BOOL=1
-uint8 PARAMETER_INTEGER=2
-uint8 PARAMETER_DOUBLE=3
-uint8 PARAMETER_STRING=4
-uint8 PARAMETER_BYTE_ARRAY=5
-uint8 PARAMETER_BOOL_ARRAY=6
-uint8 PARAMETER_INTEGER_ARRAY=7
-uint8 PARAMETER_DOUBLE_ARRAY=8
-uint8 PARAMETER_STRING_ARRAY=9
-""",
-    "rcl_interfaces/msg/ParameterValue": """
-uint8 type
-bool bool_value
-int64 integer_value
-float64 double_value
-string string_value
-byte[] byte_array_value
-bool[] bool_array_value
-int64[] integer_array_value
-float64[] double_array_value
-string[] string_array_value
-""",
-    "rcl_interfaces/msg/Parameter": """
-string name
-ParameterValue value
-""",
-    "rcl_interfaces/msg/SetParametersResult": """
-bool successful
-string reason
-""",
-    "action_msgs/msg/GoalInfo": """
-unique_identifier_msgs/UUID goal_id
-builtin_interfaces/Time stamp
-""",
-    "action_msgs/msg/GoalStatus": """
-int8 STATUS_UNKNOWN   = 0
-int8 STATUS_ACCEPTED  = 1
-int8 STATUS_EXECUTING = 2
-int8 STATUS_CANCELING = 3
-int8 STATUS_SUCCEEDED = 4
-int8 STATUS_CANCELED  = 5
-int8 STATUS_ABORTED   = 6
-GoalInfo goal_info
-int8 status
-""",
-    "action_msgs/msg/GoalStatusArray": """
-GoalStatus[] status_list
-""",
-    "control_msgs/msg/JointTolerance": """
-string name
-float64 position
-float64 velocity
-float64 acceleration
-""",
-    "control_msgs/msg/JointComponentTolerance": """
-uint16 X_AXIS=1
-uint16 Y_AXIS=2
-uint16 Z_AXIS=3
-uint16 TRANSLATION=4
-uint16 ROTATION=5
-string joint_name
-uint16 component
-float64 position
-float64 velocity
-float64 acceleration
-""",
-}
+# The interface files, as ROS packages ship them: interfaces/<package>/<msg|srv|action>/<Name>.<msg|srv|action>.
+# ROS 2 Jazzy's (common_interfaces, rcl_interfaces, geometry2, unique_identifier_msgs, control_msgs 5.x), comments
+# stripped, names as in the sources (a bare name is in the file's own package); and hilsim's own (hilsim_msgs),
+# field for field after the pycdr2 classes of hilsim.core.msgs (same order, same types). Its Move_GoalResponse and
+# Move_Cancel (.msg files under action/) belong to hilsim's own goal protocol (the planner's planner/goal and
+# planner/cancel queryables); Move.action's goal, result and feedback are also the parts of the ROS 2 action the
+# planner serves as /<robot>/move, with every part rosidl derives, so their hashes are those a ROS 2 build of
+# hilsim_msgs would give.
+INTERFACES_DIR: Final[Path] = Path(__file__).resolve().parent / "interfaces"
+_SUFFIX_ORDER: Final[dict[str, int]] = {".msg": 0, ".srv": 1, ".action": 2}  # an action's parts may use messages
 
-_ROS_SRVS: Final[dict[str, str]] = {
-    "action_msgs/srv/CancelGoal": """
-GoalInfo goal_info
----
-int8 ERROR_NONE=0
-int8 ERROR_REJECTED=1
-int8 ERROR_UNKNOWN_GOAL_ID=2
-int8 ERROR_GOAL_TERMINATED=3
-int8 return_code
-GoalInfo[] goals_canceling
-""",
-    "rcl_interfaces/srv/SetParameters": """
-Parameter[] parameters
----
-SetParametersResult[] results
-""",
-}
-
-_ROS_ACTIONS: Final[dict[str, str]] = {
-    # control_msgs 5.x (Jazzy): no index / multi_dof_index in the feedback (those came in 6.x)
-    "control_msgs/action/FollowJointTrajectory": """
-trajectory_msgs/JointTrajectory trajectory
-trajectory_msgs/MultiDOFJointTrajectory multi_dof_trajectory
-JointTolerance[] path_tolerance
-JointComponentTolerance[] component_path_tolerance
-JointTolerance[] goal_tolerance
-JointComponentTolerance[] component_goal_tolerance
-builtin_interfaces/Duration goal_time_tolerance
----
-int32 error_code
-int32 SUCCESSFUL = 0
-int32 INVALID_GOAL = -1
-int32 INVALID_JOINTS = -2
-int32 OLD_HEADER_TIMESTAMP = -3
-int32 PATH_TOLERANCE_VIOLATED = -4
-int32 GOAL_TOLERANCE_VIOLATED = -5
-string error_string
----
-std_msgs/Header header
-string[] joint_names
-trajectory_msgs/JointTrajectoryPoint desired
-trajectory_msgs/JointTrajectoryPoint actual
-trajectory_msgs/JointTrajectoryPoint error
-string[] multi_dof_joint_names
-trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_desired
-trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_actual
-trajectory_msgs/MultiDOFJointTrajectoryPoint multi_dof_error
-""",
-}
-
-# hilsim's own types, field for field after the pycdr2 classes of hilsim.core.msgs (same order, same
-# types). Move_GoalResponse and Move_Cancel belong to hilsim's own goal protocol (the planner's
-# planner/goal and planner/cancel queryables); the goal, result and feedback are also the parts of
-# the ROS 2 action hilsim_msgs/action/Move (_HILSIM_ACTIONS), which the planner serves as /<robot>/move.
-_HILSIM_MSGS: Final[dict[str, str]] = {
-    "hilsim_msgs/action/Move_GoalResponse": """
-string goal_id
-bool accepted
-string reason
-""",
-    "hilsim_msgs/action/Move_Cancel": """
-string goal_id
-""",
-    "hilsim_msgs/msg/Contact": """
-string body1
-string body2
-string geom1
-string geom2
-geometry_msgs/Point position
-float64 depth
-""",
-    "hilsim_msgs/msg/Contacts": """
-std_msgs/Header header
-hilsim_msgs/Contact[] contacts
-""",
-    "hilsim_msgs/msg/Parameter": """
-string name
-float64 value
-""",
-    "hilsim_msgs/srv/SetParameters_Request": """
-hilsim_msgs/Parameter[] parameters
-""",
-}
-
-# hilsim's own actions (.action text: goal --- result --- feedback), with every part rosidl derives
-# (Move_SendGoal, Move_GetResult, Move_FeedbackMessage …), so their hashes are those a ROS 2 build of
-# hilsim_msgs would give. hilsim's pycdr2 classes of the parts: hilsim.core.msgs.action.
-_HILSIM_ACTIONS: Final[dict[str, str]] = {
-    "hilsim_msgs/action/Move": """
-string goal_id
-string target_kind
-string[] joint_names
-float64[] joint_positions
-geometry_msgs/Pose pose
-bool use_orientation
-string planner
-float64 planning_time
-bool execute
----
-int32 SUCCESS=1
-int32 FAILURE=99999
-int32 PLANNING_FAILED=-1
-int32 INVALID_GOAL=-2
-int32 CONTROL_FAILED=-4
-int32 TIMED_OUT=-6
-int32 CANCELED=-7
-int32 GOAL_IN_COLLISION=-10
-int32 GOAL_OUT_OF_LIMITS=-11
-int32 NO_IK_SOLUTION=-31
-std_msgs/Header header
-string goal_id
-bool success
-int32 error_code
-string message
-trajectory_msgs/JointTrajectory trajectory
-float64 planning_time
-float64[] execution_error
-string planner
-string choice
----
-std_msgs/Header header
-string goal_id
-string state
-float64 progress
-string planner
-string choice
-""",
-}
 
 #: hilsim's own packages (their types are not in any ROS distribution)
 HILSIM_PACKAGES: Final[frozenset[str]] = frozenset({"hilsim_msgs"})
 
 
-def _default_registry() -> TypeRegistry:
+def _default_registry(root: Path = INTERFACES_DIR) -> TypeRegistry:
+    """Every interface file under ``root`` (``<package>/<msg|srv|action>/<Name>.<ext>``) in one registry."""
     reg = TypeRegistry()
-    for table in (_ROS_MSGS, _HILSIM_MSGS):
-        for name, text in table.items():
-            reg.add_msg(name, text)
-    for name, text in _ROS_SRVS.items():
-        reg.add_srv(name, text)
-    for table in (_ROS_ACTIONS, _HILSIM_ACTIONS):
-        for name, text in table.items():
-            reg.add_action(name, text)
+    files = sorted((f for f in root.glob("*/*/*") if f.suffix in _SUFFIX_ORDER),
+                   key=lambda f: (_SUFFIX_ORDER[f.suffix], f.parts[-3] in HILSIM_PACKAGES, str(f)))
+    if not files:
+        raise RuntimeError(f"no interface files under {root} (the package is installed without its data?)")
+    add = {".msg": reg.add_msg, ".srv": reg.add_srv, ".action": reg.add_action}
+    for f in files:
+        add[f.suffix](f"{f.parts[-3]}/{f.parts[-2]}/{f.stem}", f.read_text())
     missing = {dep for n in reg.names() for f in reg.fields(n) if f.is_nested for dep in [f.type] if dep not in reg}
     if missing:
         raise RuntimeError(f"types referenced but not defined: {sorted(missing)}")
