@@ -534,7 +534,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    except ConnectionError as e:  # a tool that reaches nothing (hilsim.core.runs.open_tool_session): no run up,
+    except ConnectionError as e:  # a tool that reaches nothing (hilsim.core.run_finder.open_tool_session): no run up,
         print(f"error: {str(e).splitlines()[0]}", file=sys.stderr)  # the same mistake, the same code in every tool
         return 2
     except KeyboardInterrupt:

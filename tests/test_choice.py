@@ -15,9 +15,9 @@ import yaml
 from hilsim.cli import main
 from hilsim.planning.choice import MODEL_DIR, choice_report, load_model, query_table, train_forest
 from hilsim.planning.collision import ArmModel
+from hilsim.planning.experiments import RunContext, RunRecord, RunTask, run_all
 from hilsim.planning.library import PlannerLibrary
 from hilsim.planning.problem import PlanOutcome, Problem
-from hilsim.planning.runs import RunContext, RunRecord, RunTask, run_all
 from hilsim.planning.scenes import SCENES, load_scenes
 from hilsim.tools.evaluate.scenes import ORACLE, summarise
 from hilsim.tools.learn import split_scenes

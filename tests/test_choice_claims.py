@@ -18,9 +18,9 @@ from hilsim.cli import main
 from hilsim.core.config import REPO_ROOT
 from hilsim.planning.choice import BOUND_MS, MODEL_DIR, ChoiceModelError, Forest, load_model
 from hilsim.planning.collision import ArmModel
+from hilsim.planning.experiments import RunContext, RunRecord, RunTask, run_all
 from hilsim.planning.library import PlannerLibrary, seed_ompl
 from hilsim.planning.problem import Problem
-from hilsim.planning.runs import RunContext, RunRecord, RunTask, run_all
 from hilsim.planning.scenes import SCENES, load_scenes
 from hilsim.planning.scoring import CONSTANTS
 from hilsim.tools.evaluate.scenes import ORACLE, auto_records, overlap, read_records, summarise

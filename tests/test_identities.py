@@ -23,7 +23,7 @@ import pytest
 import zenoh
 from util import REPO, wait_until
 
-from hilsim.core import rights, runs, transport
+from hilsim.core import rights, run_finder, transport
 from hilsim.core.config import ConfigError, ZenohConfig
 from hilsim.core.keys import Keys
 from hilsim.core.scenario import load_scenario, parse_overrides
@@ -96,9 +96,9 @@ def test_each_identity_may_put_serve_and_query_exactly_what_this_table_says(
         run_router: tuple[RunRouter, dict[str, Path]]) -> None:
     rr, files = run_router
     # hilsim play and the panel find their own identity through the run's pointer, the other tools theirs
-    ptr = runs.RunPointer(rr.endpoint, rr.client_config.parent, "arm", rr.client_config, os.getpid())
+    ptr = run_finder.RunPointer(rr.endpoint, rr.client_config.parent, "arm", rr.client_config, os.getpid())
     for tool, own in (("hilsim play", files["play"]), ("hilsim ui", files["panel"]), ("hilsim topic", files["tools"])):
-        assert runs.tool_identity(ptr, tool) == own, tool
+        assert run_finder.tool_identity(ptr, tool) == own, tool
     table = _table()
     assert set(table) == set(files), (sorted(table), sorted(files))  # the doc names every identity of the run
     puts, served = _probes(Keys())

@@ -30,7 +30,7 @@ LAYERS: list[list[str]] = [
 ]
 # inside the core, bottom to top: a module imports only modules listed before it
 CORE_ORDER = ["simclock", "msgs", "ros2", "geometry", "recording", "inproc", "fleet", "keys", "config", "rights",
-              "registry", "scenario", "restart", "transport", "runs", "provenance", "batch", "signals", "publisher",
+              "registry", "scenario", "restart", "transport", "run_finder", "provenance", "batch", "signals", "publisher",
               "ros2_node", "service"]
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from hilsim.cli import main as cli
-from hilsim.core import msgs, runs, transport
+from hilsim.core import msgs, run_finder, transport
 from hilsim.core.config import ConfigError
 from hilsim.core.keys import Keys
 from hilsim.record.bag import BagWriter
@@ -25,20 +25,20 @@ from hilsim.record.bag_read import write_metadata
 def test_tool_endpoints_and_prefix(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.delenv("HILSIM_ZENOH_CONNECT", raising=False)
     monkeypatch.delenv("HILSIM_PREFIX", raising=False)
-    assert runs.tool_endpoints() == ["tcp/127.0.0.1:7447"]
-    assert runs.tool_prefix() == "hilsim"
+    assert run_finder.tool_endpoints() == ["tcp/127.0.0.1:7447"]
+    assert run_finder.tool_prefix() == "hilsim"
     monkeypatch.setenv("HILSIM_ZENOH_CONNECT", "tcp/192.0.2.1:7447, tcp/192.0.2.2:7447,")
     monkeypatch.setenv("HILSIM_PREFIX", "lab2")
-    assert runs.tool_endpoints() == ["tcp/192.0.2.1:7447", "tcp/192.0.2.2:7447"]
-    assert runs.tool_prefix() == "lab2"
+    assert run_finder.tool_endpoints() == ["tcp/192.0.2.1:7447", "tcp/192.0.2.2:7447"]
+    assert run_finder.tool_prefix() == "lab2"
     # the command line wins over the environment
-    assert runs.tool_endpoints("tcp/127.0.0.1:9000") == ["tcp/127.0.0.1:9000"]
-    assert runs.tool_prefix("mine") == "mine"
+    assert run_finder.tool_endpoints("tcp/127.0.0.1:9000") == ["tcp/127.0.0.1:9000"]
+    assert run_finder.tool_prefix("mine") == "mine"
 
 
 def test_wait_for_service_sees_liveliness(router: str) -> None:
     keys = Keys("hilsim", "arm")
-    with runs.open_tool_session(router) as tool, runs.open_tool_session(router) as svc:
+    with run_finder.open_tool_session(router) as tool, run_finder.open_tool_session(router) as svc:
         assert not transport.wait_for_service(tool, keys, "controller", 0.2)
         token = svc.liveliness().declare_token(keys.alive("controller"))
         try:
@@ -72,7 +72,7 @@ def runs_up(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[Callabl
         ep = f"tcp/127.0.0.1:{transport.free_port()}"
         client = run / transport.CLIENT_CONFIG
         transport.write_private(client, transport.client_config_text(ep, transport.Credentials("tools", "pw")))
-        ptr = runs.pointer_path(runs.loopback_port(ep) or 0)
+        ptr = run_finder.pointer_path(run_finder.loopback_port(ep) or 0)
         ptr.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
         transport.write_private(ptr, json.dumps({"endpoint": ep, "run_dir": str(run.resolve()), "scenario": "arm",
                                                  "client_config": str(client.resolve()), "pid": launcher.pid}))
@@ -92,41 +92,41 @@ def test_a_tool_names_the_run_it_joins_and_never_guesses_between_two(runs_up: Ca
     endpoint). Two: without --run or --connect a tool lists them and asks on a terminal, and otherwise
     stops in one line; --run DIR picks one, and a --run that is not up is refused."""
     a = runs_up("a")
-    t = runs.tool_target(tool="hilsim topic list")
+    t = run_finder.tool_target(tool="hilsim topic list")
     assert t.run is not None and t.run.run_dir == a.resolve(), _pointers_as_read()
     assert t.zenoh.auth == (a / transport.CLIENT_CONFIG).resolve()
     # a client of the router, against a plain one too: one path, samples in order (docs/tools.md)
-    assert t.zenoh.mode == "client" and runs.tool_target("tcp/127.0.0.1:1").zenoh.mode == "client"
+    assert t.zenoh.mode == "client" and run_finder.tool_target("tcp/127.0.0.1:1").zenoh.mode == "client"
     said = t.describe()
     assert said.startswith("joined run ") and str(a) in said and "(scenario arm) at tcp/" in said, said
     b = runs_up("b")
     with pytest.raises(ConfigError, match=r"hilsim topic list: 2 runs of yours are up \(run .*; run .*\): say which "
                                           r"with --run DIR or --connect ENDPOINT"):
-        runs.tool_target(tool="hilsim topic list")
+        run_finder.tool_target(tool="hilsim topic list")
     assert cli(["topic", "list"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "2 runs of yours are up" in err and str(a) in err and str(b) in err, err
-    assert runs.tool_target(run=b).run.run_dir == b.resolve()  # type: ignore[union-attr]
-    ep_a = runs.tool_target(run=a).zenoh.connect
-    assert runs.tool_target(",".join(ep_a)).run.run_dir == a.resolve()  # type: ignore[union-attr]
+    assert run_finder.tool_target(run=b).run.run_dir == b.resolve()  # type: ignore[union-attr]
+    ep_a = run_finder.tool_target(run=a).zenoh.connect
+    assert run_finder.tool_target(",".join(ep_a)).run.run_dir == a.resolve()  # type: ignore[union-attr]
     with pytest.raises(ConfigError, match=r"--run .*c: no run of yours is up there"):
-        runs.tool_target(run=a.parent / "c")
+        run_finder.tool_target(run=a.parent / "c")
     # on a terminal: asked
     monkeypatch.setattr(sys, "stdin", _Tty("2\n"))
     monkeypatch.setattr(sys, "stderr", _Tty(""))
-    assert runs.tool_target(tool="hilsim goal").run.run_dir == b.resolve()  # type: ignore[union-attr]
+    assert run_finder.tool_target(tool="hilsim goal").run.run_dir == b.resolve()  # type: ignore[union-attr]
     assert "1. run " in sys.stderr.getvalue() and "which one (1-2)?" in sys.stderr.getvalue()
 
 
 def _pointers_as_read() -> list[tuple[str, int, str, int, str, bool, bool]]:
     """Each pointer file as the tools judge it (owner, mode, launcher's command line, read): why none is up."""
     out = []
-    for p in sorted(runs.pointer_dir().glob("*.json")):
+    for p in sorted(run_finder.pointer_dir().glob("*.json")):
         st = p.stat()
         pid = int(json.loads(p.read_text())["pid"])
         cmd = Path(f"/proc/{pid}/cmdline").read_bytes() if Path(f"/proc/{pid}").exists() else b"(gone)"
         out.append((p.name, st.st_uid, oct(st.st_mode), os.getuid(), cmd.decode(errors="replace"),
-                    p.name.endswith(f"-{runs._net_namespace()}.json"), runs.read_pointer(p) is not None))
+                    p.name.endswith(f"-{run_finder._net_namespace()}.json"), run_finder.read_pointer(p) is not None))
     return out
 
 
@@ -182,7 +182,7 @@ def test_play_says_who_hears_it_and_counts_what_it_played(router: str, tmp_path:
 
     items = schedule(open_bag(_tiny_bag(tmp_path / "bag")), Selector(None), None, skip_clock=False)
     stop = threading.Event()
-    with runs.open_tool_session(router) as s:
+    with run_finder.open_tool_session(router) as s:
         sub = s.declare_subscriber(Keys().clock, lambda _: None)
         threading.Timer(0.6, stop.set).start()  # 0.1 s to announce, then 0.5 s of the 0.2 s bag at 0.25x
         res = play(s, items, domain=0, rate=0.25, delay=0.1, quiet=True, stop=stop)

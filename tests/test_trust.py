@@ -26,7 +26,7 @@ import zenoh
 from test_restart import sim_now
 from util import REPO, Observer, alive, wait_until
 
-from hilsim.core import msgs, runs, transport
+from hilsim.core import msgs, run_finder, transport
 from hilsim.core.config import ZenohConfig
 from hilsim.core.keys import Keys
 from hilsim.core.provenance import Provenance
@@ -255,7 +255,7 @@ def test_two_runs_each_admit_only_their_own_processes_and_never_cross_talk(tmp_p
         # the credentials: written 0600, pointed to (0600) by port for this user's tools
         for d, ep in ((a_dir, ep_a), (b_dir, ep_b)):
             assert _private(d / "zenoh-client.json5") and _private(d / "zenoh-users.txt")
-            pointer = runs.pointer_path(int(ep.rsplit(":", 1)[1]))
+            pointer = run_finder.pointer_path(int(ep.rsplit(":", 1)[1]))
             assert _private(pointer) and json.loads(pointer.read_text())["run_dir"] == str(d.resolve())
             conf = json.loads((d / "zenoh-client.json5").read_text())
             assert conf["mode"] == "client" and conf["connect"]["endpoints"] == [ep]
@@ -348,7 +348,7 @@ def test_two_runs_each_admit_only_their_own_processes_and_never_cross_talk(tmp_p
             if key in counts and "/health/" not in key:
                 assert counts[key]["received"] == n, (run, key, counts[key], n)
         # its pointer is gone with it
-        assert not runs.pointer_path(int((ep_a if run == "a" else ep_b).rsplit(":", 1)[1])).exists()
+        assert not run_finder.pointer_path(int((ep_a if run == "a" else ep_b).rsplit(":", 1)[1])).exists()
 
 
 @pytest.mark.parametrize("policy", ["no", "on-failure"])

@@ -15,7 +15,7 @@ the run with a user and password of its own and lets each write only what the ke
 (a Zenoh client config file, ``<run dir>/identities/<process>.json5``, through ``HILSIM_ZENOH_AUTH``) and is
 then a client of the router (no listener of its own); the tools of the same user find theirs
 (``<run dir>/zenoh-client.json5``) through a pointer file per port, as Jupyter's token is, and name the
-run they joined (:mod:`hilsim.core.runs`).
+run they joined (:mod:`hilsim.core.run_finder`).
 """
 
 from __future__ import annotations

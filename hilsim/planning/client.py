@@ -29,7 +29,7 @@ from typing import Any
 
 import zenoh
 
-from hilsim.core import msgs, runs, transport
+from hilsim.core import msgs, run_finder, transport
 from hilsim.core.keys import Keys
 
 
@@ -176,15 +176,15 @@ def cmd_goal(args: argparse.Namespace) -> int:
     except ValueError as e:
         print(f"hilsim goal: {e}", file=sys.stderr)
         return 2
-    keys = runs.tool_keys(args.robot, args.prefix)
-    target = runs.tool_target(args.connect, getattr(args, "run", None), "hilsim goal")
-    joints = runs.run_joints(target.run) if target.run is not None and args.joints is not None else []
+    keys = run_finder.tool_keys(args.robot, args.prefix)
+    target = run_finder.tool_target(args.connect, getattr(args, "run", None), "hilsim goal")
+    joints = run_finder.run_joints(target.run) if target.run is not None and args.joints is not None else []
     if joints and len(args.joints) != len(joints):  # the run is known: the mistake is said before connecting
         print(f"hilsim goal: --joints: {len(args.joints)} values, but {args.robot} has {len(joints)} joints "
               f"({', '.join(joints)})", file=sys.stderr)
         return 2
     try:
-        session = runs.open_tool_session(args.connect, run=target.run.run_dir if target.run else None,
+        session = run_finder.open_tool_session(args.connect, run=target.run.run_dir if target.run else None,
                                          tool="hilsim goal")
     except ConnectionError as e:
         print(f"hilsim goal: {e}", file=sys.stderr)

@@ -415,7 +415,7 @@ def cmd_view_live(args: Any) -> int:
     (``viewer: URL``), and with a display Rerun's native viewer connected to the run's stream."""
     import sys
 
-    from hilsim.core import runs
+    from hilsim.core import run_finder
     from hilsim.core.config import ConfigError
     from hilsim.core.recording import rerun_config_home, rerun_executable
 
@@ -423,10 +423,10 @@ def cmd_view_live(args: Any) -> int:
         if args.run:
             run_dir = Path(args.run)
         else:
-            up = runs.live_runs()
+            up = run_finder.live_runs()
             if not up:
                 raise ConfigError("no run of yours is up (start one with `hilsim up arm --view`)")
-            run_dir = (up[0] if len(up) == 1 else runs.choose_run(up, "hilsim view --live")).run_dir
+            run_dir = (up[0] if len(up) == 1 else run_finder.choose_run(up, "hilsim view --live")).run_dir
     except ConfigError as e:
         print(f"hilsim view --live: {e}", file=sys.stderr)
         return 1

@@ -58,7 +58,7 @@ from pathlib import Path
 
 import zenoh
 
-from hilsim.core import fleet, runs, transport
+from hilsim.core import fleet, run_finder, transport
 from hilsim.core.config import Scenario
 from hilsim.core.keys import Keys
 from hilsim.core.provenance import Provenance
@@ -104,7 +104,7 @@ class Launcher(RemoteHosts):
         self.quiet = quiet
         self.router_ep = router
         self._router: zenoh.Session | None = None
-        self._pointer: Path | None = None  # the pointer file to this run's router (runs.write_pointer)
+        self._pointer: Path | None = None  # the pointer file to this run's router (run_finder.write_pointer)
         self.children: dict[str, Child] = {}
         self.hurry = False  # a second stop signal: services are killed, not waited for
         self.changed = threading.Event()
@@ -150,7 +150,7 @@ class Launcher(RemoteHosts):
             if self.sc.clock.mode == "realtime":
                 raise_router_priority(self.say)
         else:
-            ptr = runs.run_at([self.router_ep])
+            ptr = run_finder.run_at([self.router_ep])
             if ptr is not None and self.sc.zenoh.tls is None:  # the router of another run of this user
                 found = {u: identity_file(ptr.run_dir, u) for u in self.local}
                 self.identities = {u: f for u, f in found.items() if f.is_file()}
@@ -372,7 +372,7 @@ class Launcher(RemoteHosts):
                 self.session.close()
             if self._router is not None:
                 self._router.close()
-                runs.remove_pointer(self._pointer)
+                run_finder.remove_pointer(self._pointer)
 
     def _silent(self, c: Child) -> bool:
         """A service physics waited for in vain (the run stalled on it), or whose process is stopped (SIGSTOP)."""

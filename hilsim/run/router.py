@@ -24,7 +24,7 @@ from typing import NamedTuple
 
 import zenoh
 
-from hilsim.core import runs, transport
+from hilsim.core import run_finder, transport
 from hilsim.core.config import Scenario
 from hilsim.core.rights import (
     EVERY,
@@ -60,13 +60,13 @@ class RunRouter(NamedTuple):
     session: zenoh.Session
     client_config: Path  # <run dir>/zenoh-client.json5: the tools' identity (0600), for tools and ROS 2 nodes
     guest_config: Path | None  # <run dir>/zenoh-guest.json5: the read-only guest (zenoh.guests: read)
-    pointer: Path | None  # where this user's tools find client_config (runs.pointer_path)
+    pointer: Path | None  # where this user's tools find client_config (run_finder.pointer_path)
     identities: dict[str, Path]  # launch unit -> its identity's client config (<run dir>/identities/, 0600)
     launcher_config: Path  # the launcher's own identity: it reads, and writes nothing
 
 
-# the tools with an identity of their own in a run (<run dir>/identities/<name>.json5; runs.tool_target)
-PLAY, PANEL = runs.TOOL_IDENTITIES["hilsim play"], runs.TOOL_IDENTITIES["hilsim ui"]
+# the tools with an identity of their own in a run (<run dir>/identities/<name>.json5; run_finder.tool_target)
+PLAY, PANEL = run_finder.TOOL_IDENTITIES["hilsim play"], run_finder.TOOL_IDENTITIES["hilsim ui"]
 
 
 def identity_file(run_dir: Path, unit: str) -> Path:
@@ -85,7 +85,7 @@ def open_run_router(run_dir: Path, sc: Scenario, *, per_service: bool = True) ->
     ``<run dir>/identities/<unit>.json5``), one for the launcher (it only reads), one for the tools and
     the ROS 2 nodes a person points at the run (``zenoh-client.json5``), and with ``zenoh.guests: read``
     a guest that may only read (its file readable by anyone). Every file but the guest's is mode 0600,
-    and so is the router's dictionary. The pointer file (:func:`runs.write_pointer`) lets this
+    and so is the router's dictionary. The pointer file (:func:`run_finder.write_pointer`) lets this
     user's tools find theirs by port.
 
     ``per_service`` False (``hilsim bench loop``'s baseline only): every process with the tools' file,
@@ -107,7 +107,7 @@ def open_run_router(run_dir: Path, sc: Scenario, *, per_service: bool = True) ->
             user(u, unit_rights(sc, u))
         user("launcher", None)
         user("tools", tools_rights(sc))
-        # hilsim play and the panel: each its own, with only what it does (runs.tool_target hands them out)
+        # hilsim play and the panel: each its own, with only what it does (run_finder.tool_target hands them out)
         user(PLAY, play_rights(sc))
         user(PANEL, panel_rights(sc))
         # the lab's own (hilsim creds add): their fixed user and password, only what each was given
@@ -135,7 +135,7 @@ def open_run_router(run_dir: Path, sc: Scenario, *, per_service: bool = True) ->
     guest_config = None
     if "guest" in cred:  # meant to be handed out: readable by anyone who can reach the run directory
         guest_config = config("guest", (run_dir / transport.GUEST_CONFIG).resolve(), 0o644)
-    pointer = runs.write_pointer(ep, run_dir, client, scenario=sc.name)
+    pointer = run_finder.write_pointer(ep, run_dir, client, scenario=sc.name)
     return RunRouter(ep, session, client, guest_config, pointer, identities, launcher)
 
 
@@ -149,7 +149,7 @@ def cmd_router(args: argparse.Namespace) -> int:
             where = ", ".join(json.loads(conf.get_json("listen/endpoints") or "[]")) or "no endpoint"
             r = transport.open_router_config(conf, f"{args.config}: {where}")
         else:
-            where = args.listen or runs.DEFAULT_CONNECT
+            where = args.listen or run_finder.DEFAULT_CONNECT
             r = transport.open_router(where)
     except ConnectionError as e:
         print(f"error: {e}", file=sys.stderr)

@@ -19,7 +19,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from hilsim.core import fleet, runs
+from hilsim.core import fleet, run_finder
 from hilsim.core.config import Scenario
 from hilsim.core.keys import Keys
 from hilsim.core.scenario import load_scenario
@@ -45,7 +45,7 @@ def _interactive_hint(la: Launcher, example: list[float] | None) -> str:
     """What ``hilsim up --interactive`` says once ready: how to stop, and a goal to try."""
     sc = la.sc
     robot = fleet.robot_names(sc)[0] if sc.robots > 1 else sc.robot
-    connect = "" if la.router_ep == runs.DEFAULT_CONNECT else f" --connect {la.router_ep}"
+    connect = "" if la.router_ep == run_finder.DEFAULT_CONNECT else f" --connect {la.router_ep}"
     if "planner" in sc.services:
         joints = " ".join(f"{v:g}" for v in example) if example else "J1 …"
         try_ = f"hilsim goal {robot} --joints {joints}{connect}"
@@ -163,7 +163,7 @@ def cmd_up(args: argparse.Namespace) -> int:
                           "tls/ endpoint with --router (docs/security.md)")
     if args.router and sc.zenoh.tls is None and sc.zenoh.auth is None:
         # the router of another run of this user (its credentials, as a tool finds them), or one without
-        sc.zenoh.auth = runs.find_credentials([args.router])
+        sc.zenoh.auth = run_finder.find_credentials([args.router])
     la = Launcher(sc, run_dir, router=args.router, only=only)
     here = f" ({', '.join(la.local)} here, the rest from other hosts)" if only else ""
     print(f"hilsim up {sc.name}: {len(sc.processes())} services{here}, clock {sc.clock.mode}, seed {sc.seed}, "

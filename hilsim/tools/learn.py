@@ -7,7 +7,7 @@
    ones (:func:`hilsim.planning.scenes.generate_scenes`) with ``--queries`` each; all from ``--seed``.
 2. **Data** (``OUT/data.csv``): every planner of the library (``auto`` aside; or ``--planners``) on
    every query with seeds ``0 … --seeds−1``, iteration-bounded, each run in a fresh process
-   (:mod:`hilsim.planning.runs`), ``--jobs`` at a time (default: every core), with progress on stderr.
+   (:mod:`hilsim.planning.experiments`), ``--jobs`` at a time (default: every core), with progress on stderr.
    One row per run: success, ΣP, ΣA, trajectory duration, iterations, collision checks, CPU seconds and
    the query's features. Resumable: rows already in the file are not run again (an interrupted
    learn goes on where it stopped); at the end the rows are sorted, so the file does not depend on
@@ -50,9 +50,9 @@ from hilsim.planning.choice import (
     train_forest,
 )
 from hilsim.planning.collision import ArmModel
+from hilsim.planning.experiments import MEASURED, RunContext, RunRecord, RunTask, run_all
 from hilsim.planning.features import FEATURES, FeatureModel
 from hilsim.planning.library import PlannerLibrary
-from hilsim.planning.runs import MEASURED, RunContext, RunRecord, RunTask, run_all
 from hilsim.planning.scenes import (
     SCENES,
     Scene,

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import zenoh
 
-from hilsim.core import msgs, runs, transport
+from hilsim.core import msgs, run_finder, transport
 from hilsim.core.config import ConfigError
 from hilsim.core.keys import Keys
 from hilsim.core.restart import STATE_DIR
@@ -95,7 +95,7 @@ def cmd_gains(args: argparse.Namespace) -> int:
     if isinstance(parsed, str):
         print(f"hilsim gains: {parsed}", file=sys.stderr)
         return 2
-    target = runs.tool_target(args.connect, getattr(args, "run", None), "hilsim gains")
+    target = run_finder.tool_target(args.connect, getattr(args, "run", None), "hilsim gains")
     table = run_gains(target.run.run_dir, args.robot) if target.run is not None else None
     if not parsed:  # read back
         if table is None:
@@ -113,8 +113,8 @@ def cmd_gains(args: argparse.Namespace) -> int:
             if isinstance(why, str):
                 print(f"hilsim gains: {why}", file=sys.stderr)
                 return 2
-    keys = runs.tool_keys(args.robot, args.prefix)
-    with runs.open_tool_session(args.connect, run=target.run.run_dir if target.run else None,
+    keys = run_finder.tool_keys(args.robot, args.prefix)
+    with run_finder.open_tool_session(args.connect, run=target.run.run_dir if target.run else None,
                                 tool="hilsim gains") as ses:
         res = set_parameters(ses, keys, parsed)
     if not res.successful:

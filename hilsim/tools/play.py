@@ -24,7 +24,7 @@
   the bag (each message's metadata), never on the wire. It connects with the tools' identity of the run
   (docs/security.md), which may write only what a person commands and what no service of the run writes.
 - Which run: the first line names the run it joined (directory, scenario, router endpoint;
-  :func:`hilsim.core.runs.tool_target`: ``--run DIR``, ``--connect``, else the one run of yours that
+  :func:`hilsim.core.run_finder.tool_target`: ``--run DIR``, ``--connect``, else the one run of yours that
   is up; several: asked, never guessed). Refused, in one line, before anything is played: a key a
   service of that run writes (named, with the way to do it on purpose: a run without that service), a
   key its tools may not write, and, unless the target was named (``--run``/``--connect``), a key other
@@ -57,7 +57,7 @@ from typing import Any
 
 import zenoh
 
-from hilsim.core import msgs, runs, transport
+from hilsim.core import msgs, run_finder, transport
 from hilsim.core.keys import Keys
 from hilsim.core.ros2 import types as ros2types
 from hilsim.core.ros2 import wire
@@ -291,19 +291,20 @@ def cmd_play(args: argparse.Namespace) -> int:
         return 1
     domain = args.domain if args.domain is not None else int(items[0].key.split("/", 1)[0])
     run = getattr(args, "run", None)
-    target = runs.tool_target(args.connect, run, "hilsim play")
+    target = run_finder.tool_target(args.connect, run, "hilsim play")
     if target.run is not None:
         print(f"hilsim play: {target.describe()}", file=sys.stderr, flush=True)
     where = ", ".join(target.zenoh.connect)
     try:
         session = transport.open_session(target.zenoh)
     except ConnectionError as e:
-        print(runs.no_run_up("hilsim play", where) if target.run is None else f"hilsim play: {e}", file=sys.stderr)
+        print(run_finder.no_run_up("hilsim play", where) if target.run is None else f"hilsim play: {e}",
+              file=sys.stderr)
         return 2
     try:
         if not transport.connected(session, 2.0):
             if target.run is None:
-                print(runs.no_run_up("hilsim play", where) + ": nothing played", file=sys.stderr)
+                print(run_finder.no_run_up("hilsim play", where) + ": nothing played", file=sys.stderr)
             else:
                 print(f"hilsim play: nothing answers at {where} (the run's router is gone?): nothing played",
                       file=sys.stderr)
@@ -362,7 +363,7 @@ def live_publishers(session: zenoh.Session, domain: int) -> dict[str, set[str]]:
     return out
 
 
-def _run_scenario(ptr: runs.RunPointer | None) -> Any:
+def _run_scenario(ptr: run_finder.RunPointer | None) -> Any:
     """The resolved scenario of the run joined (its ``scenario.yaml``), or None if it cannot be read."""
     if ptr is None:
         return None
@@ -375,7 +376,7 @@ def _run_scenario(ptr: runs.RunPointer | None) -> Any:
         return None
 
 
-def refusal(session: zenoh.Session, keys: list[str], domain: int, ptr: runs.RunPointer | None,
+def refusal(session: zenoh.Session, keys: list[str], domain: int, ptr: run_finder.RunPointer | None,
             explicit: bool) -> str | None:
     """Why these keys are not to be played into the run joined (one line), or None (module docstring)."""
     from hilsim.core import rights

@@ -1,8 +1,8 @@
 """``hilsim topic list|echo|hz``: look at a running simulation the way ``ros2 topic`` does.
 
 Connects to ``--connect`` (default: ``HILSIM_ZENOH_CONNECT`` or the launcher's well-known
-``tcp/127.0.0.1:7447``, see :func:`hilsim.core.runs.tool_endpoints`), with the credentials of the
-run whose router that is (:func:`hilsim.core.runs.tool_zenoh`), and never publishes anything.
+``tcp/127.0.0.1:7447``, see :func:`hilsim.core.run_finder.tool_endpoints`), with the credentials of the
+run whose router that is (:func:`hilsim.core.run_finder.tool_zenoh`), and never publishes anything.
 Topics are ROS 2 names (``/arm/joint_states``) in the domain
 ``--domain`` (``ROS_DOMAIN_ID``); ``list`` reads the ROS 2 graph (rmw_zenoh's liveliness tokens) as
 ``ros2 topic list`` does, so a ROS 2 node's topics show up beside hilsim's. ``echo``/``hz`` take a
@@ -30,7 +30,7 @@ from typing import Any
 import yaml
 import zenoh
 
-from hilsim.core import msgs, runs, transport
+from hilsim.core import msgs, run_finder, transport
 from hilsim.core.keys import UnknownKey, message_type, topic_name
 from hilsim.core.provenance import Provenance
 from hilsim.core.ros2 import wire
@@ -41,7 +41,7 @@ NO_PUBLISHER_AFTER_S = 1.0  # echo: a topic without publisher nor sample is said
 
 def _session(args: argparse.Namespace) -> zenoh.Session:
     """The tool's session; its first line names the run it joined (ConnectionError: nothing there)."""
-    return runs.open_tool_session(args.connect, run=getattr(args, "run", None),
+    return run_finder.open_tool_session(args.connect, run=getattr(args, "run", None),
                                        tool=f"hilsim topic {args.topic_cmd}")
 
 
@@ -70,7 +70,7 @@ def _internal(topic: str) -> bool:
 
 
 def cmd_list(args: argparse.Namespace) -> int:
-    domain = runs.tool_domain(getattr(args, "domain", None))
+    domain = run_finder.tool_domain(getattr(args, "domain", None))
     counts: dict[str, int] = defaultdict(int)
     lock = threading.Lock()
 
@@ -133,7 +133,7 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 
 def _resolve(args: argparse.Namespace) -> str:
-    return key_expr(args.key, runs.tool_domain(getattr(args, "domain", None)))
+    return key_expr(args.key, run_finder.tool_domain(getattr(args, "domain", None)))
 
 
 def _class_of(key: str) -> type | None:
@@ -177,7 +177,7 @@ def cmd_echo(args: argparse.Namespace) -> int:
         with lock:
             (publishers.add if s.kind == zenoh.SampleKind.PUT else publishers.discard)(str(s.key_expr))
 
-    domain = int(expr.split("/", 1)[0]) if expr.split("/", 1)[0].isdigit() else runs.tool_domain(
+    domain = int(expr.split("/", 1)[0]) if expr.split("/", 1)[0].isdigit() else run_finder.tool_domain(
         getattr(args, "domain", None))
     with _session(args) as ses:
         graph = ses.liveliness().declare_subscriber(wire.graph_key(domain), on_token, history=True)

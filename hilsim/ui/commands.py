@@ -19,7 +19,7 @@ from typing import Any
 
 import zenoh
 
-from hilsim.core import msgs, runs
+from hilsim.core import msgs, run_finder
 from hilsim.sim.control import GAIN_FIELDS, check_gain
 from hilsim.ui.jsonio import BadInput, number
 from hilsim.ui.options import ScenarioOption
@@ -46,7 +46,7 @@ class Commands:
 
         key = (self.robot(), service)
         if key not in self.clients:
-            keys = runs.tool_keys(self.robot(), self.prefix)
+            keys = run_finder.tool_keys(self.robot(), self.prefix)
             self.clients[key] = MoveClient(self.session, keys, query_timeout=15.0, service=service)
         return self.clients[key]
 
@@ -158,7 +158,7 @@ class Commands:
         if joint not in opt.joints:
             raise BadInput("gains", f"joint: expected one of {', '.join(opt.joints) or 'the joints'}, got "
                            f"{shown!r}")
-        res = set_parameters(self.session, runs.tool_keys(self.robot(), self.prefix), values, timeout=10.0)
+        res = set_parameters(self.session, run_finder.tool_keys(self.robot(), self.prefix), values, timeout=10.0)
         if not res.successful:
             raise BadInput("gains", f"not set: {res.reason}", 422)
         return {"set": values, "reason": res.reason}

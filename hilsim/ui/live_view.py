@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from hilsim.core import runs
+from hilsim.core import run_finder
 from hilsim.record.live import read_live
 
 
@@ -17,7 +17,7 @@ def live_address(panel: Any) -> str:
     """The live viewer's address of the run the panel shows ("" when it streams nothing live)."""
     run_dir = panel.run.info.get("run_dir") if panel.run.busy() else None
     if not run_dir:
-        joined = runs.run_at([panel.endpoint])
+        joined = run_finder.run_at([panel.endpoint])
         run_dir = joined.run_dir if joined is not None else None
     info = read_live(run_dir) if run_dir else None
     return str(info["viewer"]) if info else ""

@@ -1,15 +1,15 @@
 """The panel: one object wiring the Zenoh session (and, without ``--connect``, the router it opens)
-to the watcher (:mod:`hilsim.ui.watch`), run control (:mod:`hilsim.ui.runs`), commands
+to the watcher (:mod:`hilsim.ui.watch`), run control (:mod:`hilsim.ui.run_control`), commands
 (:mod:`hilsim.ui.commands`) and the recording viewer (:mod:`hilsim.ui.viewer`); it decides which
 robot is shown and what goals are checked against, and composes the state the page is sent
 (``GET /api/state``, the event stream of :mod:`hilsim.ui.events`).
 
-Zenoh keys: none of its own; it opens the session the others use (``runs.open_tool_session``)
+Zenoh keys: none of its own; it opens the session the others use (``run_finder.open_tool_session``)
 and reads the robots' liveliness (``alive/*``) from the watcher to find a run started elsewhere.
 
 Without ``--connect`` (``hilsim ui``), the panel finds a simulation already running on this machine
 by itself: the run of this user that is up (its pointer, wherever its port; among several it asks, never
-guesses: :func:`hilsim.core.runs.tool_target`), saying which in its first line; else, when a Zenoh
+guesses: :func:`hilsim.core.run_finder.tool_target`), saying which in its first line; else, when a Zenoh
 router already listens on the well-known ``tcp/127.0.0.1:7447`` (``hilsim router``), it joins that router
 instead of opening one of its own; when
 that router is gone by the time the panel starts a run, it opens the router there itself. With
@@ -26,13 +26,13 @@ from typing import Any
 
 import zenoh
 
-from hilsim.core import runs, transport
+from hilsim.core import run_finder, transport
 from hilsim.core.config import ConfigError
 from hilsim.core.scenario import load_scenario
 from hilsim.ui.commands import Commands
 from hilsim.ui.jsonio import BadInput
 from hilsim.ui.options import ScenarioOption, option_of, planner_names, scenario_options
-from hilsim.ui.runs import RunControl
+from hilsim.ui.run_control import RunControl
 from hilsim.ui.viewer import Viewer
 from hilsim.ui.watch import Monitor
 
@@ -53,7 +53,7 @@ def _has_router(session: zenoh.Session, wait: float) -> bool:
 class Panel:
     def __init__(self, *, connect: str | None = None, prefix: str | None = None, runs_dir: Path = Path("runs"),
                  robot: str = "arm", attach: bool = True) -> None:
-        self.prefix = runs.tool_prefix(prefix)
+        self.prefix = run_finder.tool_prefix(prefix)
         self.router: zenoh.Session | None = None
         joined = None
         if connect:
@@ -61,7 +61,7 @@ class Panel:
         else:
             joined = self._own_or_join_router(attach)
         # joining a run: the first line names it (directory, scenario, endpoint); nothing there is an error
-        self.session = joined or runs.open_tool_session(self.endpoint, tool="hilsim ui" if connect else None)
+        self.session = joined or run_finder.open_tool_session(self.endpoint, tool="hilsim ui" if connect else None)
         self.monitor = Monitor(self.session, self.prefix)
         self.options = scenario_options()
         self.planners = planner_names()
@@ -81,24 +81,24 @@ class Panel:
         is returned); else a router of the panel's own on a free port."""
         from hilsim.run.launcher import open_default_router
 
-        up = runs.live_runs() if attach else []
+        up = run_finder.live_runs() if attach else []
         if up:  # runs of this user are up: join one, wherever its port (asked among several, never guessed)
-            run = up[0] if len(up) == 1 else runs.choose_run(up, "hilsim ui")
+            run = up[0] if len(up) == 1 else run_finder.choose_run(up, "hilsim ui")
             self.endpoint = run.endpoint
-            session = runs.open_tool_session(run.endpoint, tool="hilsim ui")
+            session = run_finder.open_tool_session(run.endpoint, tool="hilsim ui")
             print("hilsim ui: its simulation is shown", flush=True)
             return session
-        ep = runs.DEFAULT_CONNECT
+        ep = run_finder.DEFAULT_CONNECT
         try:
             self.endpoint, self.router = ep, transport.open_router(ep)
             return None
         except ConnectionError:
             pass
         if attach:
-            session = runs.open_tool_session(ep)
+            session = run_finder.open_tool_session(ep)
             if _has_router(session, ROUTER_WAIT_S):
                 self.endpoint = ep
-                run = runs.run_at([ep])
+                run = run_finder.run_at([ep])
                 which = run.describe() if run is not None else f"{ep} (a hilsim up running?)"
                 print(f"hilsim ui: joined {which}: its simulation is shown", flush=True)
                 return session
@@ -152,7 +152,7 @@ class Panel:
         """The scenario of the run whose router the panel is on, from that run's own directory (its pointer:
         a ``hilsim up`` of this user with its own router): an arm imported from a lab's URDF, in no scenario
         of ``config/``, is commanded with its own joints and limits. None when no pointer names a run."""
-        ptr = runs.run_at([self.endpoint])
+        ptr = run_finder.run_at([self.endpoint])
         if ptr is None:
             return None
         path = ptr.run_dir / "scenario.yaml"  # the run's scenario as resolved (hilsim.run.up)

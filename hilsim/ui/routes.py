@@ -2,7 +2,7 @@
 
 HTTP (JSON; bad input is a 4xx with ``{"error", "field"}``, never a server error):
 ``GET /api/options``, ``GET /api/state``, ``GET /api/events`` (server-sent events: the state, 4 Hz;
-:mod:`hilsim.ui.events`), ``POST /api/run``, ``POST /api/stop`` (:mod:`hilsim.ui.runs`),
+:mod:`hilsim.ui.events`), ``POST /api/run``, ``POST /api/stop`` (:mod:`hilsim.ui.run_control`),
 ``POST /api/goal``, ``POST /api/cancel``, ``POST /api/gains`` (:mod:`hilsim.ui.commands`),
 ``POST /api/viewer`` (Rerun's bundled web viewer on the recording, served on loopback;
 :mod:`hilsim.ui.viewer`), ``GET /recording.rrd`` (the current run's recording), ``/`` and

@@ -17,7 +17,7 @@ concern each, with the Zenoh keys each reads or queries in its own docstring:
 - :mod:`hilsim.ui.events`: the event stream (the state as server-sent events);
 - :mod:`hilsim.ui.panel`: the panel object wiring the parts, and the state the page is sent;
 - :mod:`hilsim.ui.watch`: the Zenoh watcher and the state it keeps of each robot;
-- :mod:`hilsim.ui.runs`: run control (the ``hilsim up`` child, starting and stopping it);
+- :mod:`hilsim.ui.run_control`: run control (the ``hilsim up`` child, starting and stopping it);
 - :mod:`hilsim.ui.commands`: goals, cancels and gains to the robot's services;
 - :mod:`hilsim.ui.viewer`: Rerun's web viewer on the recording;
 - :mod:`hilsim.ui.options`: what can be run (the scenarios and planners of ``config/``);
@@ -36,12 +36,12 @@ from pathlib import Path
 
 import zenoh
 
-from hilsim.core import runs
+from hilsim.core import run_finder
 from hilsim.ui.guard import Guard, new_token
 from hilsim.ui.jsonio import BadInput
 from hilsim.ui.panel import Panel
 from hilsim.ui.routes import make_app
-from hilsim.ui.runs import RunRequest, shown_robot
+from hilsim.ui.run_control import RunRequest, shown_robot
 
 __all__ = ["BadInput", "Panel", "RunRequest", "cmd_ui", "cmd_up_ui", "make_app", "serve", "shown_robot"]
 
@@ -107,8 +107,8 @@ def serve(host: str, port: int, *, connect: str | None = None, prefix: str | Non
 
 def cmd_ui(args: argparse.Namespace) -> int:
     connect = args.connect
-    if getattr(args, "run", None):  # the run's router (hilsim.core.runs.tool_target)
-        connect = ",".join(runs.tool_target(run=args.run, tool="hilsim ui").zenoh.connect)
+    if getattr(args, "run", None):  # the run's router (hilsim.core.run_finder.tool_target)
+        connect = ",".join(run_finder.tool_target(run=args.run, tool="hilsim ui").zenoh.connect)
     return serve(args.host, args.port, connect=connect, prefix=args.prefix, token=not args.no_token)
 
 

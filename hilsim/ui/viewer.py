@@ -16,7 +16,7 @@ from typing import Any
 
 from hilsim.core import transport
 from hilsim.ui.jsonio import BadInput
-from hilsim.ui.runs import child_setup
+from hilsim.ui.run_control import child_setup
 
 
 class Viewer:

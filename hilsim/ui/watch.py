@@ -22,7 +22,7 @@ from typing import Any
 
 import zenoh
 
-from hilsim.core import msgs, runs, transport
+from hilsim.core import msgs, run_finder, transport
 from hilsim.core.geometry import yaw_of
 from hilsim.core.keys import Keys
 from hilsim.core.provenance import Provenance
@@ -65,7 +65,7 @@ class Monitor:
     def __init__(self, session: zenoh.Session, prefix: str) -> None:
         self.session = session
         self.prefix = prefix
-        k = Keys(prefix, "*", runs.tool_domain())
+        k = Keys(prefix, "*", run_finder.tool_domain())
         self.lock = threading.Lock()
         self.robots: dict[str, RobotView] = {}
         self.sim_time: float | None = None

@@ -12,7 +12,7 @@ import yaml
 
 from hilsim.core.config import ConfigError, Scenario
 from hilsim.planning.scoring import best, check_criterion
-from hilsim.run.runs import new_run_dir
+from hilsim.run.out_dirs import new_run_dir
 
 if TYPE_CHECKING:
     from hilsim.core import msgs

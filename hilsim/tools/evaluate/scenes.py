@@ -4,7 +4,7 @@ Planners (``--planners``, comma-separated): names of the library, ``auto`` (the 
 :mod:`hilsim.planning.choice`, deciding for ``--criterion``) and ``oracle`` (for each query, the single
 planner best on it, found by running them all: every planner of the library but ``auto`` then runs).
 Each runs every query with seeds ``0 … --seeds−1``, each run in a fresh process
-(:mod:`hilsim.planning.runs`), so ``auto``'s run on a query is the very run of the planner it picked.
+(:mod:`hilsim.planning.experiments`), so ``auto``'s run on a query is the very run of the planner it picked.
 
 Per planner: the success rate over its runs; the mean ΣP and ΣA of its successful runs (the paper's
 P and A summed over the joints); the mean planning time (CPU seconds measured; ``auto``'s includes its
@@ -31,8 +31,8 @@ import numpy as np
 
 from hilsim.core.config import ConfigError, Scenario
 from hilsim.planning.collision import ArmModel
+from hilsim.planning.experiments import BROKEN, RunContext, RunRecord, RunTask, run_all
 from hilsim.planning.library import PlannerLibrary
-from hilsim.planning.runs import BROKEN, RunContext, RunRecord, RunTask, run_all
 from hilsim.planning.scenes import Scene, load_scenes, query_sha256, world_sha256
 from hilsim.planning.scoring import scores
 
