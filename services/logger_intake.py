@@ -120,10 +120,15 @@ class LoggerIntake(Service):
         with self.lock:
             prov = self.provenance
             if att is not None and (k not in prov.restricted or att.gid in prov.writers.get(k, ())):
-                if not self.accounts.sequence(k, att, payload):
+                # a writer announced for another key, on this open one: not that writer (an insider's forgery,
+                # hilsim.core.provenance); recorded, counted as unannounced, its gaps no loss of ours
+                elsewhere = prov.announced_elsewhere(k, att.gid)
+                if not self.accounts.sequence(k, att, payload, counted=not elsewhere):
                     # it came both ways (in a batch, or from a latched writer's cache, and on its key): once
                     self.duplicates[k] += 1
                     return
+                if elsewhere:
+                    self.unannounced[k] += 1
             elif k in prov.restricted:
                 # Batching: a writer whose token is not known yet (a race at its start) can send a sample
                 # both ways too; taken once all the same, its gaps not counted (not announced yet)

@@ -30,8 +30,8 @@ LAYERS: list[list[str]] = [
 ]
 # inside the core, bottom to top: a module imports only modules listed before it
 CORE_ORDER = ["simclock", "msgs", "ros2", "geometry", "recording", "inproc", "fleet", "keys", "config", "rights",
-              "registry", "scenario", "restart", "transport", "run_finder", "provenance", "batch", "signals", "publisher",
-              "ros2_node", "service"]
+              "registry", "scenario", "restart", "transport", "run_finder", "provenance", "batch", "signals",
+              "publisher", "ros2_node", "service"]
 
 
 def module_name(path: Path) -> str:

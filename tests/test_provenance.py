@@ -33,6 +33,19 @@ def test_an_open_key_accepts_anything_and_counts_gaps() -> None:
     assert p.check(KEY, att(1, B)) == (None, 0)  # writers are counted apart
 
 
+def test_a_writers_id_on_an_open_key_it_never_announced_makes_no_loss() -> None:
+    """A gid is its writer's graph token's hash, topic included: the planner's id on another (open) key is an
+    insider's copy with numbers of its choosing. Delivered, but a hole in those numbers is no loss (CI: an
+    injector's forged planner ids on joint_trajectory left one, and the recorder said 'lost 1 in lockstep')."""
+    p = Provenance()
+    p.announce("planner/joint_trajectory", A)
+    assert p.check(KEY, att(2), b"two") == (None, 0)
+    assert p.check(KEY, att(4), b"four") == (None, 0)  # 3 never came: the forger skipped it
+    assert p.check(KEY, att(1, B)) == (None, 0) and p.check(KEY, att(3, B)) == (None, 1)  # a writer of its own: counted
+    assert p.check("planner/joint_trajectory", att(1), b"a") == (None, 0)  # and on its own key, its gaps count
+    assert p.check("planner/joint_trajectory", att(3), b"c") == (None, 1)
+
+
 def test_only_a_true_duplicate_is_rejected_and_nothing_is_dropped_for_its_order() -> None:
     """The same number with the same payload again is a duplicate (rejected); a number behind the writer's
     newest is delivered, counted as suspect, and its writer's gaps are withdrawn from its losses."""

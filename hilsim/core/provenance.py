@@ -201,6 +201,7 @@ class Provenance:
     def __init__(self, grace: float = WITHDRAW_GRACE_S, clock: Callable[[], float] = time.monotonic) -> None:
         self.writers: dict[str, set[bytes]] = {}
         self.restricted: set[str] = set()
+        self.gid_key: dict[bytes, str] = {}  # each announced writer's key (kept after it went: a gid is never reused)
         self.streams: dict[tuple[str, bytes], Sequence] = {}
         self.withdrawn: dict[tuple[str, bytes], float] = {}  # (key, gid) -> when its token went
         self.grace, self.clock = grace, clock
@@ -212,6 +213,15 @@ class Provenance:
     def announce(self, key: str, gid: bytes) -> None:
         self.writers.setdefault(key, set()).add(gid)
         self.restricted.add(key)
+        self.gid_key[gid] = key
+
+    def announced_elsewhere(self, key: str, gid: bytes) -> bool:
+        """True for a writer announced for another key: a gid is the hash of its writer's graph token, topic
+        included, so its samples on ``key`` (an open one: it would be refused on a restricted one) are someone
+        else's, e.g. an insider's copy of the planner's trajectory with the planner's id and a number of its
+        choosing. Delivered as any sample on an open key, but the gaps in those numbers are no loss."""
+        other = self.gid_key.get(gid)
+        return other is not None and other != key
 
     def withdraw(self, key: str, gid: bytes) -> None:
         """A writer went away (its token was undeclared); the key stays restricted. Its samples
@@ -260,7 +270,8 @@ class Provenance:
         if st is None:
             st = self.streams[w] = Sequence()
         before = st.counted_lost
-        verdict, why = st.take(att.seq, digest_of(payload), self.clock())
+        verdict, why = st.take(att.seq, digest_of(payload), self.clock(),
+                               counted=not self.announced_elsewhere(key, att.gid))
         if verdict == DUPLICATE:
             return why, 0
         if verdict == SUSPECT:
