@@ -5,7 +5,9 @@ robot is shown and what goals are checked against, and composes the state the pa
 (``GET /api/state``, the event stream of :mod:`hilsim.ui.events`).
 
 Zenoh keys: none of its own; it opens the session the others use (``run_finder.open_tool_session``)
-and reads the robots' liveliness (``alive/*``) from the watcher to find a run started elsewhere.
+and reads the robots' liveliness (``alive/*``) from the watcher to find a run started elsewhere, whose
+own scenario (joints and limits: an imported arm's too) it reads from that run's directory, found by
+its pointer (:func:`hilsim.core.run_finder.run_at`).
 
 Without ``--connect`` (``hilsim ui``), the panel finds a simulation already running on this machine
 by itself: the run of this user that is up (its pointer, wherever its port; among several it asks, never
