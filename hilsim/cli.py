@@ -74,7 +74,7 @@ def _lazy(module: str, func: str) -> Callable[[argparse.Namespace], int]:
 
 
 def _lazy_ints(text: str) -> list[int]:
-    from hilsim.tools.bench_scale import _ints
+    from hilsim.tools.bench.scale import _ints
 
     return _ints(text)
 
@@ -100,8 +100,21 @@ def _up(args: argparse.Namespace) -> int:
     return _lazy("hilsim.ui.server", "cmd_up_ui")(args) if args.ui else _lazy("hilsim.run.up", "cmd_up")(args)
 
 
+# the commands by what the user does; the tools' folders (hilsim/tools/) use the same words
+_GROUPS = """commands by what you do:
+  running             up, run, view, goal, compose, router, creds, ui
+  recording           play, export, bag                       (hilsim/tools/recording/)
+  inspection          topic, gains                            (hilsim/tools/inspection/)
+  tuning              report step, tune, inertia, identify    (hilsim/tools/tuning/)
+  planning evaluation plan evaluate, plan learn, plan scenes  (hilsim/tools/planning_eval/)
+  benchmarks          bench loop|rover|scale|loss|ros2        (hilsim/tools/bench/)
+                      bench plan|choice, bench can|mavlink    (beside what they measure: planning/, bridges/)
+  robots              robot import                            (hilsim/tools/robot/)"""
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="hilsim", description="Distributed robot simulator over Zenoh.")
+    p = argparse.ArgumentParser(prog="hilsim", description="Distributed robot simulator over Zenoh.",
+                                epilog=_GROUPS, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     p.add_argument("--version", action="version", version=f"hilsim {__version__}", help="print the version and exit")
     sub = p.add_subparsers(dest="cmd", required=True)
@@ -177,7 +190,7 @@ def build_parser() -> argparse.ArgumentParser:
                            "(default 1000)")
             t.add_argument("--any-writer", action="store_true",
                            help="count every sample, not only those of the key's announced writer")
-        t.set_defaults(func=_lazy("hilsim.tools.topic", f"cmd_{name}"))
+        t.set_defaults(func=_lazy("hilsim.tools.inspection.topic", f"cmd_{name}"))
 
     view = sub.add_parser("view", help="open the Rerun viewer on a recording (latest by default), or --live on a run")
     view.add_argument("rrd", nargs="?", help="a recording.rrd or its run directory (default: the latest run "
@@ -203,7 +216,7 @@ def build_parser() -> argparse.ArgumentParser:
     play.add_argument("--connect", help="Zenoh endpoint(s), comma-separated (default: HILSIM_ZENOH_CONNECT, "
                       "else the one run of yours that is up, else tcp/127.0.0.1:7447)")
     play.add_argument("--run", metavar="DIR", help="play into the run of yours that is up in DIR")
-    play.set_defaults(func=_lazy("hilsim.tools.play", "cmd_play"))
+    play.set_defaults(func=_lazy("hilsim.tools.recording.play", "cmd_play"))
 
     bag = sub.add_parser("bag", help="a recorded bag (rosbag2, MCAP): what it holds, or make it whole")
     bsub_ = bag.add_subparsers(dest="bag_cmd", required=True)
@@ -217,7 +230,7 @@ def build_parser() -> argparse.ArgumentParser:
             b.add_argument("--runs", default="runs", help="where runs are, for the latest (default: runs)")
         else:
             b.add_argument("bag", help="a run directory, its bag/ directory or an .mcap file")
-        b.set_defaults(func=_lazy("hilsim.tools.bagtool", f"cmd_{name}"))
+        b.set_defaults(func=_lazy("hilsim.tools.recording.bagtool", f"cmd_{name}"))
     d = bsub_.add_parser("diff", help="where two bags first differ (topic, sim time, field): exit 0 the same, "
                          "1 different, 2 unreadable")
     d.add_argument("a", help="a run directory, its bag/ directory or an .mcap file")
@@ -226,7 +239,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "by default: they differ between any two runs)")
     d.add_argument("--ignore", action="append", metavar="GLOB", help="leave out the topics matching this glob "
                    "(e.g. '/arm/planner/*'); repeatable")
-    d.set_defaults(func=_lazy("hilsim.tools.bagtool", "cmd_diff"))
+    d.set_defaults(func=_lazy("hilsim.tools.recording.bagtool", "cmd_diff"))
 
     export = sub.add_parser("export", help="a run's Rerun recording as an MCAP bag or CSV files (runs recorded "
                             "before the bag existed)")
@@ -236,7 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
     export.add_argument("--to", choices=["mcap", "csv"], required=True, help="mcap: a rosbag2 directory of ROS 2 "
                         "messages rebuilt from the rows; csv: one file per entity and component")
     export.add_argument("--out", help="output directory (default: <run>/export-mcap or <run>/export-csv)")
-    export.set_defaults(func=_lazy("hilsim.tools.export", "cmd_export"))
+    export.set_defaults(func=_lazy("hilsim.tools.recording.export", "cmd_export"))
 
     goal = sub.add_parser("goal", help="send a move goal to a running planner and print feedback")
     goal.add_argument("robot", help="the robot's name (its namespace), e.g. arm")
@@ -260,9 +273,9 @@ def build_parser() -> argparse.ArgumentParser:
     gains.add_argument("assignments", nargs="*", metavar="JOINT.GAIN=VALUE", help="e.g. joint_2.kp=80 joint_2.kd=4 "
                        "(gains: kp, ki, kd, i_limit, output_limit, feedforward); none: list the gains")
     _endpoint_args(gains)
-    gains.set_defaults(func=_lazy("hilsim.tools.params", "cmd_gains"))
+    gains.set_defaults(func=_lazy("hilsim.tools.inspection.params", "cmd_gains"))
 
-    plan = sub.add_parser("plan", help="planning tools")
+    plan = sub.add_parser("plan", help="planning evaluation and the learned choice")
     psub = plan.add_subparsers(dest="plan_cmd", required=True)
     ev = psub.add_parser("evaluate", help="plan several targets and compare them (paper Table III)")
     ev.add_argument("--targets", help="targets YAML (required for the arm; a rover scenario: default its task's goals)")
@@ -285,7 +298,7 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--json", action="store_true", help="with --scenes: the figures as one JSON object, last line")
     ev.add_argument("--runs", help="with --scenes: keep every run in this CSV, and take the library planners' runs "
                     "already there from it (resumable)")
-    ev.set_defaults(func=_lazy("hilsim.tools.evaluate", "cmd_evaluate"))
+    ev.set_defaults(func=_lazy("hilsim.tools.planning_eval.evaluate", "cmd_evaluate"))
     le = psub.add_parser("learn", help="the planner choice (planner: auto): a data set of planner runs, its model")
     le.add_argument("--out", default="models/planner_choice",
                     help="directory (default models/planner_choice: what planner: auto loads)")
@@ -299,7 +312,7 @@ def build_parser() -> argparse.ArgumentParser:
     le.add_argument("--iterations", type=int, help="iteration budget per run (default: the library's)")
     le.add_argument("--jobs", type=int, help="worker processes (default: every core)")
     le.add_argument("--train-only", action="store_true", help="only the model, from OUT/data.csv as it is")
-    le.set_defaults(func=_lazy("hilsim.tools.learn", "cmd_learn"))
+    le.set_defaults(func=_lazy("hilsim.tools.planning_eval.learn", "cmd_learn"))
     sc = psub.add_parser("scenes", help="random planning scenes with sampled queries (a scenes file)")
     sc.add_argument("--out", required=True, help="directory: DIR/scenes.yaml and DIR/scenes/*.xml")
     sc.add_argument("--count", type=int, default=12, help="scenes (default 12)")
@@ -307,7 +320,7 @@ def build_parser() -> argparse.ArgumentParser:
     sc.add_argument("--queries", type=int, default=6, help="queries per scene (default 6)")
     sc.add_argument("--prefix", default="gen", help="scene names: PREFIX<seed>_<k>_<kind> (default gen)")
     sc.add_argument("--scenario", help="the arm: a scenario file or name (default: the built-in arm)")
-    sc.set_defaults(func=_lazy("hilsim.tools.learn", "cmd_scenes"))
+    sc.set_defaults(func=_lazy("hilsim.tools.planning_eval.learn", "cmd_scenes"))
 
     bench = sub.add_parser("bench", help="benchmarks (figures and ratios against an in-run baseline)")
     bsub = bench.add_subparsers(dest="bench_cmd", required=True)
@@ -322,7 +335,7 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--identities", type=int, default=0, metavar="N",
                     help="only this: N pairs of runs through the run's router, one identity for every process vs "
                          "one per process (docs/performance.md, \"Identities\")")
-    bl.set_defaults(func=_lazy("hilsim.tools.bench", "cmd_loop"))
+    bl.set_defaults(func=_lazy("hilsim.tools.bench.pipeline", "cmd_loop"))
     bsc = bsub.add_parser("scale", help="many robots: real-time factor, step latency, recorder load vs one robot")
     bsc.add_argument("--json", action="store_true", help="print the figures as one JSON object")
     bsc.add_argument("--robots", type=_lazy_ints, default=[1, 2, 4, 8], metavar="N,…",
@@ -339,7 +352,7 @@ def build_parser() -> argparse.ArgumentParser:
                      "as the scenario says)")
     bsc.add_argument("--lag", type=int, choices=[0, 1], default=None,
                      help="clock.controller_lag (default: as config/arm.yaml ships it)")
-    bsc.set_defaults(func=_lazy("hilsim.tools.bench_scale", "cmd_scale"))
+    bsc.set_defaults(func=_lazy("hilsim.tools.bench.scale", "cmd_scale"))
     bls = bsub.add_parser("loss", help="realtime runs side by side: the share of the samples each recording "
                           "missed, against one run alone (docs/performance.md)")
     bls.add_argument("--runs", type=int, default=2, help="runs at once (default 2)")
@@ -349,7 +362,7 @@ def build_parser() -> argparse.ArgumentParser:
     bls.add_argument("--scenario", default="arm", help="the scenario the runs start (default arm)")
     bls.add_argument("--keep", metavar="DIR", help="keep the run directories under DIR (default: a temporary one)")
     bls.add_argument("--json", action="store_true", help="print the figures as one JSON object")
-    bls.set_defaults(func=_lazy("hilsim.tools.bench_loss", "cmd_loss"))
+    bls.set_defaults(func=_lazy("hilsim.tools.bench.loss", "cmd_loss"))
     bc = bsub.add_parser("can", help="CAN bridge: frames per second and added latency vs python-can alone")
     bc.add_argument("--json", action="store_true", help="print the figures as one JSON object")
     bc.add_argument("--samples", type=int, default=1000, help="paced latency probes per path")
@@ -389,13 +402,13 @@ def build_parser() -> argparse.ArgumentParser:
     b2.add_argument("--python", default=".venv-ros2/kilted/bin/python",
                     help="a ROS 2 Python with rclpy (default: .venv-ros2/kilted, made by scripts/ros2-venvs.sh)")
     b2.add_argument("--inside", action="store_true", help=argparse.SUPPRESS)
-    b2.set_defaults(func=_lazy("hilsim.tools.bench_ros2", "cmd_ros2"))
+    b2.set_defaults(func=_lazy("hilsim.tools.bench.ros2", "cmd_ros2"))
     br = bsub.add_parser("rover", help="the rover scenario with navigation: lockstep real-time factor, laser rays/s")
     br.add_argument("--json", action="store_true", help="print the figures as one JSON object")
     br.add_argument("--sim-seconds", type=float, default=20.0, help="sim seconds of each run (default 20)")
     br.add_argument("--world", default="indoor", help="indoor or outdoor")
     br.add_argument("--repeat", type=int, default=3, help="runs with the laser on and off each (the best is kept)")
-    br.set_defaults(func=_lazy("hilsim.tools.bench", "cmd_rover"))
+    br.set_defaults(func=_lazy("hilsim.tools.bench.pipeline", "cmd_rover"))
 
     inertia = sub.add_parser("inertia", help="a link's mass, centre of mass and inertia tensor from primitives")
     inertia.add_argument("file", help="YAML: links and their parts (box, cylinder, hollow_cylinder, "
@@ -403,7 +416,7 @@ def build_parser() -> argparse.ArgumentParser:
     inertia.add_argument("--link", help="only this link of the file")
     inertia.add_argument("--urdf", help="write the link's <inertial> into this URDF (needs one link)")
     inertia.add_argument("--json", action="store_true", help="print one JSON object")
-    inertia.set_defaults(func=_lazy("hilsim.tools.inertia", "cmd_inertia"))
+    inertia.set_defaults(func=_lazy("hilsim.tools.tuning.inertia", "cmd_inertia"))
 
     tune = sub.add_parser("tune", help="tune a joint's PID on the real services (Ziegler–Nichols or relay, "
                           "then a refinement that removes overshoot)")
@@ -422,7 +435,7 @@ def build_parser() -> argparse.ArgumentParser:
                       "target (default 0.8): the least gain that does is chosen")
     tune.add_argument("--write", action="store_true", help="write the gains into the scenario file")
     tune.add_argument("--json", action="store_true", help="print one JSON object")
-    tune.set_defaults(func=_lazy("hilsim.tools.tuning", "cmd_tune"))
+    tune.set_defaults(func=_lazy("hilsim.tools.tuning.autotune", "cmd_tune"))
 
     robot = sub.add_parser("robot", help="bring a lab's own arm in from its URDF (docs/robots.md)")
     rosub = robot.add_subparsers(dest="robot_cmd", required=True)
@@ -465,7 +478,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="merge a file over the scenario (e.g. config/hil/can-emulated.yaml): hardware in the loop, "
                     "realtime, a drive's joint measured on its encoder")
     rs.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="override any scenario field")
-    rs.set_defaults(func=_lazy("hilsim.tools.step_report", "cmd_report_step"))
+    rs.set_defaults(func=_lazy("hilsim.tools.tuning.step_report", "cmd_report_step"))
 
     ident = sub.add_parser("identify", help="fit a real drive's response from a HIL run and write a twin that "
                            "responds the same (docs/hil.md)")
@@ -481,7 +494,7 @@ def build_parser() -> argparse.ArgumentParser:
     ident.add_argument("--measure", type=float, default=1.0, help="sim seconds each validation step is measured "
                        "(a slow drive needs more to settle)")
     ident.add_argument("--out", help="output directory (default runs/<timestamp>-identify)")
-    ident.set_defaults(func=_lazy("hilsim.tools.identify", "cmd_identify"))
+    ident.set_defaults(func=_lazy("hilsim.tools.tuning.identify", "cmd_identify"))
 
     comp = sub.add_parser("compose", help="write the docker compose file of a scenario and its HIL variants")
     comp.add_argument("scenario", help="scenario name in config/ (e.g. arm) or a YAML path")

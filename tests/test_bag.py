@@ -198,7 +198,7 @@ def test_play_orders_by_sim_time_as_the_samples_appeared(tmp_path: Path) -> None
     """Stamped samples at their stamp; cmd_vel (no stamp) and a trajectory (stamped with its future
     start) at the latest stamp received before them, a trajectory no later than 20 ms before its start;
     --clock skips the recorded /clock; --keys by topic glob or key expression; --domain moves the keys."""
-    from hilsim.tools.play import Selector, schedule
+    from hilsim.tools.recording.play import Selector, schedule
 
     w = BagWriter(tmp_path / "bag")
     js, traj, cmd = KEYS.topic("joint_states"), KEYS.topic("joint_trajectory"), KEYS.topic("cmd_vel")
@@ -488,8 +488,8 @@ def test_the_run_summary_counts_the_bag_and_recovers_a_killed_one(scenario: Any,
 
 @pytest.mark.serial
 def test_the_bench_measures_the_bags_cost() -> None:
-    from hilsim.tools.bench import _recorder_line
-    from hilsim.tools.bench_bag import worker_cost
+    from hilsim.tools.bench.bag import worker_cost
+    from hilsim.tools.bench.pipeline import _recorder_line
 
     r = worker_cost(steps=300, repeat=1)
     assert r["samples"] == 300 * 6 + 60 + 30 and r["without_bag_us"] > 0 and r["with_bag_us"] > 0

@@ -8,7 +8,7 @@ from pathlib import Path
 import psutil
 import pytest
 
-from hilsim.tools.ring import round_trip_us
+from hilsim.tools.bench.ring import round_trip_us
 
 pytestmark = pytest.mark.serial  # measurements: alone on the machine
 
@@ -23,7 +23,7 @@ def test_the_zenoh_ring_measures_a_round_and_its_relays_exit() -> None:
 
 
 def test_the_recording_floor_measures_both_sides_and_its_publisher_exits() -> None:
-    from hilsim.tools.ring import sample_cost_us
+    from hilsim.tools.bench.ring import sample_cost_us
 
     before = {p.pid for p in psutil.Process().children(recursive=True)}
     c = sample_cost_us(samples=1200, tick_us=300.0)  # waits for every sample: raises if one is lost
@@ -38,7 +38,7 @@ def test_the_recording_floor_measures_both_sides_and_its_publisher_exits() -> No
 def test_the_distributed_run_counts_the_cpu_of_every_process(tmp_path: Path) -> None:
     """The CPU floor `hilsim bench loop` prints: every service's CPU from "ready" to the end of
     the run, read before the processes exit (a process already gone would read 0)."""
-    from hilsim.tools.bench import bench_distributed
+    from hilsim.tools.bench.pipeline import bench_distributed
 
     cpu: dict[str, float] = {}
     rtf = bench_distributed(0.5, tmp_path, cpu)

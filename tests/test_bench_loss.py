@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 from hilsim.cli import build_parser
-from hilsim.tools.bench_loss import _figures
+from hilsim.tools.bench.loss import _figures
 
 
 def test_a_runs_missed_share_is_its_summarys(tmp_path: Path) -> None:

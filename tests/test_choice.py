@@ -19,8 +19,8 @@ from hilsim.planning.experiments import RunContext, RunRecord, RunTask, run_all
 from hilsim.planning.library import PlannerLibrary
 from hilsim.planning.problem import PlanOutcome, Problem
 from hilsim.planning.scenes import SCENES, load_scenes
-from hilsim.tools.evaluate.scenes import ORACLE, summarise
-from hilsim.tools.learn import split_scenes
+from hilsim.tools.planning_eval.learn import split_scenes
+from hilsim.tools.planning_eval.scenes import ORACLE, summarise
 
 TINY = ["--scenes", "1", "--queries", "1", "--seeds", "1", "--planners", "rrtconnect,bitstar", "--iterations", "300"]
 

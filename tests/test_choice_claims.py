@@ -23,7 +23,7 @@ from hilsim.planning.library import PlannerLibrary, seed_ompl
 from hilsim.planning.problem import Problem
 from hilsim.planning.scenes import SCENES, load_scenes
 from hilsim.planning.scoring import CONSTANTS
-from hilsim.tools.evaluate.scenes import ORACLE, auto_records, overlap, read_records, summarise
+from hilsim.tools.planning_eval.scenes import ORACLE, auto_records, overlap, read_records, summarise
 
 HELDOUT = MODEL_DIR / "heldout"
 DOCS = REPO_ROOT / "docs" / "planning.md"

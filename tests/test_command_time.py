@@ -25,7 +25,7 @@ from util import REPO, Observer, wait_until
 from hilsim.core import msgs
 from hilsim.core.keys import Keys
 from hilsim.core.scenario import load_scenario
-from hilsim.tools.play import Player
+from hilsim.tools.recording.play import Player
 
 
 def _to(stamp_ns: int, target: list[float]) -> bytes:

@@ -21,10 +21,10 @@ from hilsim.core.scenario import load_scenario
 from hilsim.core.simclock import SimClock
 from hilsim.sim.drive import DriveModel, simulate
 from hilsim.sim.world import World
-from hilsim.tools.identify.data import JointRecord
-from hilsim.tools.identify.fit import LIMITS, Fit, encoder_quantum, fit_record
-from hilsim.tools.identify.twin import twin_data, write_twin
-from hilsim.tools.metrics import step_figures
+from hilsim.tools.tuning.identify.data import JointRecord
+from hilsim.tools.tuning.identify.fit import LIMITS, Fit, encoder_quantum, fit_record
+from hilsim.tools.tuning.identify.twin import twin_data, write_twin
+from hilsim.tools.tuning.metrics import step_figures
 
 REPO = Path(__file__).resolve().parent.parent
 EMULATED = REPO / "config" / "hil" / "arm-can-emulated.yaml"
@@ -234,7 +234,7 @@ def test_the_twin_file_extends_the_scenario_without_hardware(tmp_path: Path) -> 
 def test_a_fit_from_a_starved_run_says_so() -> None:
     """The way from the controller's step to the drive varied (a busy machine): the fit's summary and its
     JSON say so in a warning; a steady way says nothing."""
-    from hilsim.tools.identify import fit_summary
+    from hilsim.tools.tuning.identify import fit_summary
 
     drive = DriveConfig(dead_time=0.012, natural_frequency=31.0, damping_ratio=0.62, max_velocity=2.49,
                         max_acceleration=float("inf"), resolution=7.67e-4, period=0.002)

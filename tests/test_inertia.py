@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from hilsim.core.config import ConfigError
-from hilsim.tools import inertia as ti
+from hilsim.tools.tuning import inertia as ti
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -24,7 +24,7 @@ from hilsim.core.recording import read_counts
 from hilsim.record.bag_read import info, open_bag
 from hilsim.record.limits import BagSeries, stop_reason
 from hilsim.run.up import up_overrides
-from hilsim.tools.play import Selector, schedule
+from hilsim.tools.recording.play import Selector, schedule
 
 
 def _overrides(*argv: str) -> dict[str, Any]:

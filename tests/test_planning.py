@@ -16,7 +16,7 @@ from hilsim.planning.ik import IKError, rpy_to_matrix, solve_ik
 from hilsim.planning.library import PlannerConfigError, PlannerLibrary, PlanOutcome, Problem, UnknownPlanner
 from hilsim.planning.objectives import path_length, summed_turning_angle, turning_angles
 from hilsim.planning.trajectory import time_parameterize, to_msg
-from hilsim.tools.evaluate import arm as ev
+from hilsim.tools.planning_eval import arm as ev
 
 REPO = Path(__file__).resolve().parent.parent
 TABLETOP = REPO / "models" / "arm" / "tabletop.xml"

@@ -151,7 +151,7 @@ def test_controller_type_picks_the_control_law() -> None:
 def test_in_process_pipeline_finds_its_lockstep_participants() -> None:
     """The services announce their lockstep role at run time; the in-process bus (bench loop's
     no-transport baseline) carries those announcements like Zenoh does, so physics steps."""
-    from hilsim.tools.bench import bench_in_process
+    from hilsim.tools.bench.pipeline import bench_in_process
 
     assert bench_in_process(0.05) > 0.0  # raises if the pipeline stalls
 

@@ -354,7 +354,7 @@ def test_the_panel_offers_the_imported_arms_to_run(ur5: Path) -> None:
 
 def test_tools_default_to_the_imported_arms_joints(ur5: Path) -> None:
     """No Niryo default: ``hilsim report step`` steps every joint of another arm."""
-    from hilsim.tools.step_report import DEFAULT_JOINTS, default_joints
+    from hilsim.tools.tuning.step_report import DEFAULT_JOINTS, default_joints
 
     assert default_joints(str(ur5 / "ur5.yaml")) == [j.name for j in UrdfFrames(ur5 / "ur5.urdf").moving]
     assert default_joints("arm") == list(DEFAULT_JOINTS)
@@ -494,7 +494,7 @@ def test_the_tuner_steps_from_where_physics_starts(panda: Path) -> None:
     """``hilsim tune`` and ``identify`` step a joint from where physics starts it (``world.home``, else the MJCF's
     ``home`` keyframe): the Panda's joint 4, whose range excludes zero, is tunable."""
     from hilsim.sim.control import joint_table
-    from hilsim.tools.rig import _home
+    from hilsim.tools.tuning.rig import _home
 
     sc = load_scenario(panda / "panda.yaml")
     names = list(joint_table(sc.world.model).names)

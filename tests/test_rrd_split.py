@@ -126,7 +126,7 @@ def test_a_split_recording_holds_every_sample_once(tmp_path: Path, capsys: Any, 
     assert sum(c["recorded"] for c in counts.values()) == sum(len(v) for v in bag.values())
     assert sum(1 for f in files if _sim_times([f])["/clock"]) >= 2  # the clock's rows spread over the files
 
-    from hilsim.tools.export import cmd_export
+    from hilsim.tools.recording.export import cmd_export
 
     assert cmd_export(argparse.Namespace(run=str(run), out=str(tmp_path / "csv"), to="csv", runs="runs")) == 0
     clock_csv = tmp_path / "csv" / "clock" / "Scalars.scalars.csv"

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from hilsim.tools.metrics import step_figures
+from hilsim.tools.tuning.metrics import step_figures
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -151,9 +151,9 @@ def test_report_step_rover_bad_steps_say_why() -> None:
 def test_the_verdict_against_the_paper_states_its_tolerance() -> None:
     """The paper's overshoot and steady-state error are 0: ours above 0 is never a plain "yes" (as
     0.020 % and 3.6e-05 rad once were), but "within tolerance", with the tolerance said; beyond it, "no"."""
-    from hilsim.tools.metrics import Figures
-    from hilsim.tools.rig import Experiment, Response
-    from hilsim.tools.step_report import Row, format_table, summary_line, verdict
+    from hilsim.tools.tuning.metrics import Figures
+    from hilsim.tools.tuning.rig import Experiment, Response
+    from hilsim.tools.tuning.step_report import Row, format_table, summary_line, verdict
 
     def row(joint: str, overshoot_pct: float, error: float) -> Row:
         f = Figures(0.2, 0.204, 0.347, 0.434, overshoot_pct, error)

@@ -178,7 +178,7 @@ def test_play_says_who_hears_it_and_counts_what_it_played(router: str, tmp_path:
     """A key nobody subscribes to is said; stopped early, the summary counts the messages played and the sim
     time they span, not the bag's."""
     from hilsim.record.bag_read import open_bag
-    from hilsim.tools.play import Selector, play, schedule
+    from hilsim.tools.recording.play import Selector, play, schedule
 
     items = schedule(open_bag(_tiny_bag(tmp_path / "bag")), Selector(None), None, skip_clock=False)
     stop = threading.Event()

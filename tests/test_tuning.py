@@ -10,10 +10,10 @@ import pytest
 
 from hilsim.core.config import ConfigError
 from hilsim.core.scenario import load_scenario
-from hilsim.tools import tuning
-from hilsim.tools.rig import Experiment, Response
-from hilsim.tools.rig_run import loop_scenario
-from hilsim.tools.step_report import measure
+from hilsim.tools.tuning import autotune as tuning
+from hilsim.tools.tuning.rig import Experiment, Response
+from hilsim.tools.tuning.rig_run import loop_scenario
+from hilsim.tools.tuning.step_report import measure
 
 REPO = Path(__file__).resolve().parent.parent
 

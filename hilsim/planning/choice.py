@@ -3,7 +3,7 @@
 The model (scikit-learn's extremely randomised trees, one multi-output regressor) maps a query's features
 (:mod:`hilsim.planning.features`) to, for every planner of the library it was trained on, the fraction
 of seeds that succeed and the expected score (:mod:`hilsim.planning.scoring`) under each criterion.
-It is trained by ``hilsim plan learn`` (:mod:`hilsim.tools.learn`) on a data set of runs and saved in
+It is trained by ``hilsim plan learn`` (:mod:`hilsim.tools.planning_eval.learn`) on a data set of runs and saved in
 the repository as ``models/planner_choice/model.pkl`` with ``manifest.json`` (library versions, the data
 set's hash, its scenes, the criteria, the scores on its own test split).
 

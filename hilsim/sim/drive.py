@@ -18,7 +18,7 @@ every ``period`` seconds (0: at every step), held in between.
 
 Pure Python, no MuJoCo: :class:`DriveModel` is stepped by :class:`hilsim.sim.world.World` for a joint
 with ``joints.<name>.drive`` (the twin), and :func:`simulate` runs the same arithmetic over a recorded
-command sequence for the fit (:mod:`hilsim.tools.identify`).
+command sequence for the fit (:mod:`hilsim.tools.tuning.identify`).
 """
 
 from __future__ import annotations

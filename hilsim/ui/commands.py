@@ -1,5 +1,5 @@
 """Commanding the shown robot: goals and cancels to its planner or navigator (through
-:class:`hilsim.planning.client.MoveClient`), and the controller's gains (:mod:`hilsim.tools.params`),
+:class:`hilsim.planning.client.MoveClient`), and the controller's gains (:mod:`hilsim.tools.inspection.params`),
 each checked first against the scenario in force (:class:`hilsim.ui.options.ScenarioOption`).
 
 Queries (``<prefix>/<robot>/…``): ``planner/goal``, ``planner/cancel``, ``navigator/goal``,
@@ -133,7 +133,7 @@ class Commands:
         return {"goal_id": gid, "cancelled": True, "reason": resp.reason}
 
     def gains(self, body: dict[str, Any]) -> dict[str, Any]:
-        from hilsim.tools.params import set_parameters
+        from hilsim.tools.inspection.params import set_parameters
 
         joint = body.get("joint")
         if not isinstance(joint, str):

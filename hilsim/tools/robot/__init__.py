@@ -5,7 +5,7 @@ The parts, each a module of this package: reading the URDF (:mod:`.urdf`), makin
 (:mod:`.meshes`), the MJCF and its world (:mod:`.mjcf`), the self-collision matrix and the SRDF
 (:mod:`.collisions`), home and targets (:mod:`.poses`), the URDF written beside (:mod:`.description`), the
 scenario and planner library (:mod:`.scenario_file`). The gains come from the project's own tuner
-(:mod:`hilsim.tools.tuning`, relay then Ziegler–Nichols and its refinement), run on the real services.
+(:mod:`hilsim.tools.tuning.autotune`, relay then Ziegler–Nichols and its refinement), run on the real services.
 
 Everything is written into a temporary folder beside ``--out`` and moved into place only once it is
 whole: an import that fails writes nothing (one line naming the file, the element and why; exit 2).
@@ -215,8 +215,8 @@ def _tune_one(scenario: Path, joint: str, step: float) -> tuple[str, dict[str, f
     """One joint tuned (in a worker process): its gains (None: the tuner could not, the starting gains stay)
     and the line that says how they do."""
     from hilsim.core.config import ConfigError
-    from hilsim.tools.rig import RigError
-    from hilsim.tools.tuning import Target, tune
+    from hilsim.tools.tuning.autotune import Target, tune
+    from hilsim.tools.tuning.rig import RigError
 
     try:
         r = tune(str(scenario), joint, "relay", step, Target(),
@@ -236,7 +236,7 @@ def _tune(scenario: Path, joints: list[Joint], home: list[float], say: Callable[
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
-    from hilsim.tools.tuning import write_gains
+    from hilsim.tools.tuning.autotune import write_gains
 
     found: dict[str, dict[str, float] | None] = {}
     # spawn: fresh interpreters. A fork copies the caller's threads' locks mid-call (a Zenoh session's native

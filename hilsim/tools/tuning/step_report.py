@@ -1,15 +1,15 @@
 """``hilsim report step ROBOT``: the arm paper's Table II, measured on the real services; the same for the rover.
 
-One lockstep run of the scenario's physics, sensors and controller (:mod:`hilsim.tools.rig`):
+One lockstep run of the scenario's physics, sensors and controller (:mod:`hilsim.tools.tuning.rig`):
 each joint in turn gets a step of its reference from the home pose, with the scenario's gains,
 and its TRUE position (``truth/joint_states``) gives rise time (10–90 %), settling time (2 %),
-peak time, overshoot and steady-state error (:mod:`hilsim.tools.metrics`). Printed beside the
+peak time, overshoot and steady-state error (:mod:`hilsim.tools.tuning.metrics`). Printed beside the
 paper's figures, written as CSV, as a PNG (one panel per joint) and as a Rerun recording; or,
 with ``--json``, one JSON object.
 
 The rover (``four_wheel_steer``): its steering loops (angle, position loops) get a step of
 ``--step`` rad and its traction loops (wheel speed, velocity loops) one of ``--speed`` rad/s,
-through its controller's kinematic layer (:mod:`hilsim.tools.rig`), all four wheels of a kind at
+through its controller's kinematic layer (:mod:`hilsim.tools.tuning.rig`), all four wheels of a kind at
 once; a traction loop's response is the wheel's TRUE speed. The thesis gives no figures for its
 loops (it only says they were tuned by Ziegler–Nichols), so there is nothing to print beside them.
 
@@ -34,9 +34,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from hilsim.core.config import ConfigError, Scenario
-from hilsim.tools.metrics import ZERO_OVERSHOOT, ZERO_TOL, Figures, step_figures
-from hilsim.tools.rig import Experiment, Response, rig_command
-from hilsim.tools.rig_run import loop_scenario, run_experiments
+from hilsim.tools.tuning.metrics import ZERO_OVERSHOOT, ZERO_TOL, Figures, step_figures
+from hilsim.tools.tuning.rig import Experiment, Response, rig_command
+from hilsim.tools.tuning.rig_run import loop_scenario, run_experiments
 
 DEFAULT_STEP = 0.2  # [rad] (see above: the drives stop at 2 rad/s)
 DEFAULT_JOINTS = ("joint_1", "joint_2", "joint_3", "joint_4", "joint_5")
@@ -74,7 +74,7 @@ class Row:
 
 
 # The paper's overshoot and steady-state error are 0; ours are compared within these tolerances
-# (hilsim.tools.metrics), and every verdict says so
+# (hilsim.tools.tuning.metrics), and every verdict says so
 TOLERANCE = (f"tolerance: overshoot <= {ZERO_OVERSHOOT * 1e3:g} mrad past the target, "
              f"steady-state error < {ZERO_TOL:g} rad")
 

@@ -44,7 +44,7 @@ from typing import Any
 from hilsim.core.recording import read_counts
 from hilsim.core.scenario import load_scenario
 from hilsim.tools import progress
-from hilsim.tools.bench import _scenario, cpu_s
+from hilsim.tools.bench.pipeline import _scenario, cpu_s
 
 SERVICES = ["physics", "sensors", "controller", "planner", "logger"]
 
@@ -64,7 +64,7 @@ class Subscribers:
 
     def __init__(self, endpoint: str, key: str, n: int) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "hilsim.tools.bench_scale", "--subscribe", endpoint, key, str(n)],
+            [sys.executable, "-m", "hilsim.tools.bench.scale", "--subscribe", endpoint, key, str(n)],
             stdout=subprocess.PIPE, stdin=subprocess.DEVNULL, text=True)
         assert self.proc.stdout is not None
         line = self.proc.stdout.readline()
@@ -313,4 +313,4 @@ def _print(res: dict[str, Any], args: argparse.Namespace, pipeline: str) -> None
 if __name__ == "__main__":
     if len(sys.argv) == 5 and sys.argv[1] == "--subscribe":
         sys.exit(_subscribe_main(sys.argv[2], sys.argv[3], int(sys.argv[4])))
-    sys.exit("usage: python -m hilsim.tools.bench_scale --subscribe ENDPOINT KEY N (hilsim bench scale's helper)")
+    sys.exit("usage: python -m hilsim.tools.bench.scale --subscribe ENDPOINT KEY N (hilsim bench scale's helper)")

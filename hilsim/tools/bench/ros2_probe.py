@@ -6,7 +6,7 @@
 A sample's header stamp is the wall-clock time it was written (both writers patch it into the same CDR
 bytes before each write), so the subscriber's latency is its arrival time minus the stamp. ``pub``
 measures the CPU its writes cost (process time around the publish calls): the DDS half of a bridge
-built on rclpy, against the Cyclone DDS bridge's own write (``hilsim.tools.bench_ros2``). Prints one
+built on rclpy, against the Cyclone DDS bridge's own write (``hilsim.tools.bench.ros2``). Prints one
 JSON line.
 """
 

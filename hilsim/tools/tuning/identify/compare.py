@@ -1,6 +1,6 @@
 """The proof: the drive and its twin on motions the fit never saw, compared.
 
-- **Steps** (0.2 and 1.0 rad): ``hilsim report step``'s figures (:mod:`hilsim.tools.metrics`) of the
+- **Steps** (0.2 and 1.0 rad): ``hilsim report step``'s figures (:mod:`hilsim.tools.tuning.metrics`) of the
   drive (measured on its encoder, realtime) and of the twin (lockstep), each step size taken three
   times (+, −, +) and each figure the median of the three: a realtime run on a loaded machine delays
   a report now and then by tens of ms, which one step alone would count as the drive's response.
@@ -24,10 +24,10 @@ from typing import Any
 
 import numpy as np
 
-from hilsim.tools.identify.plan import reference
-from hilsim.tools.metrics import Figures
-from hilsim.tools.rig import Response
-from hilsim.tools.step_report import figures_of
+from hilsim.tools.tuning.identify.plan import reference
+from hilsim.tools.tuning.metrics import Figures
+from hilsim.tools.tuning.rig import Response
+from hilsim.tools.tuning.step_report import figures_of
 
 TIME_REL, TIME_ABS = 0.05, 0.010  # a time figure: within 5 % or 10 ms, whichever is larger
 OVERSHOOT_PP = 1.0  # [percentage points]

@@ -1,4 +1,4 @@
-"""Running step experiments (:mod:`hilsim.tools.rig`): the scenario's loop, and one run of its real services.
+"""Running step experiments (:mod:`hilsim.tools.tuning.rig`): the scenario's loop, and one run of its real services.
 
 :func:`loop_scenario` is the part of a scenario whose step responses are measured (lockstep; with
 hardware in the loop, realtime with its servers and stand-ins); :func:`run_experiments` runs the
@@ -20,7 +20,7 @@ from typing import Any
 from hilsim.core import transport
 from hilsim.core.config import ConfigError, Scenario
 from hilsim.core.scenario import load_scenario
-from hilsim.tools.rig import (
+from hilsim.tools.tuning.rig import (
     CONTROLLERS,
     HARDWARE_STAND_INS,
     LOOP_SENSORS,

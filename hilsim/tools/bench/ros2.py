@@ -9,7 +9,7 @@ samples at ``--rate``; the same real ROS 2 subscriber (rclpy on rmw_fastrtps_cpp
 
 - ``cyclone``: this process, with the bridge's own Domain configuration, type and QoS
   (:mod:`hilsim.bridges.dds_types`, :mod:`hilsim.bridges.dds_discovery`) and its raw write;
-- ``rclpy``: :mod:`hilsim.tools.ros2_probe` under the ROS 2 Python, ``Publisher.publish(bytes)``.
+- ``rclpy``: :mod:`hilsim.tools.bench.ros2_probe` under the ROS 2 Python, ``Publisher.publish(bytes)``.
 
 Figures per writer: CPU per sample written [µs] (process time around the writes), latency write ->
 subscriber callback (p50, p99) [µs], samples delivered; and what each needs installed. DDS is made to

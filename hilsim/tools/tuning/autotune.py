@@ -1,6 +1,6 @@
 """``hilsim tune ROBOT JOINT --method ziegler-nichols|relay``: a joint's PID tuned on the real services.
 
-Every measurement is a step experiment of :mod:`hilsim.tools.rig` (physics, sensors and the
+Every measurement is a step experiment of :mod:`hilsim.tools.tuning.rig` (physics, sensors and the
 controller as separate processes, in lockstep, the physics truth measured), so a tuning is
 reproducible: same scenario and seed, same gains.
 
@@ -36,8 +36,8 @@ reproducible: same scenario and seed, same gains.
       (integral action creeps past the target late): the largest that does not overshoot and still
       meets the target (it only mops up coupling between the joints).
 
-   "Without overshoot" is at most half of :data:`~hilsim.tools.metrics.ZERO_OVERSHOOT_PCT`, and a
-   trial must end within half of :data:`~hilsim.tools.metrics.ZERO_TOL` of the target (margins: the
+   "Without overshoot" is at most half of :data:`~hilsim.tools.tuning.metrics.ZERO_OVERSHOOT_PCT`, and a
+   trial must end within half of :data:`~hilsim.tools.tuning.metrics.ZERO_TOL` of the target (margins: the
    chosen gains must stay at the paper's zeros on other steps and longer windows too). Every
    candidate's gains are rounded to four significant digits before they are measured, so the gains
    printed and written are the ones measured.
@@ -48,9 +48,9 @@ default the paper's Table II row of the joint); ``--write`` puts the gains into 
 
 **The rover** (``hilsim tune rover steering|traction``): a kind of loop is tuned for its four wheels
 at once (they share ``controller.gains.steering`` / ``.traction``), each trial stepping all four
-through the controller's kinematic layer (:mod:`hilsim.tools.rig`) and judged by the worst wheel.
+through the controller's kinematic layer (:mod:`hilsim.tools.tuning.rig`) and judged by the worst wheel.
 The thesis gives no figures, so the default target is :func:`rover_target`; "zero" overshoot and
-error are relative to the step (:data:`~hilsim.tools.step_report.ROVER_ZERO`: a rolling wheel's
+error are relative to the step (:data:`~hilsim.tools.tuning.step_report.ROVER_ZERO`: a rolling wheel's
 true speed ripples by ~0.2 %). The steps alternate in sign from trial to trial, so the rover
 shuttles instead of driving into a wall. The traction loop is a speed loop: its PID's derivative
 term acts on nothing (``kd`` stays 0, no damping search), and its kick is ``VELOCITY_KICK``.
@@ -72,10 +72,10 @@ from hilsim.core.config import ConfigError, Scenario
 from hilsim.core.scenario import load_scenario, scenario_path
 from hilsim.sim import control
 from hilsim.tools import progress
-from hilsim.tools.metrics import ZERO_OVERSHOOT_PCT, ZERO_TOL, Figures, step_figures
-from hilsim.tools.rig import Experiment, Response, rig_command
-from hilsim.tools.rig_run import loop_scenario, run_experiments
-from hilsim.tools.step_report import DEFAULT_SPEED, ROVER_ZERO
+from hilsim.tools.tuning.metrics import ZERO_OVERSHOOT_PCT, ZERO_TOL, Figures, step_figures
+from hilsim.tools.tuning.rig import Experiment, Response, rig_command
+from hilsim.tools.tuning.rig_run import loop_scenario, run_experiments
+from hilsim.tools.tuning.step_report import DEFAULT_SPEED, ROVER_ZERO
 
 SUSTAINED = 0.95  # decay ratio per period counted as a sustained oscillation
 RELAY_FRACTION = 0.2  # relay amplitude h as a fraction of the actuator's limit
@@ -120,7 +120,7 @@ class Target:
 
 def paper_target(joint: str) -> Target:
     """The paper's Table II row of the joint (rise and settling no slower); zero overshoot and error."""
-    from hilsim.tools.step_report import PAPER_TABLE_II
+    from hilsim.tools.tuning.step_report import PAPER_TABLE_II
 
     row = PAPER_TABLE_II.get(joint)
     return Target(row[0], row[1]) if row else Target()

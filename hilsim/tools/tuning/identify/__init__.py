@@ -4,7 +4,7 @@ fitted from data, and a twin that responds the same (docs/hil.md).
 With a scenario whose joints are served by hardware (e.g. ``config/hil/arm-can-emulated.yaml``, or a real
 ODrive on ``can0``):
 
-1. **the drive** (:mod:`.plan`, :mod:`hilsim.tools.rig`): one realtime run of the scenario's physics,
+1. **the drive** (:mod:`.plan`, :mod:`hilsim.tools.tuning.rig`): one realtime run of the scenario's physics,
    sensors, controller and hardware, recorded like any run (``<out>/drive/``, its bag): each joint's
    excitation (steps of several sizes and both signs, a chirp) through the normal command path, then
    the motions the twin is proved on (steps of 0.2 and 1.0 rad, the joint's part of the task's targets);
@@ -33,7 +33,7 @@ from hilsim.core.config import SIM, ConfigError, Scenario
 from hilsim.core.keys import Keys
 from hilsim.core.scenario import load_scenario, parse_overrides
 from hilsim.sim import control
-from hilsim.tools.identify.compare import (
+from hilsim.tools.tuning.identify.compare import (
     StepComparison,
     TrackComparison,
     compare_steps,
@@ -41,12 +41,12 @@ from hilsim.tools.identify.compare import (
     table,
     write_responses,
 )
-from hilsim.tools.identify.data import read_joints, run_scenario
-from hilsim.tools.identify.fit import LIMITS, Fit, FitError, fit_record
-from hilsim.tools.identify.plan import excitation, is_rover, validation
-from hilsim.tools.identify.twin import twin_data, write_twin
-from hilsim.tools.rig import Response, RigError, rig_command
-from hilsim.tools.rig_run import loop_scenario, run_experiments
+from hilsim.tools.tuning.identify.data import read_joints, run_scenario
+from hilsim.tools.tuning.identify.fit import LIMITS, Fit, FitError, fit_record
+from hilsim.tools.tuning.identify.plan import excitation, is_rover, validation
+from hilsim.tools.tuning.identify.twin import twin_data, write_twin
+from hilsim.tools.tuning.rig import Response, RigError, rig_command
+from hilsim.tools.tuning.rig_run import loop_scenario, run_experiments
 
 
 def _joints(text: str) -> list[str]:
@@ -205,7 +205,7 @@ def _all_hardware(sc: Scenario, joints: list[str]) -> None:
 
 
 def _homes(sc: Scenario, joints: list[str]) -> dict[str, float]:
-    from hilsim.tools.rig import _home
+    from hilsim.tools.tuning.rig import _home
 
     names = list(control.joint_table(sc.world.model).names)
     h = _home(sc, names)

@@ -43,7 +43,7 @@ from scipy.optimize import least_squares
 
 from hilsim.core.config import DriveConfig
 from hilsim.sim.drive import simulate
-from hilsim.tools.identify.data import JointRecord
+from hilsim.tools.tuning.identify.data import JointRecord
 
 MAX_POINTS = 3000  # samples the fit compares (the reports, evenly thinned)
 MAX_SPAN = 20.0  # [s] of a record the fit simulates at most: the stretches with the most motion

@@ -21,7 +21,7 @@ import yaml
 
 from hilsim.core.config import DEFAULT_SERVICES, ConfigError, Scenario
 from hilsim.core.scenario import set_dotted
-from hilsim.tools.identify.fit import Fit
+from hilsim.tools.tuning.identify.fit import Fit
 
 # the services that stand in for a joint's drive, and the hardware bridges: not in a twin
 JOINT_HARDWARE = ("drive-emulator", "motor-model", "bridge-can")

@@ -1,6 +1,6 @@
 """What ``hilsim identify`` commands a joint to do: the excitation it fits on, and the motions it proves the twin on.
 
-Both go through the normal command path: the rig (:mod:`hilsim.tools.rig`) hands the controller a
+Both go through the normal command path: the rig (:mod:`hilsim.tools.tuning.rig`) hands the controller a
 trajectory, the controller sends the joint's setpoint with its velocity feed-forward every control
 step, and the drive (or the twin's simulated drive) follows it.
 
@@ -15,7 +15,7 @@ step, and the drive (or the twin's simulated drive) follows it.
   80 % of the joint's URDF velocity limit, held 0.5 s at each target: motions the fit never saw.
 
 **The rover** (``four_wheel_steer``) takes no trajectory per joint: its loops are stepped through its
-controller's kinematic layer, as ``hilsim report step rover`` steps them (:mod:`hilsim.tools.rig`). A
+controller's kinematic layer, as ``hilsim report step rover`` steps them (:mod:`hilsim.tools.tuning.rig`). A
 steering loop's excitation is steps of the wheels' angle of 0.05, 0.3 and 0.8 rad, a traction loop's
 steps of their speed of 0.5, 2.5 and 5 rad/s, each both ways (:data:`ROVER_EXCITATION`); the proof is
 report step's own steps, 0.2 rad and 2 rad/s, three times each (the rover's targets are places, not
@@ -31,7 +31,7 @@ import numpy as np
 from hilsim.core.config import ConfigError, Scenario
 from hilsim.sim import control
 from hilsim.sim.world import urdf_limits
-from hilsim.tools.rig import Experiment
+from hilsim.tools.tuning.rig import Experiment
 
 VALIDATION_STEPS = (0.2, 1.0)  # [rad] the issue's (and report step's) steps
 REPEATS = (1.0, -1.0, 1.0)  # each validation step from home, in these directions (the figures' median)

@@ -35,7 +35,7 @@ from hilsim.planning.trajectory import (
     joint_path_lengths,
     time_parameterize,
 )
-from hilsim.tools.evaluate.common import choose, execute, output_csv, read_targets
+from hilsim.tools.planning_eval.common import choose, execute, output_csv, read_targets
 
 
 @dataclass

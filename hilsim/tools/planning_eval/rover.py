@@ -1,6 +1,6 @@
 """``hilsim plan evaluate`` for a mobile robot: every rover goal planned from the start, compared.
 
-The shape of :mod:`hilsim.tools.evaluate.arm` (the arm's Table III), with what matters for a base:
+The shape of :mod:`hilsim.tools.planning_eval.arm` (the arm's Table III), with what matters for a base:
 for each goal, planned in turn from the previous goal's pose (the scenario's start pose for the
 first, as the task drives them) with the scenario's navigator settings, the table gives
 
@@ -28,7 +28,7 @@ import numpy as np
 
 from hilsim.core.config import ConfigError, Scenario
 from hilsim.navigation.planner import PlanResult, directions, path_length, smoothness
-from hilsim.tools.evaluate.common import choose, execute, output_csv, read_targets
+from hilsim.tools.planning_eval.common import choose, execute, output_csv, read_targets
 
 
 @dataclass

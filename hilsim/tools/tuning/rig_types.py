@@ -1,4 +1,4 @@
-"""What step experiments are, what they measure, and how they fail (:mod:`hilsim.tools.rig` runs them)."""
+"""What step experiments are, what they measure, and how they fail (:mod:`hilsim.tools.tuning.rig` runs them)."""
 
 from __future__ import annotations
 

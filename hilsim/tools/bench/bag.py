@@ -9,7 +9,7 @@ Two figures:
   ``LoggerService._handle`` and ``_flush`` (every 4000 samples, about the worker's 0.5 s batch at
   1x) as the worker does, into a real ``.rrd`` and bag; CPU time of this thread per sample.
 - :func:`process_us_per_sample`: the whole logger process of a ``hilsim up`` run (Zenoh's receive
-  included): its CPU seconds from "ready" to the end of the run (``hilsim.tools.bench``) per
+  included): its CPU seconds from "ready" to the end of the run (``hilsim.tools.bench.pipeline``) per
   sample it recorded (``record_summary.json``).
 """
 

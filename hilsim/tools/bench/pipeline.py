@@ -15,7 +15,7 @@ holding position under 1 kHz PID control with its sensors:
   the distributed ones with their CPU per step and process too.
 Ratios are distributed / in_process and distributed / bare: compare ratios, not absolute times.
 
-``ring``: a bare zenoh-python ring of three processes (:mod:`hilsim.tools.ring`), the transport floor
+``ring``: a bare zenoh-python ring of three processes (:mod:`hilsim.tools.bench.ring`), the transport floor
 of one distributed step; the distributed step time is reported against ring round + in-process
 step time. The CPU floor: the CPU every process of the distributed run spends per step (psutil,
 from "ready" to the end of the run), divided by the machine's cores: on a small machine the
@@ -333,12 +333,12 @@ def cmd_loop(args: argparse.Namespace) -> int:
     res["in_process_rtf"] = bench_in_process(sim)
     say(f"    {res['in_process_rtf']:.2f}x real time")
     say("  transport floor: a bare zenoh-python ring of three processes …")
-    from hilsim.tools.ring import PAYLOAD_BYTES, round_trip_us
+    from hilsim.tools.bench.ring import PAYLOAD_BYTES, round_trip_us
 
     res["ring_round_us"] = round_trip_us()
     say(f"    {res['ring_round_us']:.0f} µs per round ({PAYLOAD_BYTES}-byte payloads, median)")
     say("  recording floor: CPU per sample sent to another process …")
-    from hilsim.tools.ring import KEYS_PER_STEP, sample_cost_us
+    from hilsim.tools.bench.ring import KEYS_PER_STEP, sample_cost_us
 
     res["sample_cost_us"] = c = sample_cost_us()
     say(f"    receiver {c['callback']:.1f} µs (callback), {c['channel']:.1f} µs (FIFO channel); "
@@ -351,7 +351,7 @@ def cmd_loop(args: argparse.Namespace) -> int:
         res["distributed_cpu_us_per_step"] = {n: 1e6 * s / steps for n, s in cpu.items()}
         say(f"    {res['distributed_rtf']:.2f}x real time")
         say("  the recorder's CPU per sample, without and with its bag (logger.bag false/true) …")
-        from hilsim.tools.bench_bag import process_us_per_sample, worker_cost
+        from hilsim.tools.bench.bag import process_us_per_sample, worker_cost
 
         cpu_nobag: dict[str, float] = {}
         bench_distributed(sim, Path(d), cpu_nobag, bag=False)

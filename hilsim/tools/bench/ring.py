@@ -6,13 +6,13 @@ through a router, callbacks, reliable, ``transport.publisher``) and payloads the
 messages. No encoding, no checks, no service code: one round is the least a distributed
 lockstep step (physics → sensors → controller → physics, three hops) can cost on this machine.
 
-``python -m hilsim.tools.ring ENDPOINT IN_KEY OUT_KEY``: a relay (what the benchmark starts twice).
+``python -m hilsim.tools.bench.ring ENDPOINT IN_KEY OUT_KEY``: a relay (what the benchmark starts twice).
 
 The recording floor (:func:`sample_cost_us`): what one sample costs a subscriber in another process,
 CPU time of its whole process (Zenoh's threads included) per received sample, with the Python
 callback the services use and with a Zenoh FIFO channel read by a Python thread, and what a
 ``put`` to that subscriber costs the publisher; the arm's per-step mix (six keys) at a steady
-pace. ``python -m hilsim.tools.ring publish ENDPOINT SAMPLES PER_TICK TICK_US``: the publisher.
+pace. ``python -m hilsim.tools.bench.ring publish ENDPOINT SAMPLES PER_TICK TICK_US``: the publisher.
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ def round_trip_us(rounds: int = 3000, warmup: int = 300) -> float:
     router = transport.open_router(ep)
     keys = ["bench/ring/0", "bench/ring/1", "bench/ring/2"]
     relays = [
-        subprocess.Popen([sys.executable, "-m", "hilsim.tools.ring", ep, keys[i], keys[i + 1]],
+        subprocess.Popen([sys.executable, "-m", "hilsim.tools.bench.ring", ep, keys[i], keys[i + 1]],
                          stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
         for i in range(2)
     ]
@@ -126,8 +126,8 @@ def _publisher_cpu_s(ep: str, samples: int, tick_us: float,
                      received: Callable[[], int] | None) -> tuple[float, float]:
     """Run the publisher once against this process's session; wait for every sample if someone here
     receives them; return the CPU seconds of the publisher and of this process meanwhile."""
-    p = subprocess.Popen([sys.executable, "-m", "hilsim.tools.ring", "publish", ep, str(samples), str(KEYS_PER_STEP),
-                          str(tick_us)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    p = subprocess.Popen([sys.executable, "-m", "hilsim.tools.bench.ring", "publish", ep, str(samples),
+                          str(KEYS_PER_STEP), str(tick_us)], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     assert p.stdin is not None and p.stdout is not None
     try:
         if p.stdout.readline().strip() != "ready":

@@ -17,7 +17,7 @@ sim times, so an experiment is as reproducible as the run itself (same seed, sam
   different links, with no order between them, so the stamp lies ``LEAD`` rig periods ahead;
 - it records the physics truth (``truth/joint_states``) and the controller's reference
   (``controller/reference``), which proves the step started at the stamped step (a step that
-  reached the controller late anyway makes :func:`hilsim.tools.rig_run.run_experiments` run the batch once more);
+  reached the controller late anyway makes :func:`hilsim.tools.tuning.rig_run.run_experiments` run the batch once more);
 - after the measurement window it puts the scenario's own gains back and commands the joint
   home, and lets it settle before the next experiment.
 
@@ -74,7 +74,7 @@ from hilsim.core import msgs
 from hilsim.core.config import SIM, ConfigError, PidGains, Scenario
 from hilsim.core.service import Service
 from hilsim.sim import control
-from hilsim.tools.rig_types import Experiment, LateStep, Response, RigError, rig_command
+from hilsim.tools.tuning.rig_types import Experiment, LateStep, Response, RigError, rig_command
 
 __all__ = ["Experiment", "LateStep", "Response", "RigError", "StepRig", "rig_command"]
 
