@@ -278,7 +278,8 @@ def test_without_ipv6_multicast_the_demo_runs_on_the_ipv4_group_or_stops_at_once
             return p, out, time.monotonic() - t0
 
         p, out, took = demo("no-route")
-        assert p.returncode != 0 and took < 30, (took, out)
+        # at once: before the planner's 60 s target timeout would have ended it (36 s seen under CI's load)
+        assert p.returncode != 0 and took < 60 and "task-" not in out, (took, out)
         assert re.search(r"error: service (bridge-can|drive-emulator) \(pid \d+\) exited with code 1: .*"
                          r"stopped: CAN bus udp_multicast:239\.74\.163\.2 port=43113 not available: could not "
                          r"create or configure socket \(No such device\); IPv4 multicast needs a route \(on one "

@@ -80,6 +80,25 @@ def _close_truth(ses: zenoh.Session, subs: list[zenoh.Subscriber]) -> None:
     ses.close()
 
 
+def _bag_truth(bag: Path, robots: list[str]) -> dict[str, tuple[list[str], list[float]]]:
+    """Each robot's last physics truth sample (joint names, positions) in the run's bag, by stamp, read with the
+    mcap ROS 2 reader (not hilsim's)."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    last: dict[str, tuple[int, list[str], list[float]]] = {}
+    topics = {f"/{r}/truth/joint_states": r for r in robots}
+    for f in sorted(bag.glob("*.mcap")):
+        with f.open("rb") as fh:
+            for _s, ch, _m, msg in make_reader(fh, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
+                    topics=list(topics)):
+                r, ns = topics[ch.topic], msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+                if r not in last or ns >= last[r][0]:
+                    last[r] = (ns, list(msg.name), list(msg.position))
+    assert set(last) == set(robots), sorted(last)
+    return {r: (names, q) for r, (_ns, names, q) in last.items()}
+
+
 def test_two_arms_reach_their_own_targets_in_the_truth_and_do_not_interfere(tmp_path: Path) -> None:
     """Two arms as real processes in lockstep, each with a target of its own: judged by the
     physics truth under each robot's namespace; the recorder has both namespaces."""
@@ -102,9 +121,13 @@ def test_two_arms_reach_their_own_targets_in_the_truth_and_do_not_interfere(tmp_
     assert "sensors@* (pid" in out and "controller@* (pid" in out, out  # one process per kind
     tol = 0.01
     final = {}
+    bag = _bag_truth(tmp_path / "run" / "bag", ["arm0", "arm1"])
     for r, target in (("arm0", LEFT), ("arm1", OVER)):
+        # the test's own subscriber saw each robot's truth live; the last word is the bag's (read with the mcap
+        # ROS 2 reader): on a loaded machine the live subscriber's last samples were seen missing (CI: its
+        # newest sample was mid-motion, 0.57 rad short, where the run said reached)
         assert len(truth[r]) > 1000, (r, len(truth[r]))
-        _stamp, names, q = max(truth[r])
+        names, q = bag[r]
         assert names == [f"joint_{i}" for i in range(1, 7)]
         assert np.abs(np.array(q) - target).max() < tol, (r, q, target)
         final[r] = np.array(q)
