@@ -208,7 +208,11 @@ def main() -> int:
                 att = transport.attachment_bytes(seqs[key], gid)
         pub = pubs.get(key)
         if pub is None:
-            pub = pubs[key] = session.declare_publisher(key)
+            # blocking, not dropping: a sample of its own that Zenoh dropped behind its 1 MiB ones (the default
+            # congestion control) is a gap in its own writer's numbers on the open trajectory key, which the
+            # recorder rightly counts as lost in transport: a loss of the attacker's, failing the lockstep run
+            # (CI, twice: sample 13 of its copy_foreign_writer stream missing from the bag)
+            pub = pubs[key] = session.declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
         if att is None:
             pub.put(data)
         else:

@@ -179,9 +179,11 @@ def main() -> int:
     seen["last_clock_ns"] = last.get("clock")
     # rclpy's time is set from /clock messages (no interpolation): each reading is a value the simulation sent,
     # whichever of rclpy's subscription and ours took a given message first (or within what it sent, should
-    # one best-effort reader have missed a message the other got)
-    lo, hi = (min(clock_values), max(clock_values)) if clock_values else (0, -1)
-    seen["clock_checks_sent"] = [now in clock_values or lo <= now <= hi for now, _ in seen["clock_checks"]]
+    # one best-effort reader have missed a message the other got, or before our first: rclpy's time source
+    # matched the writer a moment before our subscription did, CI: 1.368 s read, our first /clock 1.374 s);
+    # never beyond the newest, and never the wall clock
+    hi = max(clock_values) if clock_values else -1
+    seen["clock_checks_sent"] = [now in clock_values or 0 < now <= hi for now, _ in seen["clock_checks"]]
     if "js" in last:
         seen["joint_states"] = {"names": list(last["js"].name), "position": list(last["js"].position)}
     if "truth_js" in last:
