@@ -88,13 +88,29 @@ def test_every_directory_of_the_packages_is_a_listed_package() -> None:
     conf = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
     packages, dirs = set(conf["packages"]), conf.get("package-dir", {})
     roots = {"hilsim": REPO / "hilsim", **{p: REPO / d for p, d in dirs.items()}}
+    data = conf.get("package-data", {})
+
+    def is_data(d: Path, root: Path, pkg: str) -> bool:
+        """A folder of no module whose every file a listed ancestor package's package-data globs take (the ROS 2
+        interface files of hilsim/core/ros2/interfaces/, laid out as ROS packages ship them)."""
+        if any(f.suffix == ".py" for f in d.iterdir()):
+            return False
+        parts = d.relative_to(root).parts
+        for i in range(len(parts) - 1, -1, -1):
+            owner = ".".join([pkg, *parts[:i]])
+            globs = data.get(owner, [])
+            if owner in packages and globs:
+                base = root.joinpath(*parts[:i])
+                return all(any(f.relative_to(base).match(g) for g in globs) for f in d.iterdir() if f.is_file())
+        return False
+
     missing = []
     for pkg, root in roots.items():
         for d in [root, *(p for p in root.rglob("*") if p.is_dir())]:
             if d.name == "__pycache__" or not any(f.is_file() for f in d.iterdir()):
                 continue
             name = ".".join([pkg, *d.relative_to(root).parts])
-            if name not in packages:
+            if name not in packages and not is_data(d, root, pkg):
                 missing.append(name)
     assert not missing, f"add to [tool.setuptools] packages in pyproject.toml: {missing}"
     assert conf["package-data"]["hilsim.ui.static"], conf["package-data"]
