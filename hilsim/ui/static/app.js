@@ -107,7 +107,7 @@ function buildGoalForms(sc, st) {
     const row = document.createElement("div");
     row.className = "slider";
     const n = esc(name);
-    row.innerHTML = `<label for="range-${n}">${n}</label>
+    row.innerHTML = `<label for="range-${n}" title="${n}">${n}</label>
       <input type="range" id="range-${n}" min="${lo}" max="${hi}" step="0.001" value="${v}" aria-describedby="lim-${n}">
       <input id="joint-${n}" inputmode="decimal" value="${v.toFixed(3)}" aria-label="${n} target [rad]">
       <span class="lim" id="lim-${n}">${lo.toFixed(2)} … ${hi.toFixed(2)} rad</span>
