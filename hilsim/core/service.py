@@ -460,7 +460,8 @@ class Service(Ros2Node):
                                        ack.gid.hex())
             self._declared.append(session.liveliness().declare_token(token))
         self._declared.append(session.liveliness().declare_token(self.keys.alive(self.name)))
-        self.state = "running"
+        if self.state == "starting":  # a fault said during setup (a bus found missing) stays said
+            self.state = "running"
 
     def run(self) -> int:
         """Run the service until stopped; returns the process exit code."""
