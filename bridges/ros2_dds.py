@@ -260,7 +260,7 @@ class Ros2DdsBridgeService(Service):
                 r.decls.append(self.session.declare_subscriber(r.key, self._on_zenoh(r)))
             qos = wire.QOS_LATCHED if latched else None
             r.decls.append(self.session.liveliness().declare_token(self.graph_token("MS", r.key, qos)))
-            if local is not None:  # composed (hilsim.run.compose): the process's own services' messages
+            if local is not None:  # composed (hilsim.launch.compose): the process's own services' messages
                 r.decls.append(local(r.key, lambda k, m, att, r=r: self._to_dds(r, k, msgs.encode(m), att)))
         self.log.info("DDS domain %d (%s) as node %s/%s: to DDS %s; from DDS %s", self.domain_id,
                       self.discovery.said, self.keys.namespace.rstrip("/"), self.node_name,

@@ -44,7 +44,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from hilsim.core.service import setup_logging
 
     setup_logging(args.service, logging.DEBUG if args.verbose else logging.INFO)
-    names = args.service.split("+")  # a+b+c: composed in one process (hilsim.run.compose)
+    names = args.service.split("+")  # a+b+c: composed in one process (hilsim.launch.compose)
     try:
         for n in names:
             service_class(n.split("@")[0])  # an unknown name is said before the scenario is read
@@ -58,7 +58,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     # robots > 1: controller@arm3 is one robot's controller, controller@* every robot's (hilsim.core.fleet)
     names = fleet.members(sc, args.service)
     if len(names) > 1:
-        from hilsim.run import compose
+        from hilsim.launch import compose
 
         return compose.run(names, sc)
     return int(instantiate(names[0], sc).run())
@@ -97,7 +97,7 @@ def _view(args: argparse.Namespace) -> int:
 
 def _up(args: argparse.Namespace) -> int:
     """``hilsim up``; with ``--ui`` the panel starts the run and stays (hilsim.ui.server)."""
-    return _lazy("hilsim.ui.server", "cmd_up_ui")(args) if args.ui else _lazy("hilsim.run.up", "cmd_up")(args)
+    return _lazy("hilsim.ui.server", "cmd_up_ui")(args) if args.ui else _lazy("hilsim.launch.up", "cmd_up")(args)
 
 
 # the commands by what the user does; the tools' folders (hilsim/tools/) use the same words
@@ -501,14 +501,14 @@ def build_parser() -> argparse.ArgumentParser:
     comp.add_argument("--hil", action="append", default=[], metavar="FILE",
                       help="a HIL scenario (e.g. config/hil/arm-can.yaml): its bridges become a profile; repeatable")
     comp.add_argument("--out", help="write here (default: standard output)")
-    comp.set_defaults(func=_lazy("hilsim.run.deploy", "cmd_compose"))
+    comp.set_defaults(func=_lazy("hilsim.launch.deploy", "cmd_compose"))
 
     router = sub.add_parser("router", help="run a standalone Zenoh router (loopback unless told otherwise)")
     router.add_argument("--listen", help="endpoint to listen on (default tcp/127.0.0.1:7447; with --config, "
                         "replaces the file's)")
     router.add_argument("--config", help="a Zenoh router config file (JSON5: listen endpoints, TLS, access "
                         "control), e.g. config/security/router.json5")
-    router.set_defaults(func=_lazy("hilsim.run.launcher", "cmd_router"))
+    router.set_defaults(func=_lazy("hilsim.launch.launcher", "cmd_router"))
 
     creds = sub.add_parser("creds", help="identities a lab hands out: one node or tool, only the rights given "
                            "(docs/security.md)")
@@ -524,7 +524,7 @@ def build_parser() -> argparse.ArgumentParser:
     csub.add_parser("list", help="the lab's credentials and what each may do")
     crm = csub.add_parser("rm", help="remove a credential (runs started afterwards no longer admit it)")
     crm.add_argument("name")
-    creds.set_defaults(func=_lazy("hilsim.run.creds", "cmd_creds"))
+    creds.set_defaults(func=_lazy("hilsim.launch.creds", "cmd_creds"))
 
     ui = sub.add_parser("ui", help="the browser control panel: choose, start, command and watch a run")
     ui.add_argument("--host", default="127.0.0.1", help="address to listen on (default loopback; anyone who "

@@ -38,7 +38,7 @@ each kind of message (and the entity layout) is ``hilsim.record.rows``; which ke
 by one ``hilsim.record.routes``; what the summary file and lines say ``hilsim.record.report``; the
 robot model and tool kinematics ``hilsim.sim.kinematics``.
 
-Composed with other services (``--compose physics,sensors,controller,logger``, hilsim.run.compose),
+Composed with other services (``--compose physics,sensors,controller,logger``, hilsim.launch.compose),
 it takes their samples as message objects in the process (none of them crosses Zenoh) and the
 rest over Zenoh; the worker encodes a message object once, so both are recorded from the same
 bytes, the same way.
@@ -260,7 +260,7 @@ class LoggerService(LoggerIntake, LoggerStop):
         self._worker.start()
         if self.delay_s:
             self.warn(f"{DELAY_ENV}: every received sample is delayed by {self.delay_s * 1e6:.0f} µs (fault injection)")
-        # composed: samples of this process's own services never cross Zenoh (hilsim.run.compose)
+        # composed: samples of this process's own services never cross Zenoh (hilsim.launch.compose)
         local = getattr(self.session, "local_subscriber", None)
         for expr in self.sc.logger.record:
             subs = []

@@ -103,7 +103,7 @@ class LoggerIntake(Service):
         self._take(str(sample.key_expr), transport.read_attachment(sample), sample.payload.to_bytes())
 
     def _on_local(self, key: str, msg: Any, att: transport.Attachment) -> None:
-        # composed (hilsim.run.compose): a message object from a service of this process; encoded by
+        # composed (hilsim.launch.compose): a message object from a service of this process; encoded by
         # the worker, so it is recorded from the same bytes (and rows) as one that came over Zenoh
         self._take(key, att, msg)
 

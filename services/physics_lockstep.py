@@ -177,7 +177,7 @@ class PhysicsLockstep(PhysicsTruth):
         self.publish_health_async()
 
     def _unit(self, svc: str) -> str:
-        """The process (launch unit) a service runs in: itself, or a composed ``a+b`` (hilsim.run.compose)."""
+        """The process (launch unit) a service runs in: itself, or a composed ``a+b`` (hilsim.launch.compose)."""
         base = svc.split("@")[0]
         return next((u for u in self.sc.launch_units() if base in u.split("@")[0].split("+")), svc)
 

@@ -457,8 +457,8 @@ def test_logger_bag_false_writes_no_bag(scenario: Any, session: Any, run_service
 
 def test_the_run_summary_counts_the_bag_and_recovers_a_killed_one(scenario: Any, tmp_path: Path,
                                                                   capsys: Any) -> None:
-    from hilsim.run.launcher import Launcher, summarise
-    from hilsim.run.summary import _recover_recordings
+    from hilsim.launch.launcher import Launcher, summarise
+    from hilsim.launch.summary import _recover_recordings
 
     sc = scenario("arm", {"duration": 1.0, "task.targets": []})
     la = Launcher(sc, tmp_path)

@@ -1,4 +1,4 @@
-"""Composition (hilsim.run.compose): services sharing one process exchange message objects, and the
+"""Composition (hilsim.launch.compose): services sharing one process exchange message objects, and the
 outside still sees every key on Zenoh, exactly once. The lockstep equivalence with the distributed
 pipeline, bit for bit, is tests/test_e2e.py::test_lockstep_runs_are_bit_identical."""
 
@@ -17,7 +17,7 @@ from hilsim.core import msgs, transport
 from hilsim.core.config import ConfigError, ZenohConfig
 from hilsim.core.keys import Keys
 from hilsim.core.scenario import load_scenario
-from hilsim.run.compose import ComposedSession
+from hilsim.launch.compose import ComposedSession
 
 REPO = Path(__file__).resolve().parent.parent
 

@@ -1,4 +1,4 @@
-"""The docker compose files and the scenarios cannot drift apart (hilsim/run/deploy.py).
+"""The docker compose files and the scenarios cannot drift apart (hilsim/launch/deploy.py).
 
 Without an engine: the shipped files must be exactly what ``hilsim compose`` makes of the scenarios
 today, their profiles must hold the right bridges, and every container's command, run as it is
@@ -24,7 +24,7 @@ from util import REPO, Observer, wait_until
 from hilsim.core import transport
 from hilsim.core.config import ConfigError
 from hilsim.core.scenario import load_scenario
-from hilsim.run.deploy import compose, render
+from hilsim.launch.deploy import compose, render
 
 SHIPPED = [REPO / "docker" / "compose.yaml", REPO / "docker" / "compose-rover.yaml"]
 TARGET = [0.5, -0.4, 0.2, 0.0, -0.5, 0.0]
@@ -114,7 +114,7 @@ def test_each_container_command_runs_outside_docker(tmp_path: Path) -> None:
             if cmd[0] == "hilsim":
                 cmd = [sys.executable, "-m", "hilsim.cli", *cmd[1:]]
             else:
-                assert cmd[:3] == ["python", "-m", "hilsim.run.deploy"], cmd
+                assert cmd[:3] == ["python", "-m", "hilsim.launch.deploy"], cmd
                 cmd = [sys.executable, *cmd[1:], "--set", f"task.targets=[{TARGET}]", "--out", str(tmp_path / name)]
             env = {**os.environ, **comp["x-service"]["environment"], **svc.get("environment", {})}
             env["HILSIM_ZENOH_CONNECT"] = ep
@@ -179,7 +179,7 @@ def test_many_robots_get_valid_container_names() -> None:
                                                                    str(sc.relative_to(REPO)) + "}", "--only",
                                                                    "controller@*"]
     # the launcher takes the fleet's unit as one (--only controller@*: every robot's controller)
-    from hilsim.run.launcher import local_units
+    from hilsim.launch.launcher import local_units
 
     sc.write_text("extends: arm.yaml\nrobots: 2\n")
     try:

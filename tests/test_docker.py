@@ -41,8 +41,8 @@ def test_compose_runs_every_service_with_valid_commands(scenario: str, profiles:
             args = parser.parse_args(cmd)  # raises SystemExit on a command hilsim would reject
             assert args.cmd == "router" and args.listen.endswith(":7447")
             continue
-        # python -m hilsim.run.deploy [--hold] HILSIM-ARGS: `hilsim HILSIM-ARGS`, held or not
-        assert svc["entrypoint"] == ["python", "-m", "hilsim.run.deploy"]
+        # python -m hilsim.launch.deploy [--hold] HILSIM-ARGS: `hilsim HILSIM-ARGS`, held or not
+        assert svc["entrypoint"] == ["python", "-m", "hilsim.launch.deploy"]
         if cmd[0] == "--hold":
             holding.append(name)
             cmd = cmd[1:]

@@ -139,7 +139,7 @@ def up_captured(out: Path, keys: dict[str, str], *args: str,
 @pytest.mark.parametrize("lag", [1])
 def test_lockstep_runs_are_bit_identical(tmp_path: Path, lag: int) -> None:
     """Same seed, lockstep: the joint-state streams of two runs are equal byte for byte, the
-    second with physics, sensors and the controller composed in one process (hilsim.run.compose):
+    second with physics, sensors and the controller composed in one process (hilsim.launch.compose):
     composition changes how samples travel, never what happens. With ``clock.controller_lag: 1``
     too, and the physics truth shows the lag: the effort applied over the step that ends at t is
     the command answering the measurement of t - (lag + 1) steps."""

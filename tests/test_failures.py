@@ -165,7 +165,7 @@ def test_a_second_stop_signal_kills_every_service_at_once(tmp_path: Path, sig: s
 
 
 class _Run:
-    """What the summary reads of a run (hilsim.run.summary.FinishedRun), without processes."""
+    """What the summary reads of a run (hilsim.launch.summary.FinishedRun), without processes."""
 
     def __init__(self, sc: Any, outcome: Any) -> None:
         self.sc, self.outcome = sc, outcome
@@ -200,8 +200,8 @@ def test_the_exit_code_says_how_the_run_ended(capsys: pytest.CaptureFixture[str]
     duration ends the run: a CAN bus down once gave 0/3 targets, 3 faults, `result: OK`), a stop
     signal 128 + its number. (The same, end to end: test_exit_codes_end_to_end.)"""
     from hilsim.core.scenario import load_scenario
-    from hilsim.run.follow import Outcome
-    from hilsim.run.summary import summarise
+    from hilsim.launch.follow import Outcome
+    from hilsim.launch.summary import summarise
 
     sc = load_scenario("arm", {"duration": duration} if duration else {})
     o = Outcome(faults=list(faults), interrupted=bool(interrupted), signal=int(interrupted))
@@ -368,7 +368,7 @@ class _Polled:
         import types
 
         from hilsim.core.scenario import load_scenario
-        from hilsim.run.launcher import Launcher
+        from hilsim.launch.launcher import Launcher
 
         self.sc = load_scenario("arm")
         self.follow_keys = Keys.of(self.sc)

@@ -121,8 +121,8 @@ def test_the_routers_process_runs_realtime_and_its_children_do_not_inherit_it() 
     runtime with the first link) are realtime too, and a service it starts is an ordinary process."""
     code = (
         "import os, subprocess, sys, threading\n"
-        "from hilsim.run.priorities import ROUTER_PRIORITY, raise_router_priority\n"
-        "from hilsim.run.processes import pdeathsig\n"
+        "from hilsim.launch.priorities import ROUTER_PRIORITY, raise_router_priority\n"
+        "from hilsim.launch.processes import pdeathsig\n"
         "said = []\n"
         "raise_router_priority(said.append)\n"
         "later = []\n"
@@ -143,7 +143,7 @@ def test_the_routers_process_runs_realtime_and_its_children_do_not_inherit_it() 
 def test_the_launcher_makes_the_loops_services_realtime_and_leaves_their_own_class() -> None:
     """Realtime with its own router: each service of the loop, once set up, on SCHED_FIFO (the planner
     lowest), so that other work on the machine holds no step; one that asked for more keeps it."""
-    from hilsim.run.priorities import LOOP_PRIORITY, realtime_process
+    from hilsim.launch.priorities import LOOP_PRIORITY, realtime_process
 
     plain = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
     if os.geteuid() != 0:  # not permitted: said by the result, nothing changed

@@ -1,6 +1,6 @@
 """Who may put, serve and query what, against a live router: docs/security.md's table, row by row.
 
-The router is ``hilsim up``'s own (:func:`hilsim.run.router.open_run_router`: a user, a password and the
+The router is ``hilsim up``'s own (:func:`hilsim.launch.router.open_run_router`: a user, a password and the
 access control of every identity of the arm scenario, with two lab credentials from ``hilsim creds`` and a
 guest). Each identity connects with its own file and tries every probed key; what it may do is read from
 docs/security.md ("Each identity, probed against a live router"), so the document says exactly what the
@@ -27,8 +27,8 @@ from hilsim.core import rights, run_finder, transport
 from hilsim.core.config import ConfigError, ZenohConfig
 from hilsim.core.keys import Keys
 from hilsim.core.scenario import load_scenario, parse_overrides
-from hilsim.run import creds
-from hilsim.run.router import RunRouter, identity_file, open_run_router
+from hilsim.launch import creds
+from hilsim.launch.router import RunRouter, identity_file, open_run_router
 
 FJT = "control_msgs/action/FollowJointTrajectory"
 DOC = REPO / "docs" / "security.md"

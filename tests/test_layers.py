@@ -21,7 +21,7 @@ LAYERS: list[list[str]] = [
     ["hilsim.cli"],
     ["hilsim.ui"],
     ["hilsim.tools"],
-    ["hilsim.run"],
+    ["hilsim.launch"],
     ["hilsim.services", "hilsim.bridges"],
     ["hilsim.record", "hilsim.navigation"],
     ["hilsim.planning"],
@@ -166,7 +166,7 @@ def test_no_circles() -> None:
 
 @pytest.mark.parametrize(("edge", "check"), [
     (("hilsim.core.config", "hilsim.core.scenario"), "test_the_core_is_ordered"),
-    (("hilsim.sim.world", "hilsim.run.launcher"), "test_no_import_runs_up_or_sideways"),
+    (("hilsim.sim.world", "hilsim.launch.launcher"), "test_no_import_runs_up_or_sideways"),
     (("hilsim.services.physics", "hilsim.bridges.can_bus"), "test_no_import_runs_up_or_sideways"),
 ])
 def test_the_check_sees_a_wrong_arrow(edge: tuple[str, str], check: str, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -322,7 +322,7 @@ def test_a_strangers_gaps_are_not_the_recorders_losses(
 def test_launcher_summary_reports_losses(scenario: Any, tmp_path: Path, capsys: Any, mode: str) -> None:
     """`hilsim up` shows what the recorder lost, one count per cause; any loss fails a lockstep run, a realtime
     one past ``logger.max_loss``."""
-    from hilsim.run.launcher import Launcher, summarise
+    from hilsim.launch.launcher import Launcher, summarise
 
     sc = scenario("arm", {"clock.mode": mode, "duration": 1.0, "task.targets": []})
     keys = Keys.of(sc)

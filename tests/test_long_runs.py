@@ -21,9 +21,9 @@ from hilsim.cli import build_parser
 from hilsim.core import msgs, transport
 from hilsim.core.keys import Keys
 from hilsim.core.recording import read_counts
+from hilsim.launch.up import up_overrides
 from hilsim.record.bag_read import info, open_bag
 from hilsim.record.limits import BagSeries, stop_reason
-from hilsim.run.up import up_overrides
 from hilsim.tools.recording.play import Selector, schedule
 
 

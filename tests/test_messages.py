@@ -13,8 +13,8 @@ import yaml
 
 from hilsim.cli import build_parser
 from hilsim.core.scenario import load_scenario
-from hilsim.run.follow import Outcome
-from hilsim.run.summary import summarise
+from hilsim.launch.follow import Outcome
+from hilsim.launch.summary import summarise
 
 REPO = Path(__file__).resolve().parent.parent
 

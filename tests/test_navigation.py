@@ -269,7 +269,7 @@ def test_navigator_is_a_lockstep_participant_at_its_rate() -> None:
 
 
 def test_world_flag_picks_the_scenario_variant() -> None:
-    from hilsim.run.launcher import world_scenario
+    from hilsim.launch.launcher import world_scenario
 
     assert world_scenario("rover", "indoor").endswith("config/rover.yaml")
     assert world_scenario("rover", "outdoor").endswith("config/rover-outdoor.yaml")
@@ -319,7 +319,7 @@ def test_compose_rover_runs_the_navigator() -> None:
     nav = comp["navigator"]
     assert not nav.get("profiles")  # not a hardware profile: part of the rover scenario itself
     cmd = [a.split(":-", 1)[1].rstrip("}") if a.startswith("${") else a for a in nav["command"]]
-    assert cmd[0] == "--hold"  # python -m hilsim.run.deploy --hold: `hilsim up … --only navigator`, held
+    assert cmd[0] == "--hold"  # python -m hilsim.launch.deploy --hold: `hilsim up … --only navigator`, held
     args = build_parser().parse_args(cmd[1:])
     assert args.cmd == "up" and args.only == "navigator"
     assert "navigator" in load_scenario(REPO / args.scenario).services

@@ -262,7 +262,7 @@ def test_arm_across_three_hosts_in_realtime(hosts: Hosts, tmp_path: Path) -> Non
 
 def test_only_names_services_of_the_scenario() -> None:
     from hilsim.core.config import ConfigError
-    from hilsim.run.launcher import local_units
+    from hilsim.launch.launcher import local_units
 
     sc = load_scenario("arm")
     assert local_units(sc, ["logger", "physics"]) == ["physics", "logger"]

@@ -14,7 +14,7 @@ import pytest
 from hilsim.core import msgs, registry
 from hilsim.core.config import ConfigError
 from hilsim.core.scenario import load_scenario
-from hilsim.run.launcher import stop_order
+from hilsim.launch.launcher import stop_order
 from hilsim.sim.world import World
 
 REPO = Path(__file__).resolve().parent.parent

@@ -228,7 +228,7 @@ def test_restart_policy_is_checked_in_one_line() -> None:
     # YAML's bare `no` is False: read as the policy "no"; physics is never restarted
     assert [sc.restart.policy(s) for s in ("controller", "planner", "physics")] == ["on-failure", "no", "no"]
     assert load_scenario("arm").restart.policy("controller") == "no"  # the default: no restart
-    # a composed process (hilsim.run.compose) is restarted only if each of its services may be
+    # a composed process (hilsim.launch.compose) is restarted only if each of its services may be
     assert sc.restart.policy("sensors+controller") == "on-failure"
     assert sc.restart.policy("physics+sensors") == "no" and sc.restart.policy("controller+planner") == "no"
 
@@ -238,7 +238,7 @@ def test_restarts_are_bounded_and_a_clean_exit_is_not_restarted(tmp_path: Path, 
     """The launcher's bookkeeping alone, with processes that exit at once instead of services:
     on-failure restarts a failing one max_attempts times, then the run ends on it; exit code 0
     (a service that finished) and a service without the policy are never restarted."""
-    from hilsim.run.launcher import Child, Launcher
+    from hilsim.launch.launcher import Child, Launcher
 
     sc = load_scenario("arm", parse_overrides(["restart.services.controller=on-failure", "restart.max_attempts=2",
                                                "restart.backoff=0.01"]))

@@ -27,8 +27,8 @@ from hilsim.core.recording import (
     rerun_executable,
 )
 from hilsim.core.scenario import load_scenario
+from hilsim.launch.up import INTERACTIVE_FILE_BYTES, bound_interactive
 from hilsim.record.bag_read import open_bag
-from hilsim.run.up import INTERACTIVE_FILE_BYTES, bound_interactive
 
 # entities of the .rrd whose rows are one per sample of a bag topic (hilsim.record.rows)
 PAIRS = {

@@ -31,8 +31,8 @@ from hilsim.core.config import ZenohConfig
 from hilsim.core.keys import Keys
 from hilsim.core.provenance import Provenance
 from hilsim.core.scenario import load_scenario
-from hilsim.run.follow import Follower
-from hilsim.run.summary import summarise
+from hilsim.launch.follow import Follower
+from hilsim.launch.summary import summarise
 from hilsim.services.physics import PhysicsService
 
 HILSIM = [sys.executable, "-m", "hilsim.cli"]

@@ -18,7 +18,7 @@ A scenario with ``robots: 8`` (and ``robot: arm``) runs robots ``arm0`` … ``ar
 Services are named per robot ``<service>@<robot>`` (``controller@arm3``: its keys are under
 ``<prefix>/arm3/``); ``hilsim up`` starts one process per service *kind*, ``controller@*``,
 serving every robot in threads that hand each other messages as a composed process does
-(:mod:`hilsim.run.compose`), so 8 arms take as many processes as one. ``hilsim run controller@arm3``
+(:mod:`hilsim.launch.compose`), so 8 arms take as many processes as one. ``hilsim run controller@arm3``
 runs one robot's controller alone (e.g. on another machine).
 
 Robots as arrays (``fleet.arrays: true``): a process serving every robot of a kind (``sensors@*``,

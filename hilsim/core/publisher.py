@@ -38,7 +38,7 @@ class Publisher:
             self._pub = transport.publisher(service.session, key, drop_when_congested=self._drops)
         self.seq = 0
         self._lock = threading.Lock()
-        # composed (hilsim.run.compose): also handed, unencoded, to the subscribers in this process
+        # composed (hilsim.launch.compose): also handed, unencoded, to the subscribers in this process
         self._local = getattr(self._pub, "deliver", None)
         # announce as a ROS 2 publisher does (its gid is its token's hash): receivers accept this key
         # only from announced writers (hilsim.core.provenance), and `ros2 topic list` sees it

@@ -1,7 +1,7 @@
 """Who may do what on the wire: each identity's rights in a run, derived from the key table.
 
 ``hilsim up``'s router gives every process of a run an identity of its own (a Zenoh user and password,
-:mod:`hilsim.run.router`) and lets it do only what this module derives for it from the key table of
+:mod:`hilsim.launch.router`) and lets it do only what this module derives for it from the key table of
 :mod:`hilsim.core.keys` (``TOPIC_TABLE``, ``GLOBAL_TABLE``, ``SERVED_TABLE``, ``ACTION_SERVERS``), for the
 scenario's services, robots, domain and namespace (docs/security.md, "Who may write what"):
 

@@ -171,7 +171,7 @@ class Service(Ros2Node):
 
     def _takes_batches(self, session: Any) -> bool:
         """Whether this service sends the recorder batches: the run has a recorder with ``logger.batch``
-        on, this is not it, and it is not composed with it (hilsim.run.compose: the recorder then
+        on, this is not it, and it is not composed with it (hilsim.launch.compose: the recorder then
         takes this process's messages as objects); never on an in-process bus (no recorder there)."""
         lc = self.sc.logger
         if self.records or not (lc.enabled and lc.batch > 0 and "logger" in self.sc.services):
@@ -479,7 +479,7 @@ class Service(Ros2Node):
 
     def serve(self, session: Any) -> int:
         """Attach to ``session``, loop until stopped, undeclare everything; the session stays
-        open (it may be shared: :mod:`hilsim.run.compose`). Returns the exit code."""
+        open (it may be shared: :mod:`hilsim.launch.compose`). Returns the exit code."""
         self.session = session
         rc = 0
         try:
@@ -537,7 +537,7 @@ class Service(Ros2Node):
 
 def setup_logging(name: str, level: int = logging.INFO) -> None:
     who = f"{name:<10}"
-    if "+" in name:  # composed (hilsim.run.compose): each line says which of the services wrote it
+    if "+" in name:  # composed (hilsim.launch.compose): each line says which of the services wrote it
         who = "%(service)-10s"
     logging.basicConfig(
         level=level,

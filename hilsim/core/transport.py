@@ -227,7 +227,7 @@ def publisher(session: zenoh.Session, key: str, *, drop_when_congested: bool = F
 
 def zenoh_session(session: Any) -> zenoh.Session | None:
     """The Zenoh session behind ``session``: itself, the one a composed process's session wraps
-    (hilsim.run.compose), or None on an in-process bus (tests, benchmarks)."""
+    (hilsim.launch.compose), or None on an in-process bus (tests, benchmarks)."""
     real = session if isinstance(session, zenoh.Session) else getattr(session, "session", None)
     return real if isinstance(real, zenoh.Session) else None
 

@@ -81,7 +81,7 @@ class Panel:
         """The well-known router: opened here when its port is free; else (``attach``) joined, when a
         Zenoh router answers there (a simulation already running on this machine: the session on it
         is returned); else a router of the panel's own on a free port."""
-        from hilsim.run.launcher import open_default_router
+        from hilsim.launch.launcher import open_default_router
 
         up = run_finder.live_runs() if attach else []
         if up:  # runs of this user are up: join one, wherever its port (asked among several, never guessed)
@@ -157,7 +157,7 @@ class Panel:
         ptr = run_finder.run_at([self.endpoint])
         if ptr is None:
             return None
-        path = ptr.run_dir / "scenario.yaml"  # the run's scenario as resolved (hilsim.run.up)
+        path = ptr.run_dir / "scenario.yaml"  # the run's scenario as resolved (hilsim.launch.up)
         try:
             key = (str(path), path.stat().st_mtime_ns)
         except OSError:

@@ -238,7 +238,7 @@ class RunControl:
         return self.start_request(RunRequest(name, world, planner, clock, mode))
 
     def start_request(self, req: RunRequest) -> dict[str, Any]:
-        from hilsim.run.launcher import world_scenario
+        from hilsim.launch.launcher import world_scenario
 
         if self.run.busy():
             raise BadInput("run", f"a run is already {self.run.state} ({self.run.info.get('scenario')}): "

@@ -56,7 +56,7 @@ class RestartConfig(_Model):
 
     def policy(self, service: str) -> str:
         """The policy of ``service`` (its own entry, else ``default``, else no); physics: no. A
-        composed process ``a+b`` (:mod:`hilsim.run.compose`) is restarted only if each of its members is."""
+        composed process ``a+b`` (:mod:`hilsim.launch.compose`) is restarted only if each of its members is."""
         if "+" in service:
             return "on-failure" if all(self.policy(s) == "on-failure" for s in service.split("+")) else "no"
         service = service.split("@")[0]  # robots > 1: controller@arm3, controller@* (hilsim.core.fleet)

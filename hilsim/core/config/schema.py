@@ -185,7 +185,7 @@ class Scenario(_Model):
 
     def launch_units(self) -> list[str]:
         """The OS processes ``hilsim up`` starts: one per service, except the services of a
-        ``compose`` group, which share one named ``a+b+c`` (:mod:`hilsim.run.compose`). With
+        ``compose`` group, which share one named ``a+b+c`` (:mod:`hilsim.launch.compose`). With
         ``robots`` > 1, a per-robot service's unit is ``<service>@*``: one process serving every robot."""
         procs = self._base_processes()
         grouped = {s: "+".join(m for m in g if m in procs) for g in self.compose for s in g}

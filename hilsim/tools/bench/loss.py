@@ -4,7 +4,7 @@ against the same run alone, measured in the same invocation.
 Each round starts ``hilsim up SCENARIO --clock realtime --duration S --allow-loss`` once alone (the
 baseline), then ``--runs N`` of them at once (each its own run directory and router: ``hilsim up``
 takes a free port when 7447 is taken), and reads for every run what its summary judges
-(:mod:`hilsim.run.summary`): the samples the recorder received (``record_summary.json``), those it
+(:mod:`hilsim.launch.summary`): the samples the recorder received (``record_summary.json``), those it
 lost (dropped at its full queue, and gaps in the writers' sequence numbers) and the published samples
 that never reached it (the ``N published samples never reached the recorder`` line). The figure is the
 summary's: ``missed / (received + missed)``, the share checked against ``logger.max_loss``

@@ -7,7 +7,7 @@ holding position under 1 kHz PID control with its sensors:
   :class:`hilsim.core.inproc.Bus` in one process — CDR encoding kept, Zenoh and processes removed;
 - ``bare``: MuJoCo and the PID arrays alone, no messages at all;
 - ``composed``: ``hilsim up arm --compose physics,sensors,controller`` — those three in one
-  process (:mod:`hilsim.run.compose`), planner and logger separate, recording everything;
+  process (:mod:`hilsim.launch.compose`), planner and logger separate, recording everything;
 - ``distributed_lag1``, ``composed_lag1``: the same with ``clock.controller_lag: 1`` (the pipelined
   lockstep: the controller's command acts one step after the measurement it answers);
 - ``distributed_batch``, ``distributed_lag1_batch``, ``composed_batch``, ``composed_recorder_batch``: those
@@ -123,7 +123,7 @@ def cpu_s(pid: int) -> float:
 
 def _run(sc: Scenario, run_dir: Path, cpu: dict[str, float] | None = None, *, task: bool = False,
          run_router: bool = False, per_service: bool = True, after_ready: Any = None) -> Any:
-    """Run ``sc`` with ``hilsim up``'s launcher; its outcome (hilsim.run.follow.Outcome). ``cpu``, if
+    """Run ``sc`` with ``hilsim up``'s launcher; its outcome (hilsim.launch.follow.Outcome). ``cpu``, if
     given, is filled with the CPU seconds each process spent from "ready" to the end of the run (the
     router and launcher: this process). ``task``: the run ends with its task, not at a duration.
 
@@ -132,7 +132,7 @@ def _run(sc: Scenario, run_dir: Path, cpu: dict[str, float] | None = None, *, ta
     as ``hilsim up`` opens it, every service a client of it, so every sample passes through it; each
     process with an identity of its own (``per_service``), or all with one that may do everything (as
     before identities, docs/security.md)."""
-    from hilsim.run.launcher import Launcher, open_default_router
+    from hilsim.launch.launcher import Launcher, open_default_router
 
     ep, router = (None, None) if run_router else open_default_router()
     la = Launcher(sc, run_dir, router=ep, quiet=True, per_service=per_service)
@@ -189,7 +189,7 @@ def bench_distributed(sim_seconds: float, tmp: Path, cpu: dict[str, float] | Non
 
 def bench_composed(sim_seconds: float, tmp: Path, with_recorder: bool = False,
                    cpu: dict[str, float] | None = None, lag: int = 0, batch: int = 0) -> float:
-    """Physics, sensors and controller in one process (hilsim.run.compose), the planner separate, recording
+    """Physics, sensors and controller in one process (hilsim.launch.compose), the planner separate, recording
     everything; ``with_recorder``: the recorder in that process too (its samples never cross Zenoh);
     ``lag``: ``clock.controller_lag``; ``batch``: ``logger.batch``."""
     group = ["physics", "sensors", "controller", *(["logger"] if with_recorder else [])]
@@ -468,7 +468,7 @@ def cmd_loop(args: argparse.Namespace) -> int:
 def bench_laser(world: str, scans: int = 300) -> dict[str, float]:
     """The scenario's laser alone: scans (one mj_multiRay each) per wall second, from poses along x."""
     from hilsim.core import msgs
-    from hilsim.run.launcher import world_scenario
+    from hilsim.launch.launcher import world_scenario
     from hilsim.sim.sensing import make_sensor
 
     sc = load_scenario(world_scenario("rover", world))
@@ -484,7 +484,7 @@ def bench_laser(world: str, scans: int = 300) -> dict[str, float]:
 
 
 def bench_rover_run(world: str, sim_seconds: float, tmp: Path, laser: bool) -> float:
-    from hilsim.run.launcher import world_scenario
+    from hilsim.launch.launcher import world_scenario
 
     o: dict[str, Any] = {"duration": sim_seconds, "sensors.laser.enabled": laser}
     sc = load_scenario(world_scenario("rover", world), o)
@@ -532,7 +532,7 @@ def cmd_rover(args: argparse.Namespace) -> int:
             say(f"    {off[-1]:.2f}x real time")
     res["laser_on_rtf"], res["laser_off_rtf"] = max(on), max(off)
     res["laser_on_runs"], res["laser_off_runs"] = on, off
-    from hilsim.run.launcher import world_scenario
+    from hilsim.launch.launcher import world_scenario
 
     sc = load_scenario(world_scenario("rover", world))
     scan_hz = sc.sensors["laser"].rate_hz

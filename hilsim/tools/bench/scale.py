@@ -127,7 +127,7 @@ def run_one(robots: int, subscribers: int, sim_seconds: float, tmp: Path, compos
     scenario (``config/arm.yaml``) says."""
     from hilsim.core import transport
     from hilsim.core.keys import Keys
-    from hilsim.run.launcher import Launcher
+    from hilsim.launch.launcher import Launcher
 
     more: dict[str, Any] = {"robots": robots, "services": list(SERVICES)}
     if arrays is not None:

@@ -11,8 +11,8 @@ import numpy as np
 import yaml
 
 from hilsim.core.config import ConfigError, Scenario
+from hilsim.launch.out_dirs import new_run_dir
 from hilsim.planning.scoring import best, check_criterion
-from hilsim.run.out_dirs import new_run_dir
 
 if TYPE_CHECKING:
     from hilsim.core import msgs

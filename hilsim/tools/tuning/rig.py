@@ -1,7 +1,7 @@
 """Step experiments on the real services: physics, sensors and controller as separate processes, in lockstep.
 
 The tools (``hilsim report step``, ``hilsim tune``) start the scenario's physics, sensors and
-controller with :class:`hilsim.run.launcher.Launcher` (no planner: the rig writes
+controller with :class:`hilsim.launch.launcher.Launcher` (no planner: the rig writes
 ``joint_trajectory`` itself, and a key with an announced writer accepts no other) and join the run
 as one more lockstep participant, :class:`StepRig`, acknowledging on ``sync/step-rig`` every
 ``PERIOD`` control steps. Because physics waits for its acknowledgement, the rig acts at exact

@@ -101,7 +101,7 @@ def _run_once(sc: Scenario, experiments: Sequence[Experiment], run_dir: Path | N
 
 def _run_services(sc: Scenario, experiments: Sequence[Experiment], run_dir: Path | None,
                   progress: Callable[[int, int], None] | None, wall_timeout: float) -> list[Response]:
-    from hilsim.run.launcher import Launcher
+    from hilsim.launch.launcher import Launcher
 
     if not experiments:
         return []

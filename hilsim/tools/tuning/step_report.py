@@ -323,7 +323,7 @@ def log_rerun(path: Path, robot: str, rows: Sequence[Row]) -> None:
 @rig_command
 def cmd_report_step(args: argparse.Namespace) -> int:
     from hilsim.core.scenario import parse_overrides
-    from hilsim.run.out_dirs import new_run_dir
+    from hilsim.launch.out_dirs import new_run_dir
 
     overrides = parse_overrides(args.set)
     joints = [j.strip() for j in args.joints.split(",") if j.strip()] if args.joints else \

@@ -132,7 +132,7 @@ def _from_run(args: argparse.Namespace, run_dir: Path, joints: list[str]) -> int
 
 
 def _from_scenario(args: argparse.Namespace, joints: list[str]) -> int:
-    from hilsim.run.out_dirs import new_run_dir
+    from hilsim.launch.out_dirs import new_run_dir
 
     overrides = parse_overrides(args.set)
     full = load_scenario(args.scenario, overrides, args.hil)

@@ -32,7 +32,7 @@ import zenoh
 from hilsim.core import transport
 from hilsim.core.inproc import key_matches
 
-log = logging.getLogger("hilsim.run.compose")
+log = logging.getLogger("hilsim.launch.compose")
 
 # (service name, ...): a process name joins its services' names with "+"
 SEP = "+"

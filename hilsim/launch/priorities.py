@@ -4,7 +4,7 @@ The launcher's own process (the run's router) asks for SCHED_FIFO below physics 
 (:func:`raise_router_priority`); each service, once it has announced itself, gets its class here
 (:func:`prioritise_ready`): realtime, the loop's services on SCHED_FIFO (the planner or navigator
 lowest) and the recorder's receiving too, its writing threads left ordinary; lockstep, the recorder
-niced. The children start in an ordinary class whatever the launcher's (:mod:`hilsim.run.processes`).
+niced. The children start in an ordinary class whatever the launcher's (:mod:`hilsim.launch.processes`).
 Reads and writes no key.
 """
 
@@ -56,7 +56,7 @@ def raise_router_priority(say: Callable[[str], None]) -> None:
     router gets SCHED_FIFO too, below physics, and so do the threads Zenoh starts later (its receive
     and send runtimes start with their first link: with SCHED_RESET_ON_FORK they came up ordinary);
     the processes this one starts are set back to an ordinary class
-    (:func:`hilsim.run.processes.pdeathsig`). Without the privilege (root or CAP_SYS_NICE) it stays as
+    (:func:`hilsim.launch.processes.pdeathsig`). Without the privilege (root or CAP_SYS_NICE) it stays as
     it is."""
     try:
         for tid in sorted(int(t) for t in os.listdir("/proc/self/task")):

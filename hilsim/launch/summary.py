@@ -1,6 +1,6 @@
 """``hilsim up``'s summary: what the run came to, printed at its end, and its exit code.
 
-:func:`summarise` judges the :class:`~hilsim.run.follow.Outcome` the launcher followed (the task's
+:func:`summarise` judges the :class:`~hilsim.launch.follow.Outcome` the launcher followed (the task's
 result per robot, the final errors, dead or restarted services, a stalled lockstep, faults) and, where
 this host ran the recorder, the recording: the counts the logger wrote to
 ``<run dir>/record_summary.json`` (received, recorded, lost, dropped per key) against what every service
@@ -34,14 +34,14 @@ from typing import Protocol
 from hilsim.core.config import Scenario
 from hilsim.core.keys import UnknownKey, topic_name
 from hilsim.core.recording import read_counts, recording_parts
-from hilsim.run.follow import Outcome
+from hilsim.launch.follow import Outcome
 
 EXIT_OK, EXIT_FAILED, EXIT_STOPPED = 0, 1, 3  # and 128 + N: interrupted by signal N (SIGINT: 130)
 TASK_HOSTS = {"planner", "navigator"}  # the services that run a scenario's task.targets (hilsim.sim.tasks)
 
 
 class FinishedRun(Protocol):
-    """What the summary reads of a run (a :class:`hilsim.run.launcher.Launcher` once stopped)."""
+    """What the summary reads of a run (a :class:`hilsim.launch.launcher.Launcher` once stopped)."""
 
     @property
     def sc(self) -> Scenario: ...

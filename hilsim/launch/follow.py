@@ -7,9 +7,9 @@ physics done, or a stalled lockstep). Only the services' own samples are believe
 service that knows it: sim time and counts from each service's *final* health (``final: 1``, sent at
 its exit; nothing later replaces it), a goal's result from its first report. That a sample is the
 service's own rests on the run's router letting only the run's processes write (docs/security.md):
-a gid and a sequence number are public, any writer can copy them. The launcher (:mod:`hilsim.run.launcher`)
+a gid and a sequence number are public, any writer can copy them. The launcher (:mod:`hilsim.launch.launcher`)
 supervises the processes and records their deaths and restarts in the same outcome;
-:mod:`hilsim.run.summary` prints it at the end.
+:mod:`hilsim.launch.summary` prints it at the end.
 
 Reads: the ROS 2 graph ``@ros2_lv/<domain>/**`` (liveliness: who writes what), ``/<robot>/task/result``,
 ``planner/result`` and ``navigator/result``, ``health/*``, ``log/*`` (faults); with ``robots: N``
@@ -57,7 +57,7 @@ class Outcome:
     faults: list[str] = field(default_factory=list)
     stalled: str = ""  # physics waited longer than clock.ack_timeout for a lockstep participant
     interrupted: bool = False
-    signal: int = 0  # the stop signal that interrupted the run (SIGINT, SIGTERM; hilsim.run.launcher)
+    signal: int = 0  # the stop signal that interrupted the run (SIGINT, SIGTERM; hilsim.launch.launcher)
     killed: list[str] = field(default_factory=list)  # services killed (SIGKILL) on a second stop signal
     not_started: list[str] = field(default_factory=list)  # services that never announced themselves
     restarts: list[Restart] = field(default_factory=list)
@@ -220,10 +220,10 @@ class Follower:
                     self.outcome.physics_done = True
                 if st.name == "physics" and vals.get("state") == "stalled" and not self.outcome.stalled:
                     self.outcome.stalled = vals.get("last_error", "lockstep stalled")
-                    # whom it waited for: silent (stopped or hung), they are killed at the end (hilsim.run.launcher)
+                    # whom it waited for: silent (stopped or hung), they are killed at the end (hilsim.launch.launcher)
                     self.stalled_for = {s for s in (vals.get("waiting_for", "") + "," + vals.get("paused_for", ""))
                                         .split(",") if s}
-                if st.name == "physics":  # silent for clock.ack_timeout, to be restarted (hilsim.run.launcher)
+                if st.name == "physics":  # silent for clock.ack_timeout, to be restarted (hilsim.launch.launcher)
                     silent = {s for s in vals.get("silent", "").split(",") if s}
                     if silent != self._silent_seen:  # news once per silence (health repeats it each second)
                         self.silent, self._silent_seen = set(silent), silent

@@ -1,5 +1,5 @@
 """``hilsim compose SCENARIO [--hil FILE]…``: a docker compose file made from the scenarios, and the
-entry point of its containers (``python -m hilsim.run.deploy``).
+entry point of its containers (``python -m hilsim.launch.deploy``).
 
 The compose file is generated, so it cannot drift from the scenarios: one container per process
 ``hilsim up`` would start (``Scenario.launch_units``), plus the Zenoh router (``hilsim router``, in a
@@ -62,7 +62,7 @@ ROUTER = f"tcp/router:{ROUTER_PORT}"  # the router container, by its name on the
 # HILSIM_ROUTER_PORT when 7447 is taken (e.g. by a `hilsim up` on the same host)
 HOST_PORT = f"${{HILSIM_ROUTER_PORT:-{ROUTER_PORT}}}"
 IN_CONTAINER_RUNS = "/hilsim/runs"  # run directories inside a container; the recorder's is mounted from ../runs
-ENTRYPOINT = ["python", "-m", "hilsim.run.deploy"]  # this module's main, in the image's venv
+ENTRYPOINT = ["python", "-m", "hilsim.launch.deploy"]  # this module's main, in the image's venv
 HOLD = "--hold"
 # the profile of each bridge-like service; any other service a HIL scenario adds is under "hil"
 PROFILES = {"bridge-can": "hil-can", "drive-emulator": "hil-can", "bridge-mavlink": "hil-mavlink",
@@ -271,7 +271,7 @@ class _LogTail:
 
 
 def container_main(argv: list[str]) -> int:
-    """``python -m hilsim.run.deploy [--hold] HILSIM-ARGS…``: a compose service's entry point.
+    """``python -m hilsim.launch.deploy [--hold] HILSIM-ARGS…``: a compose service's entry point.
 
     Runs ``hilsim HILSIM-ARGS`` (``up SCENARIO --only SERVICE --router …``; its run directory
     ``/hilsim/runs/<stamp>`` unless ``--out`` says), shows its service's log as it grows, passes

@@ -2,10 +2,10 @@
 
 :func:`cmd_up` loads the scenario with the options of ``hilsim up`` (:func:`up_overrides`), makes an
 ``--interactive`` run endless with bounded files (:func:`bound_interactive`), runs it with a
-:class:`~hilsim.run.launcher.Launcher` (stop signals taken by a watcher thread, never raised in the main
+:class:`~hilsim.launch.launcher.Launcher` (stop signals taken by a watcher thread, never raised in the main
 thread, so stopping and the summary always finish), says what a person can do once it is ready
 (:func:`say_viewer`, the interactive hint) and returns the summary's exit code
-(:mod:`hilsim.run.summary`). Reads and writes no key itself (the launcher does the following).
+(:mod:`hilsim.launch.summary`). Reads and writes no key itself (the launcher does the following).
 """
 
 from __future__ import annotations
@@ -24,9 +24,9 @@ from hilsim.core.config import Scenario
 from hilsim.core.keys import Keys
 from hilsim.core.scenario import load_scenario
 from hilsim.core.service import watch_signals
-from hilsim.run.launcher import Launcher
-from hilsim.run.summary import summarise
-from hilsim.run.worlds import world_scenario
+from hilsim.launch.launcher import Launcher
+from hilsim.launch.summary import summarise
+from hilsim.launch.worlds import world_scenario
 
 
 def default_run_dir(sc: Scenario) -> Path:
@@ -125,7 +125,7 @@ def bound_interactive(sc: Any) -> None:
 
 
 def cmd_up(args: argparse.Namespace) -> int:
-    """``hilsim up``: its exit code is the summary's (:mod:`hilsim.run.summary`): 0 every target
+    """``hilsim up``: its exit code is the summary's (:mod:`hilsim.launch.summary`): 0 every target
     reached, 1 failed, 3 stopped by ``--duration`` before its task ended, 128 + N interrupted by
     signal N (Ctrl-C: 130, SIGTERM: 143); a second stop signal kills the services at once."""
     from hilsim.core.config import ConfigError

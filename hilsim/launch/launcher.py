@@ -1,11 +1,11 @@
 """``hilsim up``'s supervisor: start a scenario's services as separate processes, follow, restart, stop.
 
 This module supervises the processes (the :class:`Launcher`: start, readiness, liveliness, restarts,
-stop). The command around it (options, the run's directory, signals) is :mod:`hilsim.run.up`; starting
-one process and its log :mod:`hilsim.run.processes`; their scheduling classes :mod:`hilsim.run.priorities`;
-which units start here and in what order :mod:`hilsim.run.units`; the services of other hosts
-:mod:`hilsim.run.remote`; following what the services report :mod:`hilsim.run.follow`, the summary
-printed at the end :mod:`hilsim.run.summary`, the embedded router :mod:`hilsim.run.router`.
+stop). The command around it (options, the run's directory, signals) is :mod:`hilsim.launch.up`; starting
+one process and its log :mod:`hilsim.launch.processes`; their scheduling classes :mod:`hilsim.launch.priorities`;
+which units start here and in what order :mod:`hilsim.launch.units`; the services of other hosts
+:mod:`hilsim.launch.remote`; following what the services report :mod:`hilsim.launch.follow`, the summary
+printed at the end :mod:`hilsim.launch.summary`, the embedded router :mod:`hilsim.launch.router`.
 
 The launcher opens an embedded Zenoh router on a free loopback port (or joins ``--router``) that
 admits only the run's processes, each with an identity of its own that may write only what the key
@@ -43,7 +43,7 @@ robot's service ``<service>@<robot>`` and waits for every robot's ``task/result`
 
 Reads: ``<prefix>/<robot>/alive/*`` (liveliness tokens: who is up, who left; every robot's
 ``<prefix>/*/alive/*`` with ``robots: N``), also asked for with a liveliness query while services of
-other hosts are expected. Through its :class:`~hilsim.run.follow.Follower`: the ROS 2 graph,
+other hosts are expected. Through its :class:`~hilsim.launch.follow.Follower`: the ROS 2 graph,
 ``task/result``, ``planner/result``, ``navigator/result``, ``health/*``, ``log/*``. Writes no key.
 """
 
@@ -64,15 +64,15 @@ from hilsim.core.keys import Keys
 from hilsim.core.provenance import Provenance
 from hilsim.core.restart import STATE_DIR
 from hilsim.core.scenario import write_scenario
-from hilsim.run.follow import Follower, Outcome, Restart
-from hilsim.run.priorities import prioritise_ready, raise_router_priority, renice
-from hilsim.run.processes import Child, spawn
-from hilsim.run.processes import tail as tail_of
-from hilsim.run.remote import REMOTE_GRACE_S, RemoteHosts
-from hilsim.run.router import cmd_router, identity_file, open_default_router, open_run_router
-from hilsim.run.summary import summarise
-from hilsim.run.units import local_units, stop_order
-from hilsim.run.worlds import world_scenario
+from hilsim.launch.follow import Follower, Outcome, Restart
+from hilsim.launch.priorities import prioritise_ready, raise_router_priority, renice
+from hilsim.launch.processes import Child, spawn
+from hilsim.launch.processes import tail as tail_of
+from hilsim.launch.remote import REMOTE_GRACE_S, RemoteHosts
+from hilsim.launch.router import cmd_router, identity_file, open_default_router, open_run_router
+from hilsim.launch.summary import summarise
+from hilsim.launch.units import local_units, stop_order
+from hilsim.launch.worlds import world_scenario
 
 # the names other modules import from here, wherever they are defined
 __all__ = ["Child", "Launcher", "Outcome", "Restart", "cmd_router", "local_units", "open_default_router", "stop_order",
@@ -175,7 +175,7 @@ class Launcher(RemoteHosts):
             self.children[name] = Child(name, self._spawn(name, 0), self.run_dir / f"{name}.log")
 
     def _spawn(self, name: str, attempt: int) -> subprocess.Popen[bytes]:
-        """Start ``hilsim run NAME`` with its own identity (:func:`hilsim.run.processes.spawn`)."""
+        """Start ``hilsim run NAME`` with its own identity (:func:`hilsim.launch.processes.spawn`)."""
         return spawn(name, attempt, self.run_dir, self.cfg_path, self.identities.get(name, self.sc.zenoh.auth))
 
     def missing(self) -> list[str]:

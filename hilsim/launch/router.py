@@ -37,7 +37,7 @@ from hilsim.core.rights import (
     unit_rights,
 )
 from hilsim.core.transport import Credentials, RouterUsers
-from hilsim.run import creds
+from hilsim.launch import creds
 
 
 def open_default_router(users: RouterUsers | None = None) -> tuple[str, zenoh.Session]:

@@ -12,7 +12,7 @@ hilsim's tools). What may be given is what a person may command, by the key tabl
 The lab's credentials live in one directory (``HILSIM_CREDS``, else ``$XDG_CONFIG_HOME/hilsim/creds``,
 else ``~/.config/hilsim/creds``; mode 0700): ``<name>.json`` (the grant, with its password; 0600) and
 ``<name>.json5`` (the client config; 0600). Every router ``hilsim up`` opens afterwards admits them
-(:func:`hilsim.run.router.open_run_router`); a router already open does not change. Reads and writes
+(:func:`hilsim.launch.router.open_run_router`); a router already open does not change. Reads and writes
 no key.
 """
 

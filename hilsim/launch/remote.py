@@ -1,7 +1,7 @@
 """Services of other hosts (``hilsim up --only``, docs/deployment.md): their comings and goings.
 
 The launcher starts only this host's services and waits for the others' liveliness tokens; this
-part of it (:class:`RemoteHosts`, a base of :class:`hilsim.run.launcher.Launcher`) keeps which remote
+part of it (:class:`RemoteHosts`, a base of :class:`hilsim.launch.launcher.Launcher`) keeps which remote
 service is up, says when one leaves or comes back, asks who is alive with a liveliness query when a
 departure event may have been lost (:meth:`RemoteHosts._poll_remote`), and holds the recorder's stop
 until the other hosts' services have left (:meth:`RemoteHosts._await_remote_leaving`).
@@ -21,7 +21,7 @@ import zenoh
 from hilsim.core import fleet
 from hilsim.core.config import Scenario
 from hilsim.core.keys import Keys
-from hilsim.run.follow import Outcome
+from hilsim.launch.follow import Outcome
 
 REMOTE_LEAVE_TIMEOUT = 10.0  # s the recorder waits, at a run's end, for the other hosts' services to leave
 REMOTE_MISSES = 2  # --only: polls in a row that must miss a remote service's token before it has left
