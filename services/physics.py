@@ -59,6 +59,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from typing import Any
 
 import numpy as np
@@ -165,10 +166,12 @@ class PhysicsService(PhysicsRealtime, PhysicsCommands):
             self.subscribe(self.keys.all_server_states, msgs.JointState, self._on_server_state)
         # lockstep with a task: the run ends on a step set by it (TASK_END_MARGIN_NS after every robot's result)
         self.task_ends: dict[str, int] = {}
+        self.task_results: deque[tuple[str, int]] = deque()  # arrived, for the stepping to take (_take_task_results)
         self.ended_by = "the scenario duration"
         if sc.clock.mode == "lockstep" and sc.task.targets:
             for r in self.robots:
-                self.subscribe(r.keys.topic("task/result"), msgs.MoveResult, self._on_task_result, stream=False)
+                self.subscribe(r.keys.topic("task/result"), msgs.MoveResult, self._on_task_result, stream=False,
+                               locked=False)
         live = self.session.liveliness()
         self._declared.append(live.declare_subscriber(ns.all_alive, self._on_alive, history=True))
         if sc.clock.mode == "lockstep":
@@ -214,6 +217,8 @@ class PhysicsService(PhysicsRealtime, PhysicsCommands):
     # ------------------------------------------------------------------ stepping
     def _advance(self) -> None:
         """Step once and publish; in lockstep also keep going while nothing needs waiting for."""
+        if self.task_results:
+            self._take_task_results()
         if self.end_ns is not None and self.world.time_ns >= self.end_ns:
             self._finish()
             return

@@ -19,6 +19,7 @@ the steps it lets go are published by :mod:`hilsim.services.physics_truth`; its 
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Callable
 
 import zenoh
@@ -56,6 +57,7 @@ class PhysicsLockstep(PhysicsTruth):
     end_ns: int | None
     ended_by: str
     task_ends: dict[str, int]
+    task_results: deque[tuple[str, int]]
     last_progress: float
     waiting_reported: bool
     silent: list[str]
@@ -132,24 +134,31 @@ class PhysicsLockstep(PhysicsTruth):
                 for n, p in self.participants.items()))
 
     def _on_task_result(self, msg: msgs.MoveResult, key: str) -> None:
-        """Lockstep: a robot's task ended; once every robot's did, sim time stops ``TASK_END_MARGIN_NS`` after
-        the latest result's stamp, on that step in every run with the same seed."""
-        with self.lock:
-            self.task_ends[key] = msgs.ns_of(msg.header.stamp)
-            if len(self.task_ends) < len(self.robots) or self.done:
-                return
-            dt = self.sc.dt_ns
-            end = -(-(max(self.task_ends.values()) + TASK_END_MARGIN_NS) // dt) * dt  # on a step
-            if self.end_ns is not None and self.end_ns <= end:
-                return  # the duration comes first
-            now = self.world.time_ns
-            self.end_ns, self.ended_by = end, "the task"
-            if now > end:  # the result came later than the margin allows: this end depends on the machine
-                self.warn(f"the task's result (t={max(self.task_ends.values()) / 1e9:.3f} s) reached physics at "
-                          f"t={now / 1e9:.3f} s, past the end it sets (t={end / 1e9:.3f} s): this run's end is "
-                          "not the same as another's with the same seed")
-            else:
-                self.log.info("the task ended: sim time stops at t=%.3f s", end / 1e9)
+        """Lockstep: a robot's task ended (Zenoh's thread, without the lock): handed to the stepping, which
+        takes it before its next step. Waiting here for the lock that the acknowledgements' handler holds
+        while it steps, a result once reached physics 200 steps late, past the end it sets."""
+        self.task_results.append((key, msgs.ns_of(msg.header.stamp)))
+
+    def _take_task_results(self) -> None:
+        """Under the lock, before a step: once every robot's task ended, sim time stops ``TASK_END_MARGIN_NS``
+        after the latest result's stamp, on that step in every run with the same seed."""
+        while self.task_results:
+            key, stamp = self.task_results.popleft()
+            self.task_ends[key] = stamp
+        if len(self.task_ends) < len(self.robots) or self.done:
+            return
+        dt = self.sc.dt_ns
+        end = -(-(max(self.task_ends.values()) + TASK_END_MARGIN_NS) // dt) * dt  # on a step
+        if self.end_ns is not None and self.end_ns <= end:
+            return  # the duration comes first
+        now = self.world.time_ns
+        self.end_ns, self.ended_by = end, "the task"
+        if now > end:  # the result came later than the margin allows: this end depends on the machine
+            self.warn(f"the task's result (t={max(self.task_ends.values()) / 1e9:.3f} s) reached physics at "
+                      f"t={now / 1e9:.3f} s, past the end it sets (t={end / 1e9:.3f} s): this run's end is "
+                      "not the same as another's with the same seed")
+        else:
+            self.log.info("the task ended: sim time stops at t=%.3f s", end / 1e9)
 
     def _report_silent(self, stalled: float) -> None:
         """Lockstep, no step for ``clock.ack_timeout`` (under self.lock): the participants that owe an

@@ -254,3 +254,70 @@ def test_a_touch_is_published_on_truth_contacts(scenario: Any) -> None:
     assert touch and all("world" in (c.body1, c.body2) for c in touch), touch  # the arm against the scene
     assert any("elbow_link" in (c.body1, c.body2) and "obstacle" in (c.geom1, c.geom2) for c in touch), touch
     assert max(c.depth for c in touch) > 0, touch
+
+
+def test_a_task_result_is_taken_while_the_stepping_holds_the_lock(scenario: Any, session: zenoh.Session,
+                                                                  run_service: Any) -> None:
+    """Lockstep with a task: sim time stops TASK_END_MARGIN_NS after the task's result, on the same step
+    in every run. Zenoh calls each subscription's handler on a thread of its own, so the result's handler
+    must not wait for the lock the acknowledgements' handler holds while it steps (in CI it once waited
+    200 steps, past the end it sets, and two same-seed runs ended 0.1 s apart): it is taken with the lock
+    held, and the run ends exactly on its step."""
+    from hilsim.services.physics_lockstep import TASK_END_MARGIN_NS
+
+    sc = scenario("arm", {"services": ["physics", "sensors", "controller", "planner"], "clock.ack_timeout": 5.0})
+    assert sc.task.targets
+    keys = Keys.of(sc)
+    names = [f"joint_{i}" for i in range(1, 7)]
+    gid_sync, gid_cmd = transport.new_gid(), transport.new_gid()
+    sync = transport.publisher(session, keys.sync("planner"))
+    cmd = transport.publisher(session, keys.topic("joint_commands"))
+    result = transport.publisher(session, keys.topic("task/result"))
+    seq = iter(range(1, 100000))
+    clocks: list[int] = []
+    lock = threading.Lock()
+
+    def on_clock(s: zenoh.Sample) -> None:
+        t = msgs.ns_of(msgs.decode(msgs.Clock, s.payload.to_bytes()).clock)
+        with lock:
+            clocks.append(t)
+            cmd.put(msgs.encode(msgs.JointState(header=msgs.header(t), name=names, effort=[0.0] * 6)),
+                    attachment=transport.attachment_bytes(next(seq), gid_cmd))
+
+    sub = session.declare_subscriber(keys.clock, on_clock)
+    tokens = [session.liveliness().declare_token(keys.lockstep("planner", 4, 3, "sync", gid_sync.hex())),
+              session.liveliness().declare_token(keys.lockstep("controller", 1, 0, "joint_commands", gid_cmd.hex()))]
+    tokens += [session.liveliness().declare_token(keys.alive(n)) for n in ("planner", "controller", "sensors")]
+
+    def ack(step: int) -> None:
+        sync.put(msgs.encode(msgs.Clock(clock=msgs.stamp(step * sc.dt_ns))),
+                 attachment=transport.attachment_bytes(next(seq), gid_sync))
+
+    svc = PhysicsService(sc)
+    def wait_steps(n: int) -> None:
+        deadline = time.monotonic() + 10
+        while len(clocks) < n and time.monotonic() < deadline:
+            time.sleep(0.01)
+
+    with run_service(svc):
+        wait_steps(4)  # tick 0 unanswered: steps 1-3 come
+        ack(0)
+        wait_steps(8)
+        assert [t // sc.dt_ns for t in clocks] == list(range(8))
+        with svc.lock:  # as the stepping holds it
+            result.put(msgs.encode(msgs.MoveResult(header=msgs.header(2 * sc.dt_ns), goal_id="task", success=True)),
+                       attachment=transport.attachment_bytes(next(seq), transport.new_gid()))
+            deadline = time.monotonic() + 5
+            while not svc.task_results and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert list(svc.task_results) == [(keys.topic("task/result"), 2 * sc.dt_ns)]
+        ack(400)  # far ahead: only the task's end stops it
+        end = -(-(2 * sc.dt_ns + TASK_END_MARGIN_NS) // sc.dt_ns) * sc.dt_ns
+        deadline = time.monotonic() + 20
+        while (not clocks or clocks[-1] < end) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.3)
+        assert clocks[-1] == end and svc.ended_by == "the task", (clocks[-3:], end, svc.ended_by)
+    sub.undeclare()
+    for t in tokens:
+        t.undeclare()

@@ -25,6 +25,7 @@ What the base does once for all:
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import sys
 import threading
@@ -203,6 +204,7 @@ class Service(Ros2Node):
         with_attachment: bool = False,
         stream: bool = True,
         fatal: bool = False,
+        locked: bool = True,
     ) -> None:
         """Call ``handler(msg, key)`` for every valid message on ``key`` (may be a key expression);
         with ``with_attachment``, ``handler(msg, key, attachment)`` (None if the sample has none).
@@ -215,7 +217,13 @@ class Service(Ros2Node):
         ``stream``: the key carries a stream (states, commands at a rate), where in realtime a
         sample older than ``clock.max_age`` is dropped because a newer one follows. ``False`` for
         a key whose samples are each an order given once (a trajectory): never dropped as stale,
-        since nothing would replace it (a task would never start)."""
+        since nothing would replace it (a task would never start).
+
+        ``locked``: the handler runs holding the service's lock (the default). ``False``: without it,
+        for a handler that only hands the message over to the loop: Zenoh calls each subscription's
+        handler on a thread of its own, so samples of two keys may be handled in another order than
+        they were sent, and one that waits for the lock while another key's handler holds it (physics
+        stepping on acknowledgements) can wait for hundreds of them."""
         assert self.session is not None
 
         realtime = self.sc.clock.mode == "realtime" and stream
@@ -255,7 +263,7 @@ class Service(Ros2Node):
 
         def handle(k: str, msg: Any, att: transport.Attachment | None) -> None:
             try:
-                with self.lock:
+                with self.lock if locked else contextlib.nullcontext():
                     if self.stop_event.is_set():
                         return  # stopping: the publishers may be going away
                     if with_attachment:
