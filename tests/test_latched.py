@@ -152,6 +152,15 @@ def test_a_latched_cache_that_gave_nothing_is_asked_again_ever_less_often(monkey
     routes.got("k")
     now[0] += 100
     assert routes.ask_again() == []
+    # a key whose every writer sends batches is never asked again: its sample comes in the batch
+    node, other = ("z1", "n1"), ("z2", "n2")
+    routes.latched["b"] = now[0]
+    routes.plain["b"] = {b"g1": node}
+    routes.batching_nodes.add(node)
+    now[0] += 60
+    assert routes.ask_again() == []
+    routes.plain["b"][b"g2"] = other  # a writer that does not (a ROS 2 node): asked again
+    assert routes.ask_again() == ["b"]
 
 
 class _Undeclarable:

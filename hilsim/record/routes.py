@@ -10,7 +10,9 @@ once, at its writer's start: a batch sent before the recorder listened is gone, 
 batching token seen after the writer's own once dropped it, and the bag had no ``/tf_static``), and its
 cache is asked again until its sample came (:meth:`KeyRoutes.ask_again`): after ``LATCHED_RETRY_S``, then
 twice as long each time, at most ``LATCHED_RETRY_MAX_S`` (an action's status is put only once a goal comes;
-each ask declares a subscription, which cost the realtime recorder a tenth of its time at 1 s).
+each ask declares a subscription, which cost the realtime recorder a tenth of its time at 1 s), unless
+every writer of the key sends batches: its sample then comes in the batch as well, whenever it is put
+(an action's status of hilsim's own services, asked every 30 s for a whole interactive run without goals).
 
 Reads (liveliness): the batching services' tokens (``Keys.batch``: which nodes batch) and the ROS 2
 graph's publisher tokens (``@ros2_lv/<domain>/…/MP/…``: who writes what, hilsim.core.provenance).
@@ -182,6 +184,11 @@ class KeyRoutes:
             for key, at in self.latched.items():
                 wait = self._wait.get(key, period)
                 if key in self.latched_got or now - at < wait:
+                    continue
+                writers = self.plain.get(key, {})
+                if writers and all(n in self.batching_nodes for n in writers.values()):
+                    # every writer batches: a sample it puts comes in its batch too, whenever that is (one
+                    # put before this recorder listened, its cache gave at the first subscription)
                     continue
                 self.latched[key] = now
                 self._wait[key] = min(2 * wait, max(period, LATCHED_RETRY_MAX_S))
