@@ -118,56 +118,70 @@ def test_lockstep_waits_for_every_participant(scenario: Any, session: zenoh.Sess
         t.undeclare()
 
 
+class PlannerLagRig:
+    """The test plays the controller, which answers every step at once, and the planner, acknowledging
+    every 4th step, waited for 3 steps later: only the planner holds physics back (:meth:`ack`)."""
+
+    def __init__(self, sc: Any, session: zenoh.Session) -> None:
+        self.sc, self.keys = sc, Keys.of(sc)
+        names = [f"joint_{i}" for i in range(1, 7)]
+        gid_sync, gid_cmd = transport.new_gid(), transport.new_gid()
+        self.gid_sync = gid_sync
+        self.sync = transport.publisher(session, self.keys.sync("planner"))
+        cmd = transport.publisher(session, self.keys.topic("joint_commands"))
+        self.seq = iter(range(1, 100000))
+        self.clocks: list[int] = []
+        self.lock = threading.Lock()
+
+        def on_clock(s: zenoh.Sample) -> None:
+            t = msgs.ns_of(msgs.decode(msgs.Clock, s.payload.to_bytes()).clock)
+            with self.lock:
+                self.clocks.append(t)
+                cmd.put(msgs.encode(msgs.JointState(header=msgs.header(t), name=names, effort=[0.0] * 6)),
+                        attachment=transport.attachment_bytes(next(self.seq), gid_cmd))
+
+        self.sub = session.declare_subscriber(self.keys.clock, on_clock)
+        live = session.liveliness()
+        self.tokens = [live.declare_token(self.keys.lockstep("planner", 4, 3, "sync", gid_sync.hex())),
+                       live.declare_token(self.keys.lockstep("controller", 1, 0, "joint_commands", gid_cmd.hex()))]
+        self.tokens += [live.declare_token(self.keys.alive(n)) for n in ("planner", "controller", "sensors")]
+
+    def ack(self, step: int) -> None:
+        self.sync.put(msgs.encode(msgs.Clock(clock=msgs.stamp(step * self.sc.dt_ns))),
+                      attachment=transport.attachment_bytes(next(self.seq), self.gid_sync))
+
+    def steps(self) -> list[int]:
+        with self.lock:
+            return [t // self.sc.dt_ns for t in self.clocks]
+
+    def close(self) -> None:
+        self.sub.undeclare()
+        for t in self.tokens:
+            t.undeclare()
+
+
 def test_a_lagging_participant_is_waited_for_lag_steps_later(scenario: Any, session: zenoh.Session,
                                                              run_service: Any) -> None:
     """A participant announced with a lag (the planner: its trajectories act later, at a stamp of
     their own) is waited for ``lag`` steps after the step it owes, not at it; physics stops
     there until the acknowledgement comes, and never runs further ahead."""
     sc = scenario("arm", {"services": ["physics", "sensors", "controller", "planner"], "clock.ack_timeout": 5.0})
-    keys = Keys.of(sc)
-    names = [f"joint_{i}" for i in range(1, 7)]
-    gid_sync, gid_cmd = transport.new_gid(), transport.new_gid()
-    sync = transport.publisher(session, keys.sync("planner"))
-    cmd = transport.publisher(session, keys.topic("joint_commands"))
-    seq = iter(range(1, 100000))
-    clocks: list[int] = []
-    lock = threading.Lock()
-
-    def on_clock(s: zenoh.Sample) -> None:
-        t = msgs.ns_of(msgs.decode(msgs.Clock, s.payload.to_bytes()).clock)
-        with lock:
-            clocks.append(t)
-            # the controller answers every step at once: only the planner holds physics back
-            cmd.put(msgs.encode(msgs.JointState(header=msgs.header(t), name=names, effort=[0.0] * 6)),
-                    attachment=transport.attachment_bytes(next(seq), gid_cmd))
-
-    sub = session.declare_subscriber(keys.clock, on_clock)
-    # the planner: every 4th step, waited for 3 steps later
-    tokens = [session.liveliness().declare_token(keys.lockstep("planner", 4, 3, "sync", gid_sync.hex())),
-              session.liveliness().declare_token(keys.lockstep("controller", 1, 0, "joint_commands", gid_cmd.hex()))]
-    tokens += [session.liveliness().declare_token(keys.alive(n)) for n in ("planner", "controller", "sensors")]
+    rig = PlannerLagRig(sc, session)
 
     def steps_after(wait: float) -> list[int]:
         time.sleep(wait)
-        with lock:
-            return [t // sc.dt_ns for t in clocks]
-
-    def ack(step: int) -> None:
-        sync.put(msgs.encode(msgs.Clock(clock=msgs.stamp(step * sc.dt_ns))),
-                 attachment=transport.attachment_bytes(next(seq), gid_sync))
+        return rig.steps()
 
     with run_service(PhysicsService(sc)):
         # tick 0 unanswered: steps 1, 2, 3 still come (the planner may be busy with tick 0), not 4
         assert steps_after(1.0) == [0, 1, 2, 3]
-        ack(0)
+        rig.ack(0)
         # ticks 4 owed from step 7 on
         assert steps_after(0.5) == list(range(8))
-        ack(4)
-        ack(8)  # early: an acknowledgement of a later tick covers the earlier ones too
+        rig.ack(4)
+        rig.ack(8)  # early: an acknowledgement of a later tick covers the earlier ones too
         assert steps_after(0.5) == list(range(16))
-    sub.undeclare()
-    for t in tokens:
-        t.undeclare()
+    rig.close()
 
 
 def test_realtime_paces_to_the_wall_clock(tmp_path: Any) -> None:
@@ -267,57 +281,32 @@ def test_a_task_result_is_taken_while_the_stepping_holds_the_lock(scenario: Any,
 
     sc = scenario("arm", {"services": ["physics", "sensors", "controller", "planner"], "clock.ack_timeout": 5.0})
     assert sc.task.targets
-    keys = Keys.of(sc)
-    names = [f"joint_{i}" for i in range(1, 7)]
-    gid_sync, gid_cmd = transport.new_gid(), transport.new_gid()
-    sync = transport.publisher(session, keys.sync("planner"))
-    cmd = transport.publisher(session, keys.topic("joint_commands"))
+    rig, keys, dt = PlannerLagRig(sc, session), Keys.of(sc), sc.dt_ns
     result = transport.publisher(session, keys.topic("task/result"))
-    seq = iter(range(1, 100000))
-    clocks: list[int] = []
-    lock = threading.Lock()
 
-    def on_clock(s: zenoh.Sample) -> None:
-        t = msgs.ns_of(msgs.decode(msgs.Clock, s.payload.to_bytes()).clock)
-        with lock:
-            clocks.append(t)
-            cmd.put(msgs.encode(msgs.JointState(header=msgs.header(t), name=names, effort=[0.0] * 6)),
-                    attachment=transport.attachment_bytes(next(seq), gid_cmd))
-
-    sub = session.declare_subscriber(keys.clock, on_clock)
-    tokens = [session.liveliness().declare_token(keys.lockstep("planner", 4, 3, "sync", gid_sync.hex())),
-              session.liveliness().declare_token(keys.lockstep("controller", 1, 0, "joint_commands", gid_cmd.hex()))]
-    tokens += [session.liveliness().declare_token(keys.alive(n)) for n in ("planner", "controller", "sensors")]
-
-    def ack(step: int) -> None:
-        sync.put(msgs.encode(msgs.Clock(clock=msgs.stamp(step * sc.dt_ns))),
-                 attachment=transport.attachment_bytes(next(seq), gid_sync))
-
-    svc = PhysicsService(sc)
     def wait_steps(n: int) -> None:
         deadline = time.monotonic() + 10
-        while len(clocks) < n and time.monotonic() < deadline:
+        while len(rig.steps()) < n and time.monotonic() < deadline:
             time.sleep(0.01)
 
+    svc = PhysicsService(sc)
     with run_service(svc):
         wait_steps(4)  # tick 0 unanswered: steps 1-3 come
-        ack(0)
+        rig.ack(0)
         wait_steps(8)
-        assert [t // sc.dt_ns for t in clocks] == list(range(8))
+        assert rig.steps() == list(range(8))
         with svc.lock:  # as the stepping holds it
-            result.put(msgs.encode(msgs.MoveResult(header=msgs.header(2 * sc.dt_ns), goal_id="task", success=True)),
-                       attachment=transport.attachment_bytes(next(seq), transport.new_gid()))
+            result.put(msgs.encode(msgs.MoveResult(header=msgs.header(2 * dt), goal_id="task", success=True)),
+                       attachment=transport.attachment_bytes(next(rig.seq), transport.new_gid()))
             deadline = time.monotonic() + 5
             while not svc.task_results and time.monotonic() < deadline:
                 time.sleep(0.01)
-            assert list(svc.task_results) == [(keys.topic("task/result"), 2 * sc.dt_ns)]
-        ack(400)  # far ahead: only the task's end stops it
-        end = -(-(2 * sc.dt_ns + TASK_END_MARGIN_NS) // sc.dt_ns) * sc.dt_ns
+            assert list(svc.task_results) == [(keys.topic("task/result"), 2 * dt)]
+        rig.ack(400)  # far ahead: only the task's end stops it
+        end = -(-(2 * dt + TASK_END_MARGIN_NS) // dt) * dt
         deadline = time.monotonic() + 20
-        while (not clocks or clocks[-1] < end) and time.monotonic() < deadline:
+        while (rig.steps() or [0])[-1] * dt < end and time.monotonic() < deadline:
             time.sleep(0.05)
         time.sleep(0.3)
-        assert clocks[-1] == end and svc.ended_by == "the task", (clocks[-3:], end, svc.ended_by)
-    sub.undeclare()
-    for t in tokens:
-        t.undeclare()
+        assert rig.steps()[-1] * dt == end and svc.ended_by == "the task", (rig.steps()[-3:], end, svc.ended_by)
+    rig.close()
