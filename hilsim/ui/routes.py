@@ -5,7 +5,7 @@ HTTP (JSON; bad input is a 4xx with ``{"error", "field"}``, never a server error
 :mod:`hilsim.ui.events`), ``POST /api/run``, ``POST /api/stop`` (:mod:`hilsim.ui.run_control`),
 ``POST /api/goal``, ``POST /api/cancel``, ``POST /api/gains`` (:mod:`hilsim.ui.commands`),
 ``POST /api/viewer`` (Rerun's bundled web viewer on the recording, served on loopback;
-:mod:`hilsim.ui.viewer`), ``GET /recording.rrd`` (the current run's recording), ``/`` and
+:mod:`hilsim.ui.viewer`), ``GET /recording.rrd`` (the current run's recording, every part of it), ``/`` and
 ``/static/…`` (the page).
 
 No Zenoh keys of its own: the handlers call the panel (:mod:`hilsim.ui.panel`), whose parts read
@@ -16,16 +16,18 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 from starlette.applications import Starlette
 from starlette.concurrency import run_in_threadpool
 from starlette.requests import Request
-from starlette.responses import FileResponse, JSONResponse, Response
+from starlette.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 
+from hilsim.core.recording import recording_files
 from hilsim.ui.events import event_endpoint
 from hilsim.ui.jsonio import BadInput, finite
 from hilsim.ui.panel import Panel
@@ -44,6 +46,14 @@ async def _body(request: Request) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise BadInput("request", "the request body must be a JSON object")
     return data
+
+
+def _concatenated(files: list[Path], chunk: int = 1 << 20) -> Iterator[bytes]:
+    """The bytes of ``files``, one after the other (a part still being written: what it holds now)."""
+    for f in files:
+        with f.open("rb") as fh:
+            while block := fh.read(chunk):
+                yield block
 
 
 def make_app(panel: Panel) -> Starlette:
@@ -96,7 +106,12 @@ def make_app(panel: Panel) -> Starlette:
         rec = str(panel.run.info.get("recording") or "")
         if not rec or not Path(rec).is_file():
             return JSONResponse({"error": "no recording yet", "field": "recording"}, status_code=404)
-        return FileResponse(rec, media_type="application/octet-stream", filename="recording.rrd")
+        # every part of it (a recording split by size or duration, a restarted recorder's), one after the
+        # other: Rerun reads RRD streams laid end to end as one recording, and the first part alone was
+        # all this gave of a long run
+        files = recording_files(rec)
+        return StreamingResponse(_concatenated(files), media_type="application/octet-stream",
+                                 headers={"Content-Disposition": 'attachment; filename="recording.rrd"'})
 
     async def not_found(request: Request, exc: Exception) -> Response:
         return JSONResponse({"error": f"no such page: {request.url.path}", "field": "request"}, status_code=404)
