@@ -84,7 +84,12 @@ def test_a_silent_joint_server_is_a_fault_not_a_hang(router: str, tmp_path: Path
     rtf = float(out.split("real-time factor ")[-1].split(",")[0])
     assert 0.95 <= rtf <= 1.05, out  # physics kept the wall clock while its joint server was silent
     log = (tmp_path / "run" / "physics.log").read_text()
-    assert log.count("joint server motor-model reports again") == 1, log
+    # said once per silence, not at every tick (under CI's load the stopped process, once continued, was
+    # starved silent again for 0.29 s, and said so, and once back said that too; one at the run's end may
+    # find no "again")
+    silences = log.count("joint server motor-model silent for")
+    back = log.count("joint server motor-model reports again")
+    assert 1 <= back <= silences <= back + 1, log
 
 
 def test_mixed_interfaces_hold_and_reach_a_target(tmp_path: Path) -> None:
