@@ -478,6 +478,52 @@ def test_the_ur5_reaches_its_targets_with_its_first_joint_on_a_can_drive(ur5: Pa
     assert "shoulder_pan_joint (node 0) in closed-loop control (position)" in log, log
 
 
+@pytest.mark.e2e
+@pytest.mark.serial  # a drive in realtime: its timing is the fit (as tests/test_identify_e2e.py)
+@pytest.mark.timeout(600)
+def test_identify_fits_the_imported_arms_drive_and_its_twin_responds_as_it_did(ur5: Path, tmp_path: Path) -> None:
+    """``hilsim identify`` on the import's own CAN overlay: the emulated drive on the UR5's shoulder, given a loop
+    the fit is not told, is found (its bandwidth, damping, dead time, the URDF's limits, its encoder), the twin
+    is written for the URDF's joint, and it responds as the drive did (identify's own comparison, step by step)."""
+    import math
+    import random
+
+    import yaml
+
+    secret = {"natural_frequency": 30.0, "damping_ratio": 0.7, "dead_time": 0.004, "encoder_cpr": 16384}
+    port = random.SystemRandom().randint(20000, 60000)  # a bus of this test's own
+    twin = tmp_path / "twin.yaml"
+    sets = [f"drive-emulator.{k}={v}" for k, v in secret.items()] + [
+        f"bridge-can.bus.port={port}", "bridge-can.heartbeat_misses=10"]  # a starved drive process is no fault here
+    p = hilsim("identify", str(ur5 / "ur5.yaml"), "--hil", str(ur5 / "hil-can.yaml"), "--joints", "shoulder_pan_joint",
+               "--write", str(twin), "--out", str(tmp_path / "id"), "--json", *(a for s in sets for a in ("--set", s)),
+               timeout=500)
+    assert p.stdout.strip(), p.stderr[-3000:]
+    rep = json.loads(p.stdout)
+    table = "\n".join(f"{s['joint']} {s['step_rad']} {k}: drive {c['drive']} twin {c['twin']} ±{c['tolerance']} "
+                      f"{c['ok']}" for s in rep["steps"] for k, c in s["checks"].items())
+    assert p.returncode == 0 and rep["match"], table + json.dumps(rep["fits"]) + p.stderr[-3000:]
+    fit = rep["fits"][0]
+    par = fit["parameters"]
+    assert fit["joint"] == "shoulder_pan_joint" and fit["order"] == 2, fit
+    assert par["natural_frequency"] == pytest.approx(secret["natural_frequency"], rel=0.05), fit
+    assert par["damping_ratio"] == pytest.approx(secret["damping_ratio"], rel=0.05), fit
+    # the limits the import gave the drive from the URDF (velocity 3.15 rad/s, effort over inertia)
+    drive = load_scenario(ur5 / "ur5.yaml", overlays=[ur5 / "hil-can.yaml"]).section("drive-emulator")
+    assert par["max_velocity"] == pytest.approx(drive["max_velocity"], rel=0.03), fit
+    assert par["max_acceleration"] == pytest.approx(drive["max_acceleration"], rel=0.05), fit
+    assert secret["dead_time"] <= fit["dead_time_own"] < secret["dead_time"] + 0.002, fit
+    assert fit["encoder"]["resolution"] == pytest.approx(2 * math.pi / secret["encoder_cpr"], rel=1e-4), fit
+    assert {s["joint"] for s in rep["steps"]} == {"shoulder_pan_joint"} and rep["trajectories"][0]["match"], table
+    # the twin: the imported scenario, its shoulder simulated as the drive, no hardware, in lockstep
+    raw = yaml.safe_load(twin.read_text())
+    assert "bridge-can" not in raw and "drive-emulator" not in raw, raw
+    sc = load_scenario(twin)
+    assert not sc.external_servers() and sc.clock.mode == "lockstep"
+    assert sc.joint("shoulder_pan_joint").drive is not None and sc.joint("shoulder_pan_joint").server == "sim"
+    assert sc.joint("shoulder_pan_joint").drive.natural_frequency == pytest.approx(par["natural_frequency"])
+
+
 def test_the_import_writes_a_can_overlay_for_its_first_joint(ur5: Path) -> None:
     sc = load_scenario(ur5 / "ur5.yaml", overlays=[ur5 / "hil-can.yaml"])
     assert sc.clock.mode == "realtime" and "drive-emulator" in sc.services
