@@ -235,14 +235,14 @@ class LoggerService(LoggerIntake, LoggerStop):
         self.rec = rr.RecordingStream("hilsim", send_properties=True)
         m = self.model
         scene = self._load_scene()
-        # file sink only: no viewer, no network; with logger.live a second sink feeds the live viewer
+        # file sink only: no viewer, no network; with logger.live a second stream feeds the live viewer
         self.live = live.start(self.sc.logger.live, self.run_dir, self.warn)
         self._blueprint = default_blueprint(m, scene)
-        live.attach(self.live, self.rec, self.rrd_path, self._blueprint)
+        rows_rec = live.attach(self.live, self.rec, self.rrd_path, self._blueprint)  # the file's, or both
         lc = self.sc.logger
         self.rrd = RrdSeries(self.rrd_path, self._move_rrd, max_size=lc.max_rrd_size, max_duration=lc.max_rrd_duration)
-        self.rec.send_recording_name(f"{self.sc.name} {self.run_dir.name}")
-        self.rows = RowWriter(self.rec, self.sc.robot, m, self.fault, scene)
+        rows_rec.send_recording_name(f"{self.sc.name} {self.run_dir.name}")
+        self.rows = RowWriter(rows_rec, self.sc.robot, m, self.fault, scene)
         if self.sc.logger.bag:
             self.bag = self._open_bag()
             self._bag_append = self.bag.append
@@ -254,7 +254,7 @@ class LoggerService(LoggerIntake, LoggerStop):
             self.rows.log_scene()
         except Exception as e:  # nor may the world's geometry
             self.warn(f"world geometry of {self.sc.world.model} not recorded: {type(e).__name__}: {e}")
-        live.setup_done(self.live, self.rec)
+        live.setup_done(self.live)
         self.fox = foxglove_live.start(self.sc.logger.foxglove, self.warn, self.run_dir)
         self._worker = threading.Thread(target=self._work, name="logger-worker", daemon=True)
         self._worker.start()

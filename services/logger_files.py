@@ -44,13 +44,11 @@ class LoggerFiles(Service):
     _stopping: bool
 
     def _move_rrd(self, path: Path) -> None:
-        """The recording's file sink to ``path`` (the live viewer's sink kept): the current file is
+        """The recording's file sink to ``path`` (the live viewer's stream is another): the current file is
         closed whole, with its footer; the stream (one recording id) goes on in the new one, the
         viewer's layout written to it as well."""
         assert self.rec is not None
-        sink = getattr(self.live, "sink", None)
-        rr.set_sinks(rr.FileSink(path), *([sink] if sink is not None else []), default_blueprint=self._blueprint,
-                     recording=self.rec)
+        rr.set_sinks(rr.FileSink(path), default_blueprint=self._blueprint, recording=self.rec)
         self.rrd_path = path
 
     def _say_closed(self, path: Path, size: int, nxt: Path | None) -> None:

@@ -1,8 +1,10 @@
 """Watch a run live: the recorder's Rerun stream, teed to Rerun's bundled web viewer while it runs.
 
-``logger.live.enabled`` (``hilsim up … --view``) gives the recorder's recording stream a second sink
-beside its file: a :class:`rerun.BinaryStream` (the same chunks the file gets, encoded once more, no
-second subscriber on any key). :class:`LiveStream` hands what that sink holds, after each of the
+``logger.live.enabled`` (``hilsim up … --view``) gives the recorder a second recording stream beside its
+file's, with the same recording id, into a :class:`rerun.BinaryStream` (no second subscriber on any key):
+the same rows, each entity's dense ones thinned to what a viewer draws as it comes
+(:mod:`hilsim.record.live_rows`: at most 30 a second of sim time; logs, paths and static data whole).
+:class:`LiveStream` hands what that sink holds, after each of the
 recorder's flushes, to a ``rerun --serve-web`` child reading it on its standard input: Rerun's own
 gRPC server (which keeps the run's history, static data always, for a viewer that joins late, within
 ``SERVER_MEMORY_LIMIT``) and its bundled web viewer, both bound to loopback. In front of the web viewer
@@ -182,7 +184,9 @@ class LiveStream:
                  warn: Callable[[str], None] | None = None) -> None:
         self.run_dir, self.host = Path(run_dir), host
         self.warn = warn or (lambda _text: None)
-        self.sink: Any = None  # rerun.BinaryStream, once attached
+        self.rec: Any = None  # the live recording stream (rerun.RecordingStream), once attached
+        self.sink: Any = None  # its rerun.BinaryStream
+        self.tee: Any = None  # the file's stream and this one, as the recorder writes to them
         self.queue: deque[tuple[bytes, bool]] = deque()  # frames not yet written: (frame, essential)
         self.queued = 0  # bytes in the queue
         self.frames = self.bytes = self.dropped = self.dropped_bytes = 0
@@ -240,20 +244,27 @@ class LiveStream:
         tmp.replace(self.run_dir / LIVE_NAME)
 
     # ------------------------------------------------------------------ the recorder's side
-    def attach(self, rec: Any, rrd_path: Path, blueprint: Any) -> None:
-        """The recording stream's sinks: its file and this stream (the layout sent to both)."""
+    def attach(self, rec: Any, blueprint: Any) -> Any:
+        """The live recording stream beside the file's ``rec`` (its recording id, the layout made active: a
+        default blueprint alone is not applied by a viewer that receives the stream live); returns the
+        :class:`~hilsim.record.live_rows.LiveTee` the recorder writes its rows to."""
         import rerun as rr
 
-        self.sink = rec.binary_stream()
-        rr.set_sinks(rr.FileSink(rrd_path), self.sink, default_blueprint=blueprint, recording=rec)
-        # a default blueprint alone is not applied by a viewer that receives the stream live: made active too
-        rr.send_blueprint(blueprint, make_active=True, make_default=True, recording=rec)
+        from hilsim.record.live_rows import LiveTee
+
+        self.rec = rr.RecordingStream("hilsim", recording_id=rec.get_recording_id(), send_properties=True)
+        self.sink = self.rec.binary_stream()
+        rr.send_blueprint(blueprint, make_active=True, make_default=True, recording=self.rec)
+        self.tee = LiveTee(rec, self.rec)
+        return self.tee
 
     def pump(self, essential: bool = False) -> None:
         """After the recorder flushed: what the sink holds, as one frame, to the writer's queue; never
         waits. ``essential``: the setup's frame, never dropped."""
         if self.stopped or self.sink is None:
             return
+        if self.rec is not None:
+            self.rec.flush()  # the live stream's own batcher (in memory: quick)
         frame = self.sink.read(flush=False)
         if not frame:
             return
@@ -304,7 +315,8 @@ class LiveStream:
     def health(self) -> dict[str, Any]:
         """The stream's counts, for the recorder's health."""
         with self.lock:
-            return {"live_frames": self.frames, "live_bytes": self.bytes, "live_queued": self.queued,
+            thin = {"live_rows": self.tee.sent, "live_rows_thinned": self.tee.thinned} if self.tee else {}
+            return {**thin, "live_frames": self.frames, "live_bytes": self.bytes, "live_queued": self.queued,
                     "live_dropped": self.dropped, "live_dropped_bytes": self.dropped_bytes,
                     **({"live_stopped": self.stopped} if self.stopped else {})}
 
@@ -381,18 +393,16 @@ def start(cfg: Any, run_dir: Path, warn: Callable[[str], None]) -> LiveStream | 
         return None
 
 
-def attach(stream: LiveStream | None, rec: Any, rrd_path: Path, blueprint: Any) -> None:
-    """The recording's sinks: its file, and with a live stream that stream too."""
-    if stream is None:
-        rec.save(rrd_path, default_blueprint=blueprint)
-    else:
-        stream.attach(rec, rrd_path, blueprint)
+def attach(stream: LiveStream | None, rec: Any, rrd_path: Path, blueprint: Any) -> Any:
+    """The recording's file sink; with a live stream, its own recording stream beside it. Returns what the
+    recorder writes its rows to: ``rec``, or the tee of both (hilsim.record.live_rows)."""
+    rec.save(rrd_path, default_blueprint=blueprint)
+    return rec if stream is None else stream.attach(rec, blueprint)
 
 
-def setup_done(stream: LiveStream | None, rec: Any) -> None:
+def setup_done(stream: LiveStream | None) -> None:
     """The recorder's static rows (the model, the world, the layout) logged: sent as frames never dropped."""
     if stream is not None:
-        rec.flush()
         stream.pump(essential=True)
 
 

@@ -34,6 +34,12 @@ IMU_SOURCES = {"truth/imu": "truth", "imu": "measured"}
 Fault = Callable[..., None]  # fault(text, exc=exception): an error the recorder survives
 
 
+def streams(rec: Any) -> tuple[Any, ...]:
+    """The real recording streams behind ``rec``: a live tee's two (hilsim.record.live_rows), or ``rec`` itself
+    (for what needs a real stream: a URDF's meshes logged by rerun's own loader)."""
+    return tuple(getattr(rec, "streams", (rec,)))
+
+
 def part(s: str) -> str:
     """One entity path segment, whatever characters ``s`` has (``/``, ``:``, spaces)."""
     return str(rr.escape_entity_path_part(s))

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from hilsim.core import msgs
-from hilsim.record.rows.common import MODEL_PERIOD_NS, TIMELINE, RowsBase, part, rr
+from hilsim.record.rows.common import MODEL_PERIOD_NS, TIMELINE, RowsBase, part, rr, streams
 from hilsim.sim.kinematics import RobotModel
 
 # timed trajectories (a person's, the planner's) and the planner's geometric path
@@ -42,7 +42,8 @@ class JointRows(RowsBase):
         if m is None:
             return
         try:
-            m.log_static(self.rec)
+            for r in streams(self.rec):
+                m.log_static(r)
         except Exception:
             m.joints = {}
             raise

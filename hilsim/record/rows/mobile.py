@@ -35,7 +35,7 @@ import numpy as np
 
 from hilsim.core import msgs
 from hilsim.core.geometry import yaw_of
-from hilsim.record.rows.common import MODEL_PERIOD_NS, TIMELINE, WORLD_FRAME, part, rr
+from hilsim.record.rows.common import MODEL_PERIOD_NS, TIMELINE, WORLD_FRAME, part, rr, streams
 from hilsim.record.rows.generic import GenericRows
 from hilsim.sim.kinematics import RobotModel
 from hilsim.sim.scene import Scene
@@ -130,7 +130,8 @@ class MobileRows(GenericRows):
         if sc is None:
             return
         rec = self.rec
-        sc.log_static(rec, WORLD_FRAME)
+        for r in streams(rec):
+            sc.log_static(r, WORLD_FRAME)
         if sc.root_pose is not None and self.model is not None:
             pos, quat = sc.root_pose
             rec.log(f"tf/{part(self.model.root)}", rr.Transform3D(

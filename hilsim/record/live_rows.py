@@ -1,0 +1,105 @@
+"""What the live viewer is sent: the recording's rows, thinned to what a viewer can draw as it comes.
+
+The recording's file keeps every row (1 kHz joint plots, a transform per joint every 10 ms of sim time…);
+a web viewer rendering in software on a small machine falls minutes behind such a stream (docs/recording.md,
+"Watch it live"). So with ``logger.live`` the recorder has two recording streams with one recording id: its
+file's, and the live one (:class:`LiveTee`), which gets everything the file gets except that each entity's
+dense rows are thinned to at most :data:`LIVE_RATE_HZ` per second of sim time (the first row of each period).
+Text logs and line strips (a planned path, a track: each row a whole strip) are never thinned; static rows
+(the model, the world, the layout) go to both streams whole.
+
+No Zenoh keys: it sits between the recorder's row writer (:class:`hilsim.record.rows.RowWriter`) and Rerun.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+
+LIVE_RATE_HZ = 30.0  # rows per entity per second of sim time the live viewer is sent at most
+# archetypes whose every row counts (a log line; a path or a track drawn as one strip per row)
+WHOLE = ("TextLog", "LineStrips3D", "LineStrips2D", "GeoLineStrings")
+
+
+class _Taken:
+    """A component or time column with only some of its rows (duck-typed for ``send_columns``)."""
+
+    def __init__(self, col: Any, rows: pa.Array) -> None:
+        self.col, self.array = col, col.as_arrow_array().take(rows)
+
+    def component_descriptor(self) -> Any:
+        return self.col.component_descriptor()
+
+    def timeline_name(self) -> str:
+        return str(self.col.timeline_name())
+
+    def as_arrow_array(self) -> pa.Array:
+        return self.array
+
+
+class LiveTee:
+    """The file's recording stream and the live one, used by the row writer as one stream.
+
+    ``log``, ``set_time`` and ``send_recording_name`` go to both; ``send_columns`` sends the file every row
+    and the live stream each entity's first row of every ``1/rate_hz`` s of sim time (see the module's
+    docstring); :meth:`each` runs what needs a real stream (a URDF's static meshes) on both. Anything else
+    (``flush``…) is the file's stream's."""
+
+    def __init__(self, rec: Any, live: Any, rate_hz: float = LIVE_RATE_HZ) -> None:
+        self.rec, self.live = rec, live
+        self.streams = (rec, live)
+        self.period_ns = int(1e9 / rate_hz)
+        self._last: dict[str, int] = {}  # entity -> the last period it was sent a row in
+        self.sent = self.thinned = 0  # rows the live stream got, and rows it was spared
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.rec, name)
+
+    def each(self, fn: Callable[[Any], Any]) -> None:
+        for r in self.streams:
+            fn(r)
+
+    def log(self, *args: Any, **kwargs: Any) -> None:
+        self.rec.log(*args, **kwargs)
+        self.live.log(*args, **kwargs)
+
+    def set_time(self, *args: Any, **kwargs: Any) -> None:
+        self.rec.set_time(*args, **kwargs)
+        self.live.set_time(*args, **kwargs)
+
+    def send_recording_name(self, name: str) -> None:
+        self.rec.send_recording_name(name)
+        self.live.send_recording_name(name)
+
+    def send_columns(self, entity: str, indexes: Iterable[Any], columns: Iterable[Any]) -> None:
+        indexes, columns = list(indexes), list(columns)
+        self.rec.send_columns(entity, indexes=indexes, columns=columns)
+        rows = self._rows(entity, indexes, columns)
+        if rows is None:
+            self.live.send_columns(entity, indexes=indexes, columns=columns)
+        elif len(rows):
+            self.live.send_columns(entity, indexes=[_Taken(c, rows) for c in indexes],
+                                   columns=[_Taken(c, rows) for c in columns])
+
+    def _rows(self, entity: str, indexes: list[Any], columns: list[Any]) -> pa.Array | None:
+        """The rows the live stream gets (None: all of them)."""
+        times = indexes[0].as_arrow_array() if indexes else None
+        n = len(times) if times is not None else 0
+        if n == 0 or any(str(getattr(c.component_descriptor(), "archetype", "") or "").endswith(WHOLE)
+                         for c in columns):
+            self.sent += n
+            return None
+        period = times.cast(pa.int64()).to_numpy(zero_copy_only=False) // self.period_ns
+        last = self._last.get(entity, np.iinfo(np.int64).min)
+        first = np.ones(n, dtype=bool)
+        first[1:] = period[1:] != period[:-1]
+        keep = np.flatnonzero(first & (period > last))
+        if keep.size:
+            self._last[entity] = int(period[keep].max())
+        self.sent += int(keep.size)
+        self.thinned += n - int(keep.size)
+        return None if keep.size == n else pa.array(keep, pa.int64())
+
