@@ -43,10 +43,7 @@ it takes their samples as message objects in the process (none of them crosses Z
 rest over Zenoh; the worker encodes a message object once, so both are recorded from the same
 bytes, the same way.
 
-Zenoh queues the samples of the batches' and ``**``'s subscriptions in a FIFO channel without the GIL
-(``transport.queued_subscriber``; a callback needs the GIL on the thread that reads the link, and a GIL
-held by a thread starved of CPU made the recorder deaf for a second, the senders dropping meanwhile);
-a thread of its own, ``logger-rx``, only appends ``(key, payload, attachment, receive time)`` to a queue; a worker
+The Zenoh callback only appends ``(key, payload, attachment, receive time)`` to a queue; a worker
 thread hands the payload to the bag (``BagWriter.add``: a tuple appended, the chunk built with numpy
 at the batch), decodes
 (``hilsim.core.msgs.decode``), turns messages into rows (``RowWriter``) and sends them with
@@ -268,15 +265,13 @@ class LoggerService(LoggerIntake, LoggerStop):
         for expr in self.sc.logger.record:
             subs = []
             if not self.batching:
-                subs.append(transport.queued_subscriber(self.session, self.keys.scoped(expr), self._on_sample,
-                                                        name="logger-rx"))
+                subs.append(self.session.declare_subscriber(self.keys.scoped(expr), self._on_sample))
             if local is not None:
                 subs.append(local(self.keys.scoped(expr), self._on_local))
             self._subs.extend(subs)
             self._declared.extend(subs)
         if self.batching:  # the services' batches; key by key the writers no batch covers (self.routes)
-            # queued by Zenoh, handled on a thread of its own: a held GIL never stops Zenoh reading the link
-            sub = transport.queued_subscriber(self.session, self.keys.all_batches, self._on_batch, name="logger-rx")
+            sub = self.session.declare_subscriber(self.keys.all_batches, self._on_batch)
             self._subs.append(sub)
             self._declared.append(sub)
         # without batches too: a transient-local sample (/tf_static, robot_description) is put once, often

@@ -26,7 +26,6 @@ import os
 import socket
 import threading
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -231,46 +230,6 @@ def zenoh_session(session: Any) -> zenoh.Session | None:
     (hilsim.launch.compose), or None on an in-process bus (tests, benchmarks)."""
     real = session if isinstance(session, zenoh.Session) else getattr(session, "session", None)
     return real if isinstance(real, zenoh.Session) else None
-
-
-QUEUED_CAPACITY = 4096  # samples queued for the handler: seconds of batches, ~0.7 s of the arm key by key
-
-
-class QueuedSubscriber:
-    """A subscriber whose samples Zenoh queues (a FIFO channel, no Python on Zenoh's threads) and a thread of
-    its own hands to ``handler`` in order: see :func:`queued_subscriber`."""
-
-    def __init__(self, sub: Any, handler: Callable[[Any], None], name: str) -> None:
-        self.sub, self.handler = sub, handler
-        self.thread = threading.Thread(target=self._drain, name=name, daemon=True)
-        self.thread.start()
-
-    def _drain(self) -> None:
-        for sample in self.sub:  # ends once undeclared (the channel closes)
-            try:
-                self.handler(sample)
-            except Exception:  # as Zenoh does with a callback's: said, and the next sample handled
-                LOG.exception("the handler of %s failed", self.thread.name)
-
-    def undeclare(self) -> None:
-        self.sub.undeclare()
-        if threading.current_thread() is not self.thread:
-            self.thread.join(5.0)
-
-
-def queued_subscriber(session: Any, key: str, handler: Callable[[Any], None], *, name: str = "zenoh-queue",
-                      capacity: int = QUEUED_CAPACITY) -> Any:
-    """A subscriber on ``key`` whose ``handler`` runs on a thread of its own, the samples queued by Zenoh.
-
-    With a callback, Zenoh runs the Python handler on the thread that reads the link, which needs the GIL:
-    a process whose GIL is held by a thread starved of CPU (a busy machine, the realtime loop on
-    SCHED_FIFO) then stops reading, the sender's queue fills, and a realtime sender drops what it cannot
-    send. A FIFO channel is filled without the GIL, so such a stall delays the handler instead (up to
-    ``capacity`` samples, then Zenoh waits as with a callback). On an in-process bus (tests, benchmarks):
-    the handler as a callback."""
-    if zenoh_session(session) is None:
-        return session.declare_subscriber(key, handler)
-    return QueuedSubscriber(session.declare_subscriber(key, zenoh.handlers.FifoChannel(capacity)), handler, name)
 
 
 def latched_publisher(session: Any, key: str) -> Any:
