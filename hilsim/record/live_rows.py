@@ -1,12 +1,11 @@
 """What the live viewer is sent: the recording's rows, thinned to what a viewer can draw as it comes.
 
-The recording's file keeps every row (1 kHz joint plots, a transform per joint every 10 ms of sim time…);
-a web viewer rendering in software on a small machine falls minutes behind such a stream (docs/recording.md,
-"Watch it live"). So with ``logger.live`` the recorder has two recording streams with one recording id: its
-file's, and the live one (:class:`LiveTee`), which gets everything the file gets except that each entity's
-dense rows are thinned to at most :data:`LIVE_RATE_HZ` per second of sim time (the first row of each period).
-Text logs and line strips (a planned path, a track: each row a whole strip) are never thinned; static rows
-(the model, the world, the layout) go to both streams whole.
+The recording's file keeps every row (1 kHz joint plots, a transform per joint every 10 ms of sim time…),
+more than a viewer needs to watch the robot move. So with ``logger.live`` the recorder has two recording streams
+with one recording id: its file's, and the live one (:class:`LiveTee`), which gets everything the file gets
+except that each entity's dense rows are thinned to at most :data:`LIVE_RATE_HZ` per second of sim time (the
+first row of each period). Text logs and line strips (a planned path, a track: each row a whole strip) are
+never thinned; static rows (the model, the world, the layout) go to both streams whole.
 
 No Zenoh keys: it sits between the recorder's row writer (:class:`hilsim.record.rows.RowWriter`) and Rerun.
 """
