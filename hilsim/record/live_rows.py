@@ -1,4 +1,4 @@
-"""What the live viewer is sent: the recording's rows, thinned to what a viewer can draw as it comes.
+"""What the live viewer is sent: the recording's rows, each entity's dense ones thinned.
 
 The recording's file keeps every row (1 kHz joint plots, a transform per joint every 10 ms of sim time…),
 more than a viewer needs to watch the robot move. So with ``logger.live`` the recorder has two recording streams
