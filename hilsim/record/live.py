@@ -2,8 +2,8 @@
 
 ``logger.live.enabled`` (``hilsim up … --view``) gives the recorder a second recording stream beside its
 file's, with the same recording id, into a :class:`rerun.BinaryStream` (no second subscriber on any key):
-the same rows, each entity's dense ones thinned to what a viewer draws as it comes
-(:mod:`hilsim.record.live_rows`: at most 30 a second of sim time; logs, paths and static data whole).
+the same rows, each entity's dense ones thinned (:mod:`hilsim.record.live_rows`: at most 30 a second of
+sim time; logs, paths and static data whole).
 :class:`LiveStream` hands what that sink holds, after each of the
 recorder's flushes, to a ``rerun --serve-web`` child reading it on its standard input: Rerun's own
 gRPC server (which keeps the run's history, static data always, for a viewer that joins late, within

@@ -12,7 +12,7 @@ No Zenoh keys: it sits between the recorder's row writer (:class:`hilsim.record.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
@@ -44,8 +44,8 @@ class LiveTee:
 
     ``log``, ``set_time`` and ``send_recording_name`` go to both; ``send_columns`` sends the file every row
     and the live stream each entity's first row of every ``1/rate_hz`` s of sim time (see the module's
-    docstring); :meth:`each` runs what needs a real stream (a URDF's static meshes) on both. Anything else
-    (``flush``…) is the file's stream's."""
+    docstring); ``streams`` are both, for what needs a real stream (a URDF's static meshes:
+    ``hilsim.record.rows.common.streams``). Anything else (``flush``…) is the file's stream's."""
 
     def __init__(self, rec: Any, live: Any, rate_hz: float = LIVE_RATE_HZ) -> None:
         self.rec, self.live = rec, live
@@ -56,10 +56,6 @@ class LiveTee:
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.rec, name)
-
-    def each(self, fn: Callable[[Any], Any]) -> None:
-        for r in self.streams:
-            fn(r)
 
     def log(self, *args: Any, **kwargs: Any) -> None:
         self.rec.log(*args, **kwargs)
