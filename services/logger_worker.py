@@ -14,7 +14,6 @@ loss accounts. Every ``FLUSH_PERIOD_S`` or ``FLUSH_ROWS`` rows it flushes: the r
 
 from __future__ import annotations
 
-import ctypes
 import os
 import threading
 import time
@@ -23,6 +22,7 @@ from typing import Any
 
 from hilsim.core import msgs, transport
 from hilsim.core.keys import UnknownKey, message_type
+from hilsim.core.threads import name_os_thread
 from hilsim.record import live
 from hilsim.record.accounting import LossAccounts
 from hilsim.record.bag import NO_ATTACHMENT
@@ -32,14 +32,6 @@ from hilsim.services.logger_files import LoggerFiles
 FLUSH_PERIOD_S = 0.5  # wall seconds between send_columns batches
 FLUSH_ROWS = 20_000  # …or earlier when this many rows are buffered
 FILE_FLUSH_TIMEOUT_S = 5.0  # at most this long waiting for a batch to reach the file
-
-
-def _name_thread(name: bytes) -> None:
-    """Name the calling thread for the OS (``/proc/<pid>/task/<tid>/comm``, 15 bytes); Linux only, else nothing."""
-    try:
-        ctypes.CDLL(None, use_errno=True).prctl(15, ctypes.c_char_p(name[:15]), 0, 0, 0)  # PR_SET_NAME
-    except (OSError, AttributeError):
-        pass
 
 
 class LoggerWorker(LoggerFiles):
@@ -68,7 +60,7 @@ class LoggerWorker(LoggerFiles):
             pass
 
     def _work(self) -> None:
-        _name_thread(b"logger-worker")  # as the OS sees it: hilsim up leaves it out of SCHED_FIFO
+        name_os_thread(b"logger-worker")  # as the OS sees it: hilsim up leaves it out of SCHED_FIFO
         q = self._queue
         rows = self.rows
         assert rows is not None

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from hilsim.core import msgs
+from hilsim.core.threads import name_os_thread
 from hilsim.planning.collision import ArmModel
 from hilsim.planning.library import PlanOutcome, Problem
 from hilsim.planning.trajectory import TrajectoryError, path_msg, time_parameterize, to_msg
@@ -80,6 +81,7 @@ class PlannerWorker(PlannerHandover):
 
     # ------------------------------------------------------------------ planning worker
     def _work(self) -> None:
+        name_os_thread(b"planner-worker")  # as the OS sees it: hilsim up leaves it out of SCHED_FIFO
         while True:
             job = self._jobs.get()
             if job is None:

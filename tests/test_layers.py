@@ -29,8 +29,8 @@ LAYERS: list[list[str]] = [
     ["hilsim.core"],
 ]
 # inside the core, bottom to top: a module imports only modules listed before it
-CORE_ORDER = ["simclock", "msgs", "ros2", "geometry", "recording", "inproc", "fleet", "keys", "config", "rights",
-              "registry", "scenario", "restart", "transport", "run_finder", "provenance", "batch", "signals",
+CORE_ORDER = ["threads", "simclock", "msgs", "ros2", "geometry", "recording", "inproc", "fleet", "keys", "config",
+              "rights", "registry", "scenario", "restart", "transport", "run_finder", "provenance", "batch", "signals",
               "publisher", "ros2_node", "service"]
 
 

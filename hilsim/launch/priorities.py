@@ -3,8 +3,9 @@
 The launcher's own process (the run's router) asks for SCHED_FIFO below physics in a realtime run
 (:func:`raise_router_priority`); each service, once it has announced itself, gets its class here
 (:func:`prioritise_ready`): realtime, the loop's services on SCHED_FIFO (the planner or navigator
-lowest) and the recorder's receiving too, its writing threads left ordinary; lockstep, the recorder
-niced. The children start in an ordinary class whatever the launcher's (:mod:`hilsim.launch.processes`).
+lowest, the planner's planning thread ordinary and niced up) and the recorder's receiving too, its
+writing threads left ordinary; lockstep, the recorder niced. The children start in an ordinary class
+whatever the launcher's (:mod:`hilsim.launch.processes`).
 Reads and writes no key.
 """
 
@@ -18,6 +19,11 @@ LOGGER_NICE = 10
 ROUTER_PRIORITY = 5  # realtime: SCHED_FIFO of the run's router (physics 10, the HIL bridges 20)
 LOOP_PRIORITY = 8  # realtime: SCHED_FIFO the launcher gives the loop's services that asked for none
 PLANNING_PRIORITY = 1  # …and the planner or navigator: below every other, its plans are bursts of CPU
+# realtime: the planner's planning thread stays in the ordinary class, niced up: on SCHED_FIFO its plans
+# (a second of CPU) held one core of two while physics spun on the other, and every ordinary thread, the
+# recorder's worker with the GIL among them, waited them out: the recorder heard nothing for ~1 s (issue 42)
+PLANNING_THREADS = ("planner-worker",)
+PLANNING_NICE = -10
 LOGGER_PRIORITY = 1  # realtime: the recorder's receiving (its worker stays in the ordinary class)
 # the recorder's writing threads (its worker, Rerun's), left in the ordinary class
 RERUN_THREADS = ("logger-worker", "ChunkBatcher", "RecordingStream", "file_writer", "jemalloc")
@@ -38,11 +44,14 @@ def realtime_process(pid: int, priority: int, skip: tuple[str, ...] = ()) -> boo
     return True
 
 
-def renice(pid: int, nice: int) -> None:
-    """Give every thread of a process the niceness ``nice`` (Linux keeps it per thread; threads made
-    later inherit their maker's). Gone or not permitted: left as it is."""
+def renice(pid: int, nice: int, only: tuple[str, ...] = ()) -> None:
+    """Give every thread of a process (or only those whose name starts with one of ``only``) the niceness
+    ``nice`` (Linux keeps it per thread; threads made later inherit their maker's). Gone or not
+    permitted: left as it is."""
     try:
         for tid in os.listdir(f"/proc/{pid}/task"):
+            if only and not Path(f"/proc/{pid}/task/{tid}/comm").read_text().startswith(only):
+                continue
             os.setpriority(os.PRIO_PROCESS, int(tid), nice)
     except OSError:
         pass
@@ -75,7 +84,9 @@ def prioritise_ready(name: str, pid: int, realtime: bool, own_router: bool) -> N
         # machine cannot hold a step; the planner or navigator lowest (its plans are bursts)
         units = name.split("+")
         planning = {"planner", "navigator"}.intersection(u.split("@")[0] for u in units)
-        realtime_process(pid, PLANNING_PRIORITY if planning and len(units) == 1 else LOOP_PRIORITY)
+        realtime_process(pid, PLANNING_PRIORITY if planning and len(units) == 1 else LOOP_PRIORITY,
+                         skip=PLANNING_THREADS)
+        renice(pid, PLANNING_NICE, only=PLANNING_THREADS)
     if name == "logger" and realtime:
         # Realtime: the recorder's receiving on SCHED_FIFO like the loop's services (lowest), so that
         # no other work on the machine makes it drop samples; its worker (writing the files, the
