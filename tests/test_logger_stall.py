@@ -16,7 +16,7 @@ import pytest
 
 from hilsim.core import transport
 from hilsim.core.keys import Keys
-from hilsim.launch.priorities import PLANNING_NICE
+from hilsim.launch.priorities import PLANNING_NICE, WRITING_NICE
 
 pytestmark = [pytest.mark.e2e, pytest.mark.serial]  # realtime physics timed
 REPO = Path(__file__).resolve().parent.parent
@@ -92,7 +92,7 @@ def threads_of(pid: int) -> dict[str, set[int]]:
 
 def test_a_realtime_recorder_receives_on_sched_fifo_and_a_quiet_run_passes(tmp_path: Path) -> None:
     """Realtime with the run's own router: the recorder's receiving threads (Zenoh's) on SCHED_FIFO like the
-    loop's services, its writing (the worker, Rerun's threads) in the ordinary class and not niced; the run
+    loop's services, its writing (the worker, Rerun's threads) in the ordinary class, niced up; the run
     loses less than logger.max_loss and is not failed for it."""
     import psutil
 
@@ -121,6 +121,9 @@ def test_a_realtime_recorder_receives_on_sched_fifo_and_a_quiet_run_passes(tmp_p
         worker = [t.id for t in psutil.Process(planner).threads()
                   if Path(f"/proc/{planner}/task/{t.id}/comm").read_text().startswith("planner-worker")]
         worker_nice = os.getpriority(os.PRIO_PROCESS, worker[0]) if worker else None
+        writer = [t.id for t in psutil.Process(pid).threads()
+                  if Path(f"/proc/{pid}/task/{t.id}/comm").read_text().startswith("logger-worker")]
+        writer_nice = os.getpriority(os.PRIO_PROCESS, writer[0]) if writer else None
         nice = psutil.Process(pid).nice()
         rest, _ = p.communicate(timeout=240)
     finally:
@@ -132,6 +135,7 @@ def test_a_realtime_recorder_receives_on_sched_fifo_and_a_quiet_run_passes(tmp_p
         pytest.skip("SCHED_FIFO not permitted here")
     assert policies.get("net-0") == {os.SCHED_FIFO}, policies  # Zenoh's receiving
     assert policies.get("logger-worker") == {os.SCHED_OTHER}, policies  # the worker: writing the files
+    assert writer_nice == WRITING_NICE, writer_nice  # …niced up: other work on the machine gets less than it
     assert all(policies.get(n, {os.SCHED_OTHER}) == {os.SCHED_OTHER} for n in ("file_writer", "RecordingStream"))
     assert nice == 0, nice
     # the planner's planning thread ordinary and niced up, its receiving on SCHED_FIFO: planning on SCHED_FIFO held
