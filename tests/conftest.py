@@ -21,6 +21,8 @@ from hilsim.core.config import ZenohConfig
 from hilsim.core.scenario import load_scenario
 
 REPO = Path(__file__).resolve().parent.parent
+# every `hilsim up` a test starts stops when the test's process dies (a killed worker leaves no run up)
+os.environ.setdefault("HILSIM_STOP_WITH_PARENT", "1")
 
 
 @pytest.fixture

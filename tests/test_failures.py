@@ -15,7 +15,7 @@ from typing import Any
 
 import psutil
 import pytest
-from util import alive, finish, until_ready, up, wait_until
+from util import REPO, alive, finish, until_ready, up, wait_until
 
 from hilsim.core.keys import Keys
 
@@ -411,3 +411,39 @@ def test_one_poll_that_misses_a_remote_token_is_no_departure() -> None:
     la.answer = ["physics", "sensors", "controller"]
     la.poll()
     assert la.remote["controller"] and la.said[-1].startswith("  remote controller is back, "), la.said
+
+
+PARENT = """
+import subprocess, sys, time
+out = open(sys.argv[2], "w")
+p = subprocess.Popen([sys.executable, "-m", "hilsim.cli", "up", "arm", "--interactive", "--out", sys.argv[1]],
+                     stdout=out, stderr=subprocess.STDOUT, start_new_session=True)
+print(p.pid, flush=True)
+time.sleep(600)
+"""
+
+
+def test_a_run_started_by_a_process_that_dies_stops_with_it(tmp_path: Path) -> None:
+    """``HILSIM_STOP_WITH_PARENT=1`` (the suite sets it, tests/conftest.py): the process that started
+    ``hilsim up`` is killed, and the run stops as on SIGTERM (its summary written), every service with it;
+    without it, a run started by a killed pytest worker stayed up."""
+    log = tmp_path / "up.txt"
+    parent = subprocess.Popen([sys.executable, "-c", PARENT, str(tmp_path / "run"), str(log)], cwd=REPO,
+                              stdout=subprocess.PIPE, text=True, env={**os.environ, "HILSIM_STOP_WITH_PARENT": "1"})
+    launcher = None
+    try:
+        assert parent.stdout is not None
+        launcher = psutil.Process(int(parent.stdout.readline()))
+        assert wait_until(lambda: "ready:" in log.read_text(), 120.0), log.read_text()
+        kids = launcher.children(recursive=True)
+        assert len(kids) >= 5, kids
+        parent.kill()
+        parent.wait(timeout=10)
+        assert wait_until(lambda: not alive(launcher) and _all_gone(kids), 60.0), (log.read_text(), _still_there(kids))
+        text = log.read_text()
+        assert "interrupted" in text or "result:" in text, text
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+        if launcher is not None and alive(launcher):
+            os.killpg(launcher.pid, signal.SIGKILL)

@@ -51,6 +51,25 @@ def pdeathsig() -> None:
         pass
 
 
+STOP_WITH_PARENT_ENV = "HILSIM_STOP_WITH_PARENT"
+
+
+def stop_with_parent() -> None:
+    """In ``hilsim up``, where ``HILSIM_STOP_WITH_PARENT=1`` asks for it (the test suite sets it): SIGTERM
+    when the process that started this one dies, so that a run started by a killed pytest worker stops
+    with its services instead of staying up. Opt-in: ``nohup hilsim up … &`` must outlive its shell.
+    The kernel signals when the starting *thread* ends: start it from a thread that lives as long."""
+    if os.environ.get(STOP_WITH_PARENT_ENV) != "1":
+        return
+    parent = os.getppid()
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except OSError:
+        return
+    if os.getppid() != parent:  # it died before the signal was asked for
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
 def spawn(name: str, attempt: int, run_dir: Path, cfg_path: Path, auth: Path | None) -> subprocess.Popen[bytes]:
     """Start ``hilsim run NAME`` with the scenario ``cfg_path`` and the identity ``auth``; a restart
     (``attempt`` > 0) appends to the same log."""

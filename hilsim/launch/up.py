@@ -25,6 +25,7 @@ from hilsim.core.keys import Keys
 from hilsim.core.scenario import load_scenario
 from hilsim.core.service import watch_signals
 from hilsim.launch.launcher import Launcher
+from hilsim.launch.processes import stop_with_parent
 from hilsim.launch.summary import summarise
 from hilsim.launch.worlds import world_scenario
 
@@ -130,6 +131,7 @@ def cmd_up(args: argparse.Namespace) -> int:
     signal N (Ctrl-C: 130, SIGTERM: 143); a second stop signal kills the services at once."""
     from hilsim.core.config import ConfigError
 
+    stop_with_parent()
     overrides, origins = up_overrides(args)
     interactive = getattr(args, "interactive", False)
     if interactive and args.duration is not None:
