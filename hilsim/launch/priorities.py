@@ -26,7 +26,7 @@ PLANNING_THREADS = ("planner-worker",)
 PLANNING_NICE = -10
 LOGGER_PRIORITY = 1  # realtime: the recorder's receiving (its worker stays in the ordinary class)
 # the recorder's writing threads (its worker, Rerun's), left in the ordinary class, niced up: beside four
-# busy loops at nice 0 its worker got a fifth of what the loop left and dropped 80 % of a CAN demo's samples
+# busy loops at nice 0 its worker shared what the loop left equally with them (a CAN demo lost 80 %)
 RERUN_THREADS = ("logger-worker", "ChunkBatcher", "RecordingStream", "file_writer", "jemalloc")
 WRITING_NICE = -10
 
