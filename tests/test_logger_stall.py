@@ -90,6 +90,14 @@ def threads_of(pid: int) -> dict[str, set[int]]:
     return out
 
 
+def nice_of(pid: int, name: str) -> int | None:
+    """The niceness of the first thread of ``pid`` whose OS name starts with ``name`` (None: there is none)."""
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        if Path(f"/proc/{pid}/task/{tid}/comm").read_text().startswith(name):
+            return os.getpriority(os.PRIO_PROCESS, int(tid))
+    return None
+
+
 def test_a_realtime_recorder_receives_on_sched_fifo_and_a_quiet_run_passes(tmp_path: Path) -> None:
     """Realtime with the run's own router: the recorder's receiving threads (Zenoh's) on SCHED_FIFO like the
     loop's services, its writing (the worker, Rerun's threads) in the ordinary class, niced up; the run
@@ -118,12 +126,7 @@ def test_a_realtime_recorder_receives_on_sched_fifo_and_a_quiet_run_passes(tmp_p
                     os.SCHED_FIFO in planning.get("net-0", set()):
                 break
             time.sleep(0.2)
-        worker = [t.id for t in psutil.Process(planner).threads()
-                  if Path(f"/proc/{planner}/task/{t.id}/comm").read_text().startswith("planner-worker")]
-        worker_nice = os.getpriority(os.PRIO_PROCESS, worker[0]) if worker else None
-        writer = [t.id for t in psutil.Process(pid).threads()
-                  if Path(f"/proc/{pid}/task/{t.id}/comm").read_text().startswith("logger-worker")]
-        writer_nice = os.getpriority(os.PRIO_PROCESS, writer[0]) if writer else None
+        worker_nice, writer_nice = nice_of(planner, "planner-worker"), nice_of(pid, "logger-worker")
         nice = psutil.Process(pid).nice()
         rest, _ = p.communicate(timeout=240)
     finally:

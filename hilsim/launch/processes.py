@@ -35,16 +35,21 @@ class Child:
     died_at: float = 0.0  # monotonic time its last process was found dead
 
 
+def sigterm_when_parent_dies() -> bool:
+    """Ask the kernel for SIGTERM when this process's parent (the thread that started it) ends
+    (PR_SET_PDEATHSIG); False where it cannot."""
+    try:
+        return ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM) == 0
+    except OSError:
+        return False
+
+
 def pdeathsig() -> None:
     """In the child: get SIGTERM when the launcher dies, and leave the terminal's signals to it; an
     ordinary scheduling class whatever the launcher's (a realtime run's router: each service asks
     for its own)."""
     os.setpgrp()
-    try:
-        libc = ctypes.CDLL("libc.so.6", use_errno=True)
-        libc.prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except OSError:
-        pass
+    sigterm_when_parent_dies()
     try:
         os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
     except OSError:
@@ -62,11 +67,7 @@ def stop_with_parent() -> None:
     if os.environ.get(STOP_WITH_PARENT_ENV) != "1":
         return
     parent = os.getppid()
-    try:
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except OSError:
-        return
-    if os.getppid() != parent:  # it died before the signal was asked for
+    if sigterm_when_parent_dies() and os.getppid() != parent:  # it died before the signal was asked for
         os.kill(os.getpid(), signal.SIGTERM)
 
 
