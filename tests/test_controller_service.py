@@ -388,8 +388,9 @@ def test_lockstep_chain_with_sensors_and_mujoco(
                     )
                 )
                 with cv:
-                    # with a controller, its command is the acknowledgement: the sensors send none
-                    assert cv.wait_for(lambda k=k: len(cmds) > k, 5.0), f"step {k} not acknowledged"
+                    # with a controller, its command is the acknowledgement: the sensors send none (30 s: a
+                    # fresh clone's suite, two at a time, once waited more than 5 s for step 0's)
+                    assert cv.wait_for(lambda k=k: len(cmds) > k, 30.0), f"step {k} not acknowledged"
                     assert msgs.ns_of(cmds[k].header.stamp) == t and not acks
                     d.ctrl[:] = cmds[k].effort
                 mujoco.mj_step(m, d)
