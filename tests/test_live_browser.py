@@ -10,22 +10,27 @@ chromium) and by Rerun's own client (the ``rerun`` CLI, ``--connect … --save``
   physics truth's.
 - The stream stops with the run.
 
-Not tested here: pictures of the 3D view. Rerun's web viewer renders by software in a headless browser; on two
-shared cores its wasm bundle alone took 60-110 s to start and one screenshot 15-300 s (docs/recording.md).
+- The pictures: screenshots of the embedded viewer while the arm goes from its start to two targets either side
+  of the obstacle. In its 3D view (found by the table, the one large brown thing) two pictures of the arm at rest
+  are the same, and each move changes the pixels around the arm; the pixels both moves changed are where the arm
+  stood between them. The test prints how many pixels changed where.
 
 Without chromium or Playwright the test is skipped with the reason, except under CI=true, where it fails.
 """
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import os
 import re
 import socket
 import subprocess
+import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from util import LEAN, Observer, chromium, wait_until
 
@@ -70,6 +75,55 @@ def _received(client: subprocess.Popen[bytes], path: Path) -> tuple[set[str], li
     return entities, quats
 
 
+# the arm world's table as Rerun's viewer shades it (config/worlds: its box's colour): the largest thing of that
+# colour in a picture of the viewer is the table, and the 3D view is around it
+TABLE_RGB = (158, 120, 77)
+CHANGED = 40  # a pixel changed: its R+G+B moved by more than this (software rendering is exact frame to frame)
+
+
+def _picture(png: bytes) -> np.ndarray:
+    from PIL import Image  # pillow: a dependency of rerun-sdk
+
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.int16)
+
+
+def _table(img: np.ndarray) -> tuple[int, int, int, int] | None:
+    """The table's box in a picture (x0, y0, x1, y1): the largest region of its colour, None before it is drawn."""
+    from scipy import ndimage
+
+    labels, n = ndimage.label(np.abs(img - np.array(TABLE_RGB)).max(axis=2) < 40)
+    if n == 0:
+        return None
+    sizes = ndimage.sum_labels(np.ones(labels.shape), labels, range(1, n + 1))
+    if sizes.max() < 2000:  # a line of a plot or a legend's dot is not the table
+        return None
+    ys, xs = np.nonzero(labels == 1 + int(sizes.argmax()))
+    return int(xs.min()), int(ys.min()), int(xs.max()), int(ys.max())
+
+
+def _around_the_arm(table: tuple[int, int, int, int]) -> tuple[slice, slice]:
+    """Where the arm is drawn: above the table it stands on (as high again as the table is drawn), across it."""
+    x0, y0, x1, y1 = table
+    return slice(max(0, y0 - (y1 - y0)), y1 + 1), slice(x0, x1 + 1)
+
+
+def _changed(a: np.ndarray, b: np.ndarray, where: tuple[slice, slice]) -> np.ndarray:
+    return np.abs(a[where] - b[where]).sum(axis=2) > CHANGED
+
+
+def _path(img: np.ndarray, where: tuple[slice, slice]) -> np.ndarray:
+    """The planned tool path's pixels (drawn in yellow, COLOURS["plan"], with its anti-aliased edges)."""
+    from scipy import ndimage
+
+    r, g, b = (img[where][..., i] for i in range(3))
+    return ndimage.binary_dilation((r > 180) & (g > 140) & (b < 120) & (r - b > 100), iterations=3)
+
+
+def _box(mask: np.ndarray) -> str:
+    ys, xs = np.nonzero(mask)
+    return f"x {xs.min()}-{xs.max()}, y {ys.min()}-{ys.max()}" if len(xs) else "none"
+
+
 @pytest.mark.e2e
 @pytest.mark.timeout(900)
 def test_the_panel_and_rerun_see_the_arm_live(tmp_path: Path) -> None:
@@ -83,6 +137,7 @@ def test_the_panel_and_rerun_see_the_arm_live(tmp_path: Path) -> None:
     panel = PanelProc(up=[LEAN, "--interactive", "--out", str(run), "--set", f"logger.record={LIVE_KEYS}"])
     saved = tmp_path / "client.rrd"
     client: subprocess.Popen[bytes] | None = None
+    obs: Observer | None = None
     outside: list[str] = []  # requests the page made to anything but this host
     try:
         got: dict[str, str] = {}
@@ -98,6 +153,8 @@ def test_the_panel_and_rerun_see_the_arm_live(tmp_path: Path) -> None:
         grpc_port = int(re.search(r":(\d+)/proxy", info["grpc"]).group(1))  # type: ignore[union-attr]
         client = _client(info["grpc"], saved)
 
+        target, other = load_scenario("arm").task.targets[:2]  # left, then right of the obstacle
+        obs = Observer(panel.endpoint)  # the physics truth, on the panel's router (closed below)
         with sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path=exe, headless=True, args=[
                 "--no-sandbox", "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"])
@@ -124,28 +181,88 @@ def test_the_panel_and_rerun_see_the_arm_live(tmp_path: Path) -> None:
             assert live_wait(lambda: any(f.url == url for f in page.frames), 120), [f.url for f in page.frames]
             inner = next(f for f in page.frames if f.url == url)
             inner.wait_for_selector("canvas", state="attached", timeout=120_000)
-            browser.close()
 
-        # the arm to a target; Rerun's client sees the first joint turn there, as the truth says
-        target = load_scenario("arm").task.targets[0]
-        entities, quats = _received(client, saved)
-        client = None
-        assert quats, f"Rerun's client received no transform of the arm: {sorted(entities)[:20]}"
-        assert abs(quats[0][2]) < 0.01, quats[:5]  # the arm's start: the first joint at 0
-        obs = Observer(panel.endpoint)  # the physics truth, on the panel's router
-        try:
-            status, data = _http(panel.url + "/api/goal", {"kind": "joints", "positions": list(target)})
-            assert status == 200, data
-            gid = data["goal_id"]
-            assert wait_until(lambda: any(g["id"] == gid and g["done"] for g in panel.state()["goals"]), 300)
-            goal = next(g for g in panel.state()["goals"] if g["id"] == gid)
-            assert goal["success"], goal
-            done_ns = round(goal["sim"] * 1e9)
-            assert wait_until(lambda: bool(obs.truth) and obs.truth[-1][0] >= done_ns, 60)
-            q1 = float(obs.truth_at(done_ns)[0])
-        finally:
-            obs.close()
-        assert abs(q1 - target[0]) < 0.02, (q1, target)
+            shots: dict[str, np.ndarray] = {}
+
+            def shoot(name: str) -> np.ndarray:
+                png = frame.screenshot()
+                (tmp_path / f"{name}.png").write_bytes(png)
+                shots[name] = _picture(png)
+                return shots[name]
+
+            # the viewer draws the world: the table appears in its 3D view
+            t0 = time.monotonic()
+            table: tuple[int, int, int, int] | None = None
+            while table is None and time.monotonic() - t0 < 300:
+                table = _table(shoot("start"))
+                time.sleep(1)
+            assert table is not None, f"no table drawn in 300 s: see {tmp_path / 'start.png'}"
+            drawn_s = time.monotonic() - t0
+            where = _around_the_arm(table)
+
+            def settled(name: str) -> np.ndarray:
+                """A picture once two taken a second apart are the same where the arm is (the view caught up)."""
+                last = shoot(name)
+                for _ in range(60):
+                    time.sleep(1)
+                    now = shoot(name)
+                    if not _changed(last, now, where).any():
+                        return now
+                    last = now
+                return last
+
+            rest = settled("start")
+            time.sleep(2)
+            rest2 = shoot("start-again")
+
+            # the client saw the arm's start (the first joint at 0); it is stopped to read what it saved
+            entities, quats = _received(client, saved)
+            client = None
+            assert quats, f"Rerun's client received no transform of the arm: {sorted(entities)[:20]}"
+            assert abs(quats[0][2]) < 0.01, quats[:5]
+
+            truth: list[float] = []
+            for name, goal_q in (("left", target), ("right", other)):  # the arm to a target, then to the other
+                status, data = _http(panel.url + "/api/goal", {"kind": "joints", "positions": list(goal_q)})
+                assert status == 200, data
+                gid = data["goal_id"]
+                done = lambda gid=gid: any(g["id"] == gid and g["done"] for g in panel.state()["goals"])  # noqa: E731
+                assert wait_until(done, 300)
+                goal = next(g for g in panel.state()["goals"] if g["id"] == gid)
+                assert goal["success"], goal
+                done_ns = round(goal["sim"] * 1e9)
+                assert wait_until(lambda t=done_ns: bool(obs.truth) and obs.truth[-1][0] >= t, 60)
+                truth.append(float(obs.truth_at(done_ns)[0]))
+                assert abs(truth[-1] - goal_q[0]) < 0.02, (truth[-1], goal_q)
+                settled(name)
+            browser.close()
+        obs.close()
+        obs = None
+
+        # the pictures: the same at rest, changed around the arm by each move, and both moves changed the pixels
+        # where the arm stood between them
+        # (the planned path, yellow, is told apart: it changes with each plan whether or not the arm moves)
+        path = {name: _path(shots[name], where) for name in ("start", "left", "right")}
+        still = _changed(rest, rest2, where)
+        moved = _changed(rest, shots["left"], where) & ~path["start"] & ~path["left"]
+        moved_back = _changed(shots["left"], shots["right"], where) & ~path["left"] & ~path["right"]
+        both = moved & moved_back
+        area = still.size
+        print(f"the viewer drew the table in {drawn_s:.0f} s; around the arm ({area} px, {_box(np.ones_like(still))} "
+              f"of the {shots['left'].shape[1]}x{shots['left'].shape[0]} frame, above the table at {table}): at rest "
+              f"{int(still.sum())} px changed in 2 s; start -> left target {int(moved.sum())} px ({_box(moved)}); "
+              f"left -> right target {int(moved_back.sum())} px ({_box(moved_back)}); changed by both moves (the "
+              f"arm at the left target) {int(both.sum())} px ({_box(both)}); the planned path "
+              f"{int(path['left'].sum())} px ({_box(path['left'])}) at the left target, "
+              f"{int(path['right'].sum())} px at the right; pictures in {tmp_path}")
+        assert not path["start"].any(), f"yellow before any plan: {_box(path['start'])}"
+        assert path["left"].sum() >= 30 and path["right"].sum() >= 30, "the planned path is not drawn"
+        assert still.sum() <= 0.001 * area, f"the 3D view changed with the arm at rest: {_box(still)}"
+        for name, mask in (("start -> left", moved), ("left -> right", moved_back)):
+            assert mask.sum() >= max(100, 20 * still.sum()), f"{name}: the arm did not move in the picture"
+            assert mask.sum() <= 0.5 * area, f"{name}: more changed than the arm ({_box(mask)}): the view moved?"
+        assert both.sum() >= 20, "no pixel changed on both moves: the arm at the left target is nowhere drawn"
+        q1 = truth[-1]
 
         def turned() -> bool:
             """A client joining now gets the stream's history (the server keeps it): up to the arm at its target?"""
@@ -162,6 +279,8 @@ def test_the_panel_and_rerun_see_the_arm_live(tmp_path: Path) -> None:
         assert any(e.startswith("/world/") for e in entities), sorted(entities)[:20]
         assert any(e.startswith("/robot/") for e in entities), sorted(entities)[:20]
     finally:
+        if obs is not None:
+            obs.close()
         if client is not None:
             client.kill()
             client.wait(30)

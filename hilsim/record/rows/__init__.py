@@ -93,6 +93,7 @@ Importing this package imports rerun, after turning its analytics off.
 from __future__ import annotations
 
 from hilsim.record.rows.common import (
+    COLOURS,
     IMU_SOURCES,
     JOINT_SOURCES,
     MODEL_PERIOD_NS,
@@ -105,7 +106,6 @@ from hilsim.record.rows.common import (
 from hilsim.record.rows.fast import IMU_DOUBLES, IMU_VALUES
 from hilsim.record.rows.joints import TRAJECTORY_TOPICS
 from hilsim.record.rows.mobile import (
-    COLOURS,
     GRID_LIFT,
     GRID_TEXTURE_MAX,
     ODOM_QUANTITIES,

@@ -22,6 +22,13 @@ import rerun as rr  # noqa: E402
 MODEL_PERIOD_NS = 10_000_000  # 3D robot pose updates (joints, tf, the odometry's chassis): every 10 ms of sim time
 TIMELINE = "sim_time"
 WORLD_FRAME = "world"
+COLOURS = {  # RGB of the 3D and map entities
+    "truth": (40, 190, 60),  # green
+    "odom": (0, 190, 240),  # cyan: not the rover's own orange
+    "gps": (220, 30, 30),  # red
+    "scan": (230, 0, 200),  # magenta
+    "plan": (255, 210, 0),  # yellow: a rover's planned path, an arm's planned tool path
+}
 
 JOINT_SOURCES = {
     "truth/joint_states": "truth",

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from hilsim.core import msgs
-from hilsim.record.rows.common import MODEL_PERIOD_NS, TIMELINE, RowsBase, part, rr, streams
+from hilsim.record.rows.common import COLOURS, MODEL_PERIOD_NS, TIMELINE, RowsBase, part, rr, streams
 from hilsim.sim.kinematics import RobotModel
 
 # timed trajectories (a person's, the planner's) and the planner's geometric path
@@ -101,4 +101,4 @@ class JointRows(RowsBase):
         self.rec.log(f"{ent}/joint_space", rr.LineStrips2D(strips, labels=list(msg.joint_names)))
         if self.model is not None and not root:
             tool = self.model.kin.positions(list(msg.joint_names), q)
-            self.rec.log(f"{ent}/tool_path", rr.LineStrips3D([tool]))
+            self.rec.log(f"{ent}/tool_path", rr.LineStrips3D([tool], colors=[COLOURS["plan"]]))

@@ -35,7 +35,7 @@ import numpy as np
 
 from hilsim.core import msgs
 from hilsim.core.geometry import yaw_of
-from hilsim.record.rows.common import MODEL_PERIOD_NS, TIMELINE, WORLD_FRAME, part, rr, streams
+from hilsim.record.rows.common import COLOURS, MODEL_PERIOD_NS, TIMELINE, WORLD_FRAME, part, rr, streams
 from hilsim.record.rows.generic import GenericRows
 from hilsim.sim.kinematics import RobotModel
 from hilsim.sim.scene import Scene
@@ -47,13 +47,6 @@ GRID_LIFT = 0.01  # [m] the grid's quad above its origin, so it is not hidden in
 PATH_LIFT = 0.05  # [m] a plan drawn above the grid
 ODOM_SOURCES = {"truth/odom": "truth", "odom": "odom"}
 ODOM_QUANTITIES = ("x", "y", "z", "yaw", "vx", "vy", "wz")  # pose in the world, twist in the chassis frame
-COLOURS = {  # RGB of the 3D and map entities
-    "truth": (40, 190, 60),  # green
-    "odom": (0, 190, 240),  # cyan: not the rover's own orange
-    "gps": (220, 30, 30),  # red
-    "scan": (230, 0, 200),  # magenta
-    "plan": (255, 210, 0),  # yellow
-}
 
 
 def scan_points(msg: msgs.LaserScan, cache: dict[tuple[int, float, float], np.ndarray] | None = None) -> np.ndarray:
