@@ -9,7 +9,6 @@ the recorder's stdout, its per-key summary, is pumped to ``<run>/logger.out`` by
 
 from __future__ import annotations
 
-import ctypes
 import os
 import signal
 import subprocess
@@ -21,6 +20,7 @@ from typing import Any
 
 from hilsim.core import transport
 from hilsim.core.restart import RESTART_ENV
+from hilsim.core.threads import sigterm_when_parent_dies
 
 
 @dataclass
@@ -33,15 +33,6 @@ class Child:
     restarts: int = 0
     restart_at: float | None = None  # monotonic time of the pending restart
     died_at: float = 0.0  # monotonic time its last process was found dead
-
-
-def sigterm_when_parent_dies() -> bool:
-    """Ask the kernel for SIGTERM when this process's parent (the thread that started it) ends
-    (PR_SET_PDEATHSIG); False where it cannot."""
-    try:
-        return ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM) == 0
-    except OSError:
-        return False
 
 
 def pdeathsig() -> None:

@@ -46,6 +46,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from hilsim.core.threads import sigterm_when_parent_dies
+
 LIVE_NAME = "live.json"
 LOG_NAME = "live-viewer.log"
 QUEUE_BYTES = 32 * 1024**2  # frames waiting for the viewer's pipe at most (a few seconds of the arm's rows)
@@ -354,10 +356,7 @@ def _child_setup() -> None:
     """The viewer process: below the simulation's processes in the scheduler's eyes, gone with the recorder."""
     with contextlib.suppress(OSError):
         os.nice(10)
-    with contextlib.suppress(OSError):
-        import ctypes
-
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    sigterm_when_parent_dies()
 
 
 def read_live(run_dir: str | Path) -> dict[str, Any] | None:

@@ -13,7 +13,6 @@ the run ended (its last health ``stopped`` or ``done``, or the launcher's report
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import logging
 import os
 import signal
@@ -28,6 +27,7 @@ from typing import Any
 
 from hilsim.core.config import ConfigError, Scenario
 from hilsim.core.scenario import load_scenario, parse_overrides
+from hilsim.core.threads import sigterm_when_parent_dies
 from hilsim.ui.jsonio import BadInput
 from hilsim.ui.options import ScenarioOption, option_of
 from hilsim.ui.watch import Monitor
@@ -41,8 +41,7 @@ def child_setup() -> None:
     """In the ``hilsim up`` child: its own process group (the panel's Ctrl-C is not its), and
     SIGTERM from the kernel when the panel's thread that started it dies."""
     os.setpgrp()
-    with contextlib.suppress(OSError):
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    sigterm_when_parent_dies()
 
 
 @dataclass
