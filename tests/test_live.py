@@ -1,16 +1,21 @@
 """Watch it live (``hilsim up … --view``, hilsim.record.live): the stream's bounds (a viewer that reads
 nothing never holds the recorder; its frames are dropped and counted, the setup's never), a viewer process
-that went away, and the page server's policy and token.
+that went away, the page server's policy and token, and a run that streams only once a viewer joins (read by
+Rerun's own client, not written here).
 """
 
 from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
 from typing import Any
+
+import pytest
 
 from hilsim.record import live
 
@@ -97,7 +102,14 @@ def test_the_page_refuses_other_hosts_and_a_missing_token(tmp_path: Path) -> Non
 
     srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Upstream)
     threading.Thread(target=srv.serve_forever, daemon=True).start()
-    page = live.PageProxy("127.0.0.1", 0, ("127.0.0.1", srv.server_address[1]), "http://127.0.0.1:9", token="s3cret")
+    visits = 0
+
+    def visited() -> None:
+        nonlocal visits
+        visits += 1
+
+    page = live.PageProxy("127.0.0.1", 0, ("127.0.0.1", srv.server_address[1]), "http://127.0.0.1:9", token="s3cret",
+                          on_visit=visited)
     try:
         def get(path: str, cookie: str = "") -> http.client.HTTPResponse:
             c = http.client.HTTPConnection("127.0.0.1", page.port, timeout=10)
@@ -112,7 +124,71 @@ def test_the_page_refuses_other_hosts_and_a_missing_token(tmp_path: Path) -> Non
         assert "connect-src 'self' http://127.0.0.1:9;" in policy and "default-src 'self'" in policy, policy
         cookie = (r.getheader("Set-Cookie") or "").split(";")[0]
         assert get("/index.js", cookie).status == 200
+        assert visits == 2  # the page and its script: a viewer is here
+        assert get(live.WATCH_PATH).status == 403 and visits == 2  # joining asks the token too
+        w = get(f"{live.WATCH_PATH}?token=s3cret")
+        assert w.status == 204 and w.read() == b"" and visits == 3  # answered here, not by the viewer's server
     finally:
         page.close()
         srv.shutdown()
         srv.server_close()
+
+
+@pytest.mark.e2e
+@pytest.mark.timeout(300)
+def test_a_run_streams_only_once_a_viewer_joins(tmp_path: Path) -> None:
+    """``logger.live.enabled`` (as the panel's runs): ``hilsim up`` prints ``viewer: URL``; until a viewer joins,
+    Rerun's own client connected to the run's stream gets the world and the robot's model but no row of the arm's
+    motion; once ``hilsim view --live`` joined, the transforms stream (and the recorder's log says so)."""
+    from test_live_browser import LIVE_KEYS, _client, _received
+    from util import LEAN, finish, up
+
+    run = tmp_path / "run"
+    p = up(LEAN, "--interactive", "--out", str(run), "--set", "logger.live.enabled=true", "--set",
+           f"logger.record={LIVE_KEYS}")
+    try:
+        assert p.stdout is not None
+        lines: list[str] = []
+        for line in p.stdout:
+            lines.append(line)
+            if line.startswith("viewer: "):
+                break
+        assert lines and lines[-1].startswith("viewer: http://127.0.0.1:"), "".join(lines)
+        info = live.read_live(run)
+        assert info is not None and lines[-1].split()[1] == info["viewer"], (lines[-1], info)
+        time.sleep(3)  # the arm runs 3 s with nobody watching
+        before = tmp_path / "before.rrd"
+        c = _client(info["grpc"], before)
+        time.sleep(3)
+        entities, quats = _received(c, before)
+        assert any(e.startswith("/world/") for e in entities) and any(e.startswith("/robot/") for e in entities), \
+            sorted(entities)[:20]  # the setup's static rows: a viewer that joins sees the world and the robot
+        assert not quats, f"{len(quats)} transforms streamed with nobody watching"
+        joined = subprocess.run([sys.executable, "-m", "hilsim.cli", "view", "--live", "--run", str(run)],
+                                capture_output=True, text=True, timeout=60, env={**os.environ, "DISPLAY": ""})
+        assert joined.returncode == 0 and f"viewer: {info['viewer']}" in joined.stdout, joined
+        after = tmp_path / "after.rrd"
+        c = _client(info["grpc"], after)
+        time.sleep(3)
+        _, quats = _received(c, after)
+        assert len(quats) > 10, f"{len(quats)} transforms of the first joint in 3 s after a viewer joined"
+        assert "a viewer joined" in (run / "logger.log").read_text()
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGINT)
+        out = finish(p, 120)
+    assert "result: OK" in out, out[-2000:]
+
+
+def test_view_on_the_command_line_streams_from_the_start() -> None:
+    """``hilsim up --view``: the user asked to watch this run, so a tab opened at any time shows all of it;
+    ``--set logger.live.from_start=false`` keeps it on demand."""
+    from hilsim.cli import build_parser
+    from hilsim.launch.up import up_overrides
+
+    def overrides(*argv: str) -> dict[str, Any]:
+        return up_overrides(build_parser().parse_args(["up", "arm", *argv]))[0]
+
+    assert overrides("--view")["logger.live.from_start"] is True
+    assert overrides("--view", "--set", "logger.live.from_start=false")["logger.live.from_start"] is False
+    assert "logger.live.from_start" not in overrides("--set", "logger.live.enabled=true")

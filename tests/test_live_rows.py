@@ -71,3 +71,25 @@ def test_a_row_older_than_what_was_sent_is_not_sent_again() -> None:
     first = tee.sent
     tee.send_columns("a", idx, rr.Scalars.columns(scalars=np.zeros(ns.size)))
     assert first == 3 and tee.sent == first  # periods 0, 1, 2 of 33 ms, then nothing new
+
+
+def test_until_a_viewer_joins_the_live_stream_gets_the_static_rows_only() -> None:
+    """Nobody watching: the file gets every row, the live stream the static ones only; once active, the rows."""
+    file_rec, live_rec = rr.RecordingStream("hilsim"), rr.RecordingStream("hilsim")
+    file_rec.binary_stream()
+    live_rec.binary_stream()
+    sent: list[str] = []
+    real_send, real_log = live_rec.send_columns, live_rec.log
+    live_rec.send_columns = lambda e, **kw: (sent.append(e), real_send(e, **kw))  # type: ignore[method-assign]
+    live_rec.log = lambda e, *a, **kw: (sent.append(e), real_log(e, *a, **kw))  # type: ignore[method-assign]
+    watched = False
+    tee = LiveTee(file_rec, live_rec, active=lambda: watched)
+    idx = [rr.TimeColumn(TIMELINE, duration=np.array([0], "timedelta64[ns]"))]
+    tee.log("world/table", rr.Points3D([[0, 0, 0]]), static=True)
+    tee.log("planner/joint_space", rr.LineStrips2D([[[0, 0], [1, 1]]]))
+    tee.send_columns("plot", idx, rr.Scalars.columns(scalars=[1.0]))
+    assert sent == ["world/table"] and tee.sent == 0
+    watched = True
+    tee.log("planner/joint_space", rr.LineStrips2D([[[0, 0], [1, 1]]]))
+    tee.send_columns("plot", idx, rr.Scalars.columns(scalars=[1.0]))
+    assert sent == ["world/table", "planner/joint_space", "plot"] and tee.sent == 1

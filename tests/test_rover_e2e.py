@@ -28,7 +28,9 @@ NO_NAVIGATION = "services=[physics,sensors,controller]"
 
 def test_rover_drives_as_commanded_over_cmd_vel(router: str, tmp_path: Path) -> None:
     """Forward 0.5 m/s from t=0.5 to 3.5 s, then turn in place at 0.8 rad/s until 6 s (phases chosen
-    by the sim time the test sees in truth/odom); outdoor world, so the GPS is on."""
+    by the sim time the test sees in truth/odom); outdoor world, so the GPS is on. At wall-clock pace
+    (realtime), as a teleoperator drives: in lockstep the sim raced ahead of this test's commands whenever
+    the test stalled (a loaded CI runner once left 1.5 s of the turn without its command)."""
     cap = Capture(router, ["truth/odom", "scan", "gps/fix", "odom"])
     pub = cap.session.declare_publisher(KEYS.topic("cmd_vel"))
     latest = {"t": 0.0}
@@ -51,7 +53,7 @@ def test_rover_drives_as_commanded_over_cmd_vel(router: str, tmp_path: Path) -> 
     th.start()
     try:
         p = up("config/rover-outdoor.yaml", "--router", router, "--no-logger", "--duration", "7.5",
-               "--set", NO_NAVIGATION, "--out", str(tmp_path / "run"))
+               "--clock", "realtime", "--set", NO_NAVIGATION, "--out", str(tmp_path / "run"))
         out = finish(p, 240)
     finally:
         done.set()

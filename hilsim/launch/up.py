@@ -100,6 +100,10 @@ def up_overrides(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, st
         overrides["clock.start_timeout"], origins["clock.start_timeout"] = args.wait, f"--wait {args.wait:g}"
     if getattr(args, "view", False) or getattr(args, "view_host", None):  # the recorder's live stream
         overrides["logger.live.enabled"], origins["logger.live.enabled"] = True, "--view"
+        # asked for on the command line: from the start, so a tab opened at any time during the run shows all of
+        # it (the panel's runs stream once their view is shown: hilsim.ui.run_control)
+        if "logger.live.from_start" not in overrides:
+            overrides["logger.live.from_start"], origins["logger.live.from_start"] = True, "--view"
         if getattr(args, "view_host", None):
             overrides["logger.live.host"], origins["logger.live.host"] = args.view_host, f"--view-host {args.view_host}"
     fox = getattr(args, "foxglove", None)

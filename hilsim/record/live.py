@@ -21,6 +21,13 @@ of the recorder's setup (the robot's model, the world's geometry, the layout) ar
 slow or vanished viewer never slows the recorder, nor through it the loop. The child is stopped with the
 recorder: the stream stops with the run.
 
+On demand: until a viewer joins, the live stream gets the setup's static rows only, so a run nobody watches
+pays for nothing but a rerun process waiting on its pipe. A viewer joins by loading the page (a browser, the
+panel's frame) or by ``hilsim view --live`` (which asks the page server's ``/hilsim/watch`` first); from then
+on the rows stream (health: ``live_watched``). A viewer that joins later still sees the run from that moment
+on (the server keeps it). ``logger.live.from_start`` (which ``hilsim up --view`` sets) streams from the
+start instead, watched or not.
+
 The viewer's address is written to ``<run dir>/live.json`` (:func:`read_live`), where ``hilsim up
 --view`` prints it as ``viewer: URL`` and ``hilsim view --live`` finds it. Zenoh keys: none (the
 recorder's stream only); files: ``<run dir>/live.json``, ``<run dir>/live-viewer.log``.
@@ -55,6 +62,7 @@ SERVER_MEMORY_LIMIT = "512MiB"  # the run's history Rerun's server keeps for lat
 FLUSH_PERIOD_S = 0.2  # the recorder's flush period while live: how often the view moves on (0.5 s without)
 START_TIMEOUT_S = 60.0  # for the viewer's ports to listen (once its first frame came; a loaded machine)
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
+WATCH_PATH = "/hilsim/watch"  # the page server's: a viewer joins (the stream starts), nothing is served
 
 
 class LiveError(RuntimeError):
@@ -122,8 +130,9 @@ class PageProxy:
     :func:`csp`; on a host other than loopback it also asks for ``token`` (once, in the URL; then a
     cookie)."""
 
-    def __init__(self, host: str, port: int, upstream: tuple[str, int], grpc_origin: str, token: str = "") -> None:
-        self.upstream, self.policy, self.token = upstream, csp(grpc_origin), token
+    def __init__(self, host: str, port: int, upstream: tuple[str, int], grpc_origin: str, token: str = "",
+                 on_visit: Callable[[], None] = lambda: None) -> None:
+        self.upstream, self.policy, self.token, self.on_visit = upstream, csp(grpc_origin), token, on_visit
         proxy = self
 
         class Handler(http.server.BaseHTTPRequestHandler):
@@ -151,6 +160,12 @@ class PageProxy:
                 h.send_error(403, "the viewer's token is missing or wrong")
                 return
             cookie = f"hilsim_live={self.token}; Path=/; HttpOnly; SameSite=Strict"
+        self.on_visit()  # a viewer is here: the rows stream from now on
+        if url.path == WATCH_PATH:
+            h.send_response(204)
+            h.send_header("Content-Length", "0")
+            h.end_headers()
+            return
         conn = http.client.HTTPConnection(*self.upstream, timeout=30)
         try:
             conn.request("GET", url.path or "/", headers={"Accept-Encoding": h.headers.get("Accept-Encoding", "")})
@@ -183,8 +198,11 @@ class LiveStream:
     """The recorder's second sink and the viewer it feeds (see the module's docstring)."""
 
     def __init__(self, run_dir: Path, host: str = "127.0.0.1", port: int = 0,
-                 warn: Callable[[str], None] | None = None) -> None:
+                 warn: Callable[[str], None] | None = None, from_start: bool = False) -> None:
         self.run_dir, self.host = Path(run_dir), host
+        self.watched = threading.Event()  # a viewer joined (or from_start): the rows stream
+        if from_start:
+            self.watched.set()
         self.warn = warn or (lambda _text: None)
         self.rec: Any = None  # the live recording stream (rerun.RecordingStream), once attached
         self.sink: Any = None  # its rerun.BinaryStream
@@ -229,7 +247,7 @@ class LiveStream:
             _wait_listening(bind, self.grpc_port, self.proc, START_TIMEOUT_S)
             _wait_listening(bind, web, self.proc, START_TIMEOUT_S)
             token = "" if self.host in LOOPBACK else secrets.token_urlsafe(18)
-            page = PageProxy(bind, port, (bind, web), f"http://{seen}:{self.grpc_port}", token)
+            page = PageProxy(bind, port, (bind, web), f"http://{seen}:{self.grpc_port}", token, self._joined)
         except (LiveError, OSError) as e:
             with self.lock:
                 self._stop_early(f"no live viewer: {e}")
@@ -241,8 +259,11 @@ class LiveStream:
             self.page = page
         q = urllib.parse.urlencode({"url": self.grpc_url, **({"token": token} if token else {})})
         self.url = f"http://{seen}:{page.port}/?{q}"
+        watch = f"http://{seen}:{page.port}{WATCH_PATH}" + (f"?{urllib.parse.urlencode({'token': token})}"
+                                                             if token else "")
         tmp = self.run_dir / (LIVE_NAME + ".tmp")
-        tmp.write_text(json.dumps({"viewer": self.url, "grpc": self.grpc_url, "pid": os.getpid()}) + "\n")
+        tmp.write_text(json.dumps({"viewer": self.url, "grpc": self.grpc_url, "watch": watch,
+                                   "pid": os.getpid()}) + "\n")
         tmp.replace(self.run_dir / LIVE_NAME)
 
     # ------------------------------------------------------------------ the recorder's side
@@ -257,8 +278,14 @@ class LiveStream:
         self.rec = rr.RecordingStream("hilsim", recording_id=rec.get_recording_id(), send_properties=True)
         self.sink = self.rec.binary_stream()
         rr.send_blueprint(blueprint, make_active=True, make_default=True, recording=self.rec)
-        self.tee = LiveTee(rec, self.rec)
+        self.tee = LiveTee(rec, self.rec, active=self.watched.is_set)
         return self.tee
+
+    def _joined(self) -> None:
+        """A viewer came (the page, or ``hilsim view --live``): the rows stream from now on."""
+        if not self.watched.is_set():
+            self.watched.set()
+            logging.getLogger(__name__).info("a viewer joined: the run streams live from now on")
 
     def pump(self, essential: bool = False) -> None:
         """After the recorder flushed: what the sink holds, as one frame, to the writer's queue; never
@@ -318,7 +345,8 @@ class LiveStream:
         """The stream's counts, for the recorder's health."""
         with self.lock:
             thin = {"live_rows": self.tee.sent, "live_rows_thinned": self.tee.thinned} if self.tee else {}
-            return {**thin, "live_frames": self.frames, "live_bytes": self.bytes, "live_queued": self.queued,
+            return {**thin, "live_watched": int(self.watched.is_set()), "live_frames": self.frames,
+                    "live_bytes": self.bytes, "live_queued": self.queued,
                     "live_dropped": self.dropped, "live_dropped_bytes": self.dropped_bytes,
                     **({"live_stopped": self.stopped} if self.stopped else {})}
 
@@ -369,6 +397,24 @@ def read_live(run_dir: str | Path) -> dict[str, Any] | None:
     return info if isinstance(info, dict) and "viewer" in info else None
 
 
+def join(info: dict[str, Any], timeout: float = 10.0) -> None:
+    """Tell a run's live stream a viewer joins (its rows stream from now on), as loading the page does; for a
+    viewer that connects to the gRPC address itself (``hilsim view --live``, Rerun's native viewer).
+    Raises OSError if the page server does not answer."""
+    if not info.get("watch"):
+        return  # no page server's address: nothing to tell
+    u = urllib.parse.urlsplit(str(info["watch"]))
+    conn = http.client.HTTPConnection(u.hostname or "127.0.0.1", u.port or 80, timeout=timeout)  # no proxy: loopback
+    try:
+        conn.request("GET", f"{u.path}?{u.query}" if u.query else u.path)
+        r = conn.getresponse()
+        r.read()
+        if r.status != 204:
+            raise OSError(f"{info['watch']} answered {r.status} {r.reason}")
+    finally:
+        conn.close()
+
+
 def wait_live(run_dir: str | Path, timeout: float, alive: Callable[[], bool] = lambda: True) -> dict[str, Any] | None:
     """:func:`read_live`, waiting up to ``timeout`` seconds while ``alive()``."""
     end = time.monotonic() + timeout
@@ -386,7 +432,7 @@ def start(cfg: Any, run_dir: Path, warn: Callable[[str], None]) -> LiveStream | 
     if not cfg.enabled:
         return None
     try:
-        return LiveStream(run_dir, cfg.host, cfg.port, warn)
+        return LiveStream(run_dir, cfg.host, cfg.port, warn, cfg.from_start)
     except (LiveError, OSError) as e:
         warn(f"no live viewer: {e}; the recording goes on")
         return None
@@ -443,6 +489,11 @@ def cmd_view_live(args: Any) -> int:
     if info is None:
         print(f"hilsim view --live: {run_dir} streams nothing live (is it up? it must be started with "
               "`hilsim up … --view`)", file=sys.stderr)
+        return 1
+    try:
+        join(info)
+    except OSError as e:
+        print(f"hilsim view --live: {run_dir}'s viewer does not answer ({e})", file=sys.stderr)
         return 1
     print(f"viewer: {info['viewer']}", flush=True)
     if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):

@@ -5,14 +5,15 @@ more than a viewer needs to watch the robot move. So with ``logger.live`` the re
 with one recording id: its file's, and the live one (:class:`LiveTee`), which gets everything the file gets
 except that each entity's dense rows are thinned to at most :data:`LIVE_RATE_HZ` per second of sim time (the
 first row of each period). Text logs and line strips (a planned path, a track: each row a whole strip) are
-never thinned; static rows (the model, the world, the layout) go to both streams whole.
+never thinned; static rows (the model, the world, the layout) go to both streams whole. Until the live stream
+is *active* (a viewer joined: :mod:`hilsim.record.live`) it gets the static rows only.
 
 No Zenoh keys: it sits between the recorder's row writer (:class:`hilsim.record.rows.RowWriter`) and Rerun.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 import numpy as np
@@ -42,13 +43,15 @@ class _Taken:
 class LiveTee:
     """The file's recording stream and the live one, used by the row writer as one stream.
 
-    ``log``, ``set_time`` and ``send_recording_name`` go to both; ``send_columns`` sends the file every row
-    and the live stream each entity's first row of every ``1/rate_hz`` s of sim time (see the module's
-    docstring); ``streams`` are both, for what needs a real stream (a URDF's static meshes:
-    ``hilsim.record.rows.common.streams``). Anything else (``flush``…) is the file's stream's."""
+    ``log``, ``set_time`` and ``send_recording_name`` go to both (``log`` to the live stream only static rows
+    until ``active()``); ``send_columns`` sends the file every row and, once ``active()``, the live stream each
+    entity's first row of every ``1/rate_hz`` s of sim time (see the module's docstring); ``streams`` are both,
+    for what needs a real stream (a URDF's static meshes: ``hilsim.record.rows.common.streams``). Anything else
+    (``flush``…) is the file's stream's."""
 
-    def __init__(self, rec: Any, live: Any, rate_hz: float = LIVE_RATE_HZ) -> None:
-        self.rec, self.live = rec, live
+    def __init__(self, rec: Any, live: Any, rate_hz: float = LIVE_RATE_HZ,
+                 active: Callable[[], bool] = lambda: True) -> None:
+        self.rec, self.live, self.active = rec, live, active
         self.streams = (rec, live)
         self.period_ns = int(1e9 / rate_hz)
         self._last: dict[str, int] = {}  # entity -> the last period it was sent a row in
@@ -59,7 +62,8 @@ class LiveTee:
 
     def log(self, *args: Any, **kwargs: Any) -> None:
         self.rec.log(*args, **kwargs)
-        self.live.log(*args, **kwargs)
+        if kwargs.get("static") or self.active():
+            self.live.log(*args, **kwargs)
 
     def set_time(self, *args: Any, **kwargs: Any) -> None:
         self.rec.set_time(*args, **kwargs)
@@ -72,6 +76,8 @@ class LiveTee:
     def send_columns(self, entity: str, indexes: Iterable[Any], columns: Iterable[Any]) -> None:
         indexes, columns = list(indexes), list(columns)
         self.rec.send_columns(entity, indexes=indexes, columns=columns)
+        if not self.active():  # nobody watches yet: the live stream costs nothing
+            return
         rows = self._rows(entity, indexes, columns)
         if rows is None:
             self.live.send_columns(entity, indexes=indexes, columns=columns)

@@ -1,8 +1,9 @@
 """The robot, live, in the panel: the address of Rerun's web viewer that the run the panel shows streams to
 (``hilsim up … --view``, :mod:`hilsim.record.live`), for the page's embedded 3D view (``GET /api/live``).
 
-The panel's own runs are started with ``--view``; a run it joined shows its view if that run was started
-with ``--view``. No Zenoh keys: it reads ``<run dir>/live.json``.
+The panel's own runs stream live on demand (``logger.live.enabled``: from when the page shows the view, whose
+loading joins the stream); a run it joined shows its view if that run was started with ``--view``. No Zenoh
+keys: it reads ``<run dir>/live.json``.
 """
 
 from __future__ import annotations

@@ -107,8 +107,10 @@ class RunManager:
                 argv += ["--set", "task.targets=[]"]
             if req.planner:
                 argv += ["--set", f"planner.planner={req.planner}"]
-            if "logger" in sc.services and "--view" not in req.extra:  # the robot, live, in the panel's page
-                argv.append("--view")
+            if "logger" in sc.services and "--view" not in req.extra:
+                # the robot, live, in the panel's page: streamed once the page shows it (a run nobody looks at
+                # costs nothing), not from the start as `--view` does
+                argv += ["--set", "logger.live.enabled=true"]
             argv += req.extra
             env = {**os.environ, "PYTHONUNBUFFERED": "1"}
             self.proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,

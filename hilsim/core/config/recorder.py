@@ -19,6 +19,10 @@ class LiveConfig(_Model):
     host: str = Field("127.0.0.1", description="the address the viewer listens on (loopback; another one asks a "
                       "token in the viewer's URL)")
     port: int = Field(0, ge=0, le=65535, description="the viewer page's port (0: a free one)")
+    from_start: bool = Field(False, description="stream from the run's start, watched or not (a viewer joining late "
+                             "sees the whole run; `hilsim up --view` sets it); false: from when a viewer first opens "
+                             "the page or `hilsim view --live` joins, so a run nobody watches costs nothing (the "
+                             "panel's runs)")
 
 
 class FoxgloveConfig(_Model):
