@@ -152,6 +152,8 @@ def build_parser() -> argparse.ArgumentParser:
     up.add_argument("--foxglove", nargs="?", type=int, const=8765, metavar="PORT",
                     help="serve the run's ROS 2 topics over Foxglove's WebSocket protocol on loopback (default port "
                     "8765; prints `foxglove: ws://…`; docs/recording.md, \"Foxglove, live\")")
+    up.add_argument("--view-wait", type=float, metavar="S", help="with --view and a task: seconds the run waits "
+                    "for a viewer to open the page before it starts (default 120; 0: at once)")
     up.add_argument("--view-host", metavar="HOST", help="with --view: the viewer's address (default loopback; "
                     "another one asks a token, given in the URL)")
     up.add_argument("--ui", action="store_true", help="start the browser control panel with this run (docs/panel.md)")

@@ -65,10 +65,10 @@ class LoggerWorker(LoggerFiles):
         rows = self.rows
         assert rows is not None
         last_flush = time.monotonic()
-        watched = self.live.watched if self.live is not None else None
+        live_view = self.live
         while True:
             # flushed more often while a viewer watches: the view moves on every live.FLUSH_PERIOD_S
-            period = live.FLUSH_PERIOD_S if watched is not None and watched.is_set() else FLUSH_PERIOD_S
+            period = live.FLUSH_PERIOD_S if live_view is not None and live_view.streaming() else FLUSH_PERIOD_S
             try:
                 key, payload, att, t = q.popleft()
             except IndexError:

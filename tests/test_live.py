@@ -182,7 +182,7 @@ def test_a_run_streams_only_once_a_viewer_joins(tmp_path: Path) -> None:
 
 def test_view_on_the_command_line_streams_from_the_start() -> None:
     """``hilsim up --view``: the user asked to watch this run, so a tab opened at any time shows all of it;
-    ``--set logger.live.from_start=false`` keeps it on demand."""
+    ``--set logger.live.from_start=false`` keeps it on demand. A run with a task waits for its viewer."""
     from hilsim.cli import build_parser
     from hilsim.launch.up import up_overrides
 
@@ -192,3 +192,58 @@ def test_view_on_the_command_line_streams_from_the_start() -> None:
     assert overrides("--view")["logger.live.from_start"] is True
     assert overrides("--view", "--set", "logger.live.from_start=false")["logger.live.from_start"] is False
     assert "logger.live.from_start" not in overrides("--set", "logger.live.enabled=true")
+    # and a run with a task waits for a viewer before it starts: 120 s, or --view-wait's; an interactive one not
+    assert overrides("--view")["logger.live.wait"] == 120
+    assert overrides("--view", "--view-wait", "0")["logger.live.wait"] == 0
+    assert "logger.live.wait" not in overrides("--view", "--interactive")
+
+
+def _physics_of(run: Path) -> list[int]:
+    """The pids of the physics processes of the run in ``run``."""
+    pids = []
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                args = (d / "cmdline").read_bytes().split(b"\0")
+            except OSError:
+                continue
+            if b"physics" in args and any(str(run).encode() in a for a in args):
+                pids.append(int(d.name))
+    return pids
+
+
+@pytest.mark.e2e
+@pytest.mark.timeout(400)
+def test_view_with_a_task_starts_once_a_viewer_joins(tmp_path: Path) -> None:
+    """``hilsim up … --view`` with a task: the viewer's address, then the run waits with physics not started
+    until a viewer joins (here ``hilsim view --live``), then runs its task; with nobody coming it starts after
+    ``--view-wait`` seconds all the same."""
+    from util import LEAN, finish, up
+
+    run = tmp_path / "run"
+    p = up(LEAN, "--view", "--view-wait", "120", "--clock", "lockstep", "--out", str(run), "--set",
+           'logger.record=["tf/**"]')
+    try:
+        assert p.stdout is not None
+        lines: list[str] = []
+        for line in p.stdout:
+            lines.append(line)
+            if line.startswith("waiting for a viewer"):
+                break
+        text = "".join(lines)
+        assert "viewer: http://127.0.0.1:" in text and "waiting for a viewer" in lines[-1], text
+        time.sleep(2)
+        assert "physics" not in next(x for x in lines if x.startswith("ready: ")), text
+        assert not _physics_of(run), "physics started before a viewer joined"  # nothing moves yet
+        joined = subprocess.run([sys.executable, "-m", "hilsim.cli", "view", "--live", "--run", str(run)],
+                                capture_output=True, text=True, timeout=60, env={**os.environ, "DISPLAY": ""})
+        assert joined.returncode == 0, joined
+    finally:
+        out = "".join(lines) + finish(p, 300)
+    assert "a viewer joined: starting" in out and "result: OK" in out, out[-3000:]
+
+    run2 = tmp_path / "run2"
+    p = up(LEAN, "--view", "--view-wait", "2", "--clock", "lockstep", "--out", str(run2), "--set",
+           'logger.record=["tf/**"]')
+    out = finish(p, 300)
+    assert "no viewer joined in 2 s: starting without one" in out and "result: OK" in out, out[-3000:]

@@ -54,6 +54,7 @@ import signal
 import subprocess
 import threading
 import time
+from collections.abc import Collection
 from pathlib import Path
 
 import zenoh
@@ -106,6 +107,7 @@ class Launcher(RemoteHosts):
         self._router: zenoh.Session | None = None
         self._pointer: Path | None = None  # the pointer file to this run's router (run_finder.write_pointer)
         self.children: dict[str, Child] = {}
+        self.held: list[str] = []  # units start() held back until release()
         self.hurry = False  # a second stop signal: services are killed, not waited for
         self.changed = threading.Event()
         self.lock = threading.Lock()
@@ -133,7 +135,9 @@ class Launcher(RemoteHosts):
                 print(text, flush=True)
 
     # ------------------------------------------------------------------ start
-    def start(self) -> None:
+    def start(self, hold: Collection[str] = ()) -> None:
+        """Start the run's router (unless given) and this host's processes, except those of ``hold`` (started
+        by :meth:`release`)."""
         self.run_dir.mkdir(parents=True, exist_ok=True)
         own = self.sc.zenoh.model_copy()  # the launcher's own session: it only reads
         if self.router_ep is None:
@@ -171,7 +175,15 @@ class Launcher(RemoteHosts):
             self.session.liveliness().declare_subscriber(self.follow_keys.all_alive, self._on_alive, history=True),
         ]
         self.order = [n for n in stop_order(self.sc) if n in self.local]
+        self.held = [n for n in reversed(self.order) if n in hold]
         for name in reversed(self.order):
+            if name not in self.held:
+                self.children[name] = Child(name, self._spawn(name, 0), self.run_dir / f"{name}.log")
+
+    def release(self) -> None:
+        """Start the processes :meth:`start` held back."""
+        held, self.held = self.held, []
+        for name in held:
             self.children[name] = Child(name, self._spawn(name, 0), self.run_dir / f"{name}.log")
 
     def _spawn(self, name: str, attempt: int) -> subprocess.Popen[bytes]:

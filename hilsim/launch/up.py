@@ -58,6 +58,42 @@ def _interactive_hint(la: Launcher, example: list[float] | None) -> str:
     return f"interactive: Ctrl-C to stop; try {try_}"
 
 
+VIEW_WAIT_S = 120.0  # hilsim up --view with a task: how long the run waits for a viewer before it starts
+
+
+def _unit_of(la: Launcher, service: str) -> str | None:
+    """This host's process (launch unit) that runs ``service``, if any."""
+    return next((u for u in la.local if service in u.split("+")), None)
+
+
+def viewer_gate(la: Launcher) -> list[str]:
+    """``logger.live.wait``: the units to hold back until a viewer joins (the one running physics: nothing
+    moves before), or none (no wait asked for, no task, or physics not here or in the recorder's process)."""
+    sc = la.sc
+    if not (sc.logger.live.enabled and sc.logger.live.wait > 0 and sc.task.targets):
+        return []
+    physics, logger = _unit_of(la, "physics"), _unit_of(la, "logger")
+    return [physics] if physics is not None and logger is not None and physics != logger else []
+
+
+def wait_for_viewer(la: Launcher) -> None:
+    """Before the held units start: until a viewer joined the live stream, at most ``logger.live.wait`` s."""
+    from hilsim.record.live import wait_watched
+
+    wait = la.sc.logger.live.wait
+    logger = la.children.get(_unit_of(la, "logger") or "")
+    la.say(f"waiting for a viewer: the run starts once the page is open (at most {wait:g} s; --view-wait 0 "
+           "starts at once)")
+
+    def alive() -> bool:
+        return logger is not None and logger.proc.poll() is None and not la.outcome.interrupted
+
+    if wait_watched(la.run_dir, wait, alive):
+        la.say("a viewer joined: starting")
+    elif alive():
+        la.say(f"no viewer joined in {wait:g} s: starting without one")
+
+
 def say_viewer(la: Launcher, timeout: float = 60.0) -> None:
     """``--view``: the live viewer's address on a line of its own, once the recorder's viewer listens;
     ``--foxglove``: the Foxglove server's."""
@@ -104,6 +140,12 @@ def up_overrides(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, st
         # it (the panel's runs stream once their view is shown: hilsim.ui.run_control)
         if "logger.live.from_start" not in overrides:
             overrides["logger.live.from_start"], origins["logger.live.from_start"] = True, "--view"
+        # and a run with a task starts once someone watches it (not an interactive one: it waits for goals)
+        wait = getattr(args, "view_wait", None)
+        if wait is not None:
+            overrides["logger.live.wait"], origins["logger.live.wait"] = wait, f"--view-wait {wait:g}"
+        elif "logger.live.wait" not in overrides and not getattr(args, "interactive", False):
+            overrides["logger.live.wait"], origins["logger.live.wait"] = VIEW_WAIT_S, "--view"
         if getattr(args, "view_host", None):
             overrides["logger.live.host"], origins["logger.live.host"] = args.view_host, f"--view-host {args.view_host}"
     fox = getattr(args, "foxglove", None)
@@ -177,9 +219,18 @@ def cmd_up(args: argparse.Namespace) -> int:
     restore = _stop_signals(la.interrupt)  # from here on, no signal raises in this thread
     try:
         try:
-            la.start()
-            if la.wait_ready(sc.clock.start_timeout):
-                if (sc.logger.live.enabled or sc.logger.foxglove.enabled) and any(
+            gate = viewer_gate(la)
+            la.start(hold=gate)
+            ready = la.wait_ready(sc.clock.start_timeout)
+            if ready and gate:  # the viewer's address, then physics once a viewer joined
+                say_viewer(la)
+                wait_for_viewer(la)
+                ready = not la.outcome.interrupted and not la.check_children()
+                if ready:
+                    la.release()
+                    ready = la.wait_ready(sc.clock.start_timeout)
+            if ready:
+                if not gate and (sc.logger.live.enabled or sc.logger.foxglove.enabled) and any(
                         "logger" in u.split("+") for u in la.local):
                     threading.Thread(target=say_viewer, args=(la,), name="viewer", daemon=True).start()
                 if interactive:

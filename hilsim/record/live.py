@@ -200,9 +200,10 @@ class LiveStream:
     def __init__(self, run_dir: Path, host: str = "127.0.0.1", port: int = 0,
                  warn: Callable[[str], None] | None = None, from_start: bool = False) -> None:
         self.run_dir, self.host = Path(run_dir), host
-        self.watched = threading.Event()  # a viewer joined (or from_start): the rows stream
-        if from_start:
-            self.watched.set()
+        self.from_start = from_start  # the rows stream from the start, watched or not
+        self.watched = threading.Event()  # a viewer joined
+        self.info: dict[str, Any] = {}  # what live.json says, once the viewer listens
+        self.info_lock = threading.Lock()
         self.warn = warn or (lambda _text: None)
         self.rec: Any = None  # the live recording stream (rerun.RecordingStream), once attached
         self.sink: Any = None  # its rerun.BinaryStream
@@ -261,10 +262,18 @@ class LiveStream:
         self.url = f"http://{seen}:{page.port}/?{q}"
         watch = f"http://{seen}:{page.port}{WATCH_PATH}" + (f"?{urllib.parse.urlencode({'token': token})}"
                                                              if token else "")
-        tmp = self.run_dir / (LIVE_NAME + ".tmp")
-        tmp.write_text(json.dumps({"viewer": self.url, "grpc": self.grpc_url, "watch": watch,
-                                   "pid": os.getpid()}) + "\n")
-        tmp.replace(self.run_dir / LIVE_NAME)
+        self.info = {"viewer": self.url, "grpc": self.grpc_url, "watch": watch, "pid": os.getpid()}
+        self._write_info()
+
+    def _write_info(self) -> None:
+        """``live.json``: the addresses, and whether a viewer joined (``hilsim up`` waits for it with
+        ``logger.live.wait``)."""
+        with self.info_lock:
+            if not self.info or self.closed:
+                return
+            tmp = self.run_dir / (LIVE_NAME + ".tmp")
+            tmp.write_text(json.dumps({**self.info, "watched": self.watched.is_set()}) + "\n")
+            tmp.replace(self.run_dir / LIVE_NAME)
 
     # ------------------------------------------------------------------ the recorder's side
     def attach(self, rec: Any, blueprint: Any) -> Any:
@@ -278,14 +287,19 @@ class LiveStream:
         self.rec = rr.RecordingStream("hilsim", recording_id=rec.get_recording_id(), send_properties=True)
         self.sink = self.rec.binary_stream()
         rr.send_blueprint(blueprint, make_active=True, make_default=True, recording=self.rec)
-        self.tee = LiveTee(rec, self.rec, active=self.watched.is_set)
+        self.tee = LiveTee(rec, self.rec, active=self.streaming)
         return self.tee
+
+    def streaming(self) -> bool:
+        """Whether the rows stream: from the start, or since a viewer joined."""
+        return self.from_start or self.watched.is_set()
 
     def _joined(self) -> None:
         """A viewer came (the page, or ``hilsim view --live``): the rows stream from now on."""
         if not self.watched.is_set():
             self.watched.set()
             logging.getLogger(__name__).info("a viewer joined: the run streams live from now on")
+            self._write_info()
 
     def pump(self, essential: bool = False) -> None:
         """After the recorder flushed: what the sink holds, as one frame, to the writer's queue; never
@@ -363,7 +377,7 @@ class LiveStream:
         if page is not None:
             page.close()
         self._kill()
-        with contextlib.suppress(OSError):
+        with self.info_lock, contextlib.suppress(OSError):  # not written again after (closed)
             (self.run_dir / LIVE_NAME).unlink()
 
     def _kill(self) -> None:
@@ -395,6 +409,19 @@ def read_live(run_dir: str | Path) -> dict[str, Any] | None:
     except (OSError, ValueError):
         return None
     return info if isinstance(info, dict) and "viewer" in info else None
+
+
+def wait_watched(run_dir: str | Path, timeout: float, alive: Callable[[], bool] = lambda: True) -> bool:
+    """Whether a viewer joined the run's live stream (``live.json`` says ``watched``) within ``timeout`` seconds,
+    while ``alive()``."""
+    end = time.monotonic() + timeout
+    while True:
+        info = read_live(run_dir)
+        if info is not None and info.get("watched"):
+            return True
+        if time.monotonic() >= end or not alive():
+            return False
+        time.sleep(0.1)
 
 
 def join(info: dict[str, Any], timeout: float = 10.0) -> None:

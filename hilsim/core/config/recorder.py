@@ -23,6 +23,8 @@ class LiveConfig(_Model):
                              "sees the whole run; `hilsim up --view` sets it); false: from when a viewer first opens "
                              "the page or `hilsim view --live` joins, so a run nobody watches costs nothing (the "
                              "panel's runs)")
+    wait: float = Field(0.0, ge=0, description="seconds a run with a task waits for a viewer to join before its "
+                        "physics starts (0: it does not wait); `hilsim up --view` waits 120 (`--view-wait S`)")
 
 
 class FoxgloveConfig(_Model):
