@@ -180,19 +180,16 @@ def test_a_run_streams_only_once_a_viewer_joins(tmp_path: Path) -> None:
     assert "result: OK" in out, out[-2000:]
 
 
-def test_view_on_the_command_line_streams_from_the_start() -> None:
-    """``hilsim up --view``: the user asked to watch this run, so a tab opened at any time shows all of it;
-    ``--set logger.live.from_start=false`` keeps it on demand. A run with a task waits for its viewer."""
+def test_view_on_the_command_line_waits_for_its_viewer() -> None:
+    """``hilsim up --view`` with a task waits for its viewer before it starts (120 s, ``--view-wait``'s); an
+    interactive run does not (it waits for goals), nor one with ``logger.live.enabled`` alone (the panel's)."""
     from hilsim.cli import build_parser
     from hilsim.launch.up import up_overrides
 
     def overrides(*argv: str) -> dict[str, Any]:
         return up_overrides(build_parser().parse_args(["up", "arm", *argv]))[0]
 
-    assert overrides("--view")["logger.live.from_start"] is True
-    assert overrides("--view", "--set", "logger.live.from_start=false")["logger.live.from_start"] is False
-    assert "logger.live.from_start" not in overrides("--set", "logger.live.enabled=true")
-    # and a run with a task waits for a viewer before it starts: 120 s, or --view-wait's; an interactive one not
+    assert "logger.live.wait" not in overrides("--set", "logger.live.enabled=true")
     assert overrides("--view")["logger.live.wait"] == 120
     assert overrides("--view", "--view-wait", "0")["logger.live.wait"] == 0
     assert "logger.live.wait" not in overrides("--view", "--interactive")

@@ -136,11 +136,8 @@ def up_overrides(args: argparse.Namespace) -> tuple[dict[str, Any], dict[str, st
         overrides["clock.start_timeout"], origins["clock.start_timeout"] = args.wait, f"--wait {args.wait:g}"
     if getattr(args, "view", False) or getattr(args, "view_host", None):  # the recorder's live stream
         overrides["logger.live.enabled"], origins["logger.live.enabled"] = True, "--view"
-        # asked for on the command line: from the start, so a tab opened at any time during the run shows all of
-        # it (the panel's runs stream once their view is shown: hilsim.ui.run_control)
-        if "logger.live.from_start" not in overrides:
-            overrides["logger.live.from_start"], origins["logger.live.from_start"] = True, "--view"
-        # and a run with a task starts once someone watches it (not an interactive one: it waits for goals)
+        # a run with a task starts once someone watches it, who then sees all of it (streamed from when a viewer
+        # joins); not an interactive one, which waits for goals anyway, nor the panel's (hilsim.ui.run_control)
         wait = getattr(args, "view_wait", None)
         if wait is not None:
             overrides["logger.live.wait"], origins["logger.live.wait"] = wait, f"--view-wait {wait:g}"

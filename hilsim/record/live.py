@@ -25,8 +25,9 @@ On demand: until a viewer joins, the live stream gets the setup's static rows on
 pays for nothing but a rerun process waiting on its pipe. A viewer joins by loading the page (a browser, the
 panel's frame) or by ``hilsim view --live`` (which asks the page server's ``/hilsim/watch`` first); from then
 on the rows stream (health: ``live_watched``). A viewer that joins later still sees the run from that moment
-on (the server keeps it). ``logger.live.from_start`` (which ``hilsim up --view`` sets) streams from the
-start instead, watched or not.
+on (the server keeps it). ``hilsim up --view`` with a task starts its physics only once a viewer joined
+(:mod:`hilsim.launch.up`), so the whole task streams. ``logger.live.from_start`` streams from the start
+instead, watched or not.
 
 The viewer's address is written to ``<run dir>/live.json`` (:func:`read_live`), where ``hilsim up
 --view`` prints it as ``viewer: URL`` and ``hilsim view --live`` finds it. Zenoh keys: none (the

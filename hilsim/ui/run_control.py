@@ -109,7 +109,7 @@ class RunManager:
                 argv += ["--set", f"planner.planner={req.planner}"]
             if "logger" in sc.services and "--view" not in req.extra:
                 # the robot, live, in the panel's page: streamed once the page shows it (a run nobody looks at
-                # costs nothing), not from the start as `--view` does
+                # costs nothing); not `--view`, whose task would wait for a viewer
                 argv += ["--set", "logger.live.enabled=true"]
             argv += req.extra
             env = {**os.environ, "PYTHONUNBUFFERED": "1"}

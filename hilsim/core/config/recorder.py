@@ -20,9 +20,8 @@ class LiveConfig(_Model):
                       "token in the viewer's URL)")
     port: int = Field(0, ge=0, le=65535, description="the viewer page's port (0: a free one)")
     from_start: bool = Field(False, description="stream from the run's start, watched or not (a viewer joining late "
-                             "sees the whole run; `hilsim up --view` sets it); false: from when a viewer first opens "
-                             "the page or `hilsim view --live` joins, so a run nobody watches costs nothing (the "
-                             "panel's runs)")
+                             "sees the whole run); false: from when a viewer first opens the page or `hilsim view "
+                             "--live` joins, so a run nobody watches costs nothing")
     wait: float = Field(0.0, ge=0, description="seconds a run with a task waits for a viewer to join before its "
                         "physics starts (0: it does not wait); `hilsim up --view` waits 120 (`--view-wait S`)")
 
