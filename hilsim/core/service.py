@@ -121,6 +121,8 @@ class Service(Ros2Node):
         self.overruns = 0
         self.last_error = ""
         self.final = False  # the health about to be published is the last (at exit)
+        # set with the final health: after it no log line goes out (its counts are the service's last word)
+        self._final_lock = threading.Lock()
         self.failed: str | None = None  # the error that stopped it (fail, or loop raising)
         self.sim_ns = 0  # latest sim time this service knows of
         self.session: zenoh.Session | None = None
@@ -371,7 +373,9 @@ class Service(Ros2Node):
         self.stop_event.set()
 
     def _publish_log(self, level: int, text: str) -> None:
-        if self._log_pub is not None:
+        with self._final_lock:
+            if self._log_pub is None or self.final:  # after the final health: in the process log only
+                return
             try:
                 self._log_pub.put(msgs.Log(stamp=msgs.stamp(self.sim_ns), level=level, name=self.name, msg=text))
             except zenoh.ZError:
@@ -522,7 +526,8 @@ class Service(Ros2Node):
             with self.lock:
                 pass  # a handler still running finishes; later ones see stop_event and return
             try:
-                self.final = True  # its last word: hilsim up's summary takes its figures from it
+                with self._final_lock:  # a log line being sent is counted in it; none is sent after
+                    self.final = True  # its last word: hilsim up's summary takes its figures from it
                 self.publish_health()
             except Exception:
                 pass
