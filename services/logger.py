@@ -242,7 +242,8 @@ class LoggerService(LoggerIntake, LoggerStop):
         lc = self.sc.logger
         self.rrd = RrdSeries(self.rrd_path, self._move_rrd, max_size=lc.max_rrd_size, max_duration=lc.max_rrd_duration)
         rows_rec.send_recording_name(f"{self.sc.name} {self.run_dir.name}")
-        self.rows = RowWriter(rows_rec, self.sc.robot, m, self.fault, scene)
+        self.rows = RowWriter(rows_rec, self.sc.robot, m, self.fault, scene,
+                              model_from_truth=self.routes.covers(self.keys.truth("joint_states")))
         if self.sc.logger.bag:
             self.bag = self._open_bag()
             self._bag_append = self.bag.append

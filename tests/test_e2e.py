@@ -108,6 +108,31 @@ def test_arm_scenario_end_to_end(tmp_path: Path) -> None:
     for j in range(1, 7):
         assert any(f"joint_{j}" in e for e in paths), f"no entity for joint_{j}"
     assert any("base_link" in e for e in paths), "no robot model entities"
+    # each moving link's frame posed by one entity only (the truth's joint states; /tf names none of them):
+    # Rerun's viewer says it is an error when two entities pose one frame over time
+    posed = _posed_frames(rrd)
+    assert posed and all(len(ents) == 1 for ents in posed.values()), posed
+    assert {"shoulder_link", "hand_link"} <= set(posed), sorted(posed)
+
+
+def _posed_frames(rrd: Path) -> dict[str, set[str]]:
+    """Each frame a recording poses over time (Transform3D's child frame, not static), by the entities that do."""
+    import warnings
+
+    from rerun.chunk import RrdReader
+
+    posed: dict[str, set[str]] = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for chunk in RrdReader(rrd).stream().to_chunks():
+            if chunk.is_static:
+                continue
+            batch = chunk.to_record_batch()
+            if "Transform3D:child_frame" in batch.column_names:
+                for frame in batch.column("Transform3D:child_frame").to_pylist():
+                    for f in frame or []:
+                        posed.setdefault(f, set()).add(chunk.entity_path)
+    return posed
 
 
 def _capture_on(ses: zenoh.Session, key: str, sink: list[bytes]) -> zenoh.Subscriber:

@@ -302,8 +302,8 @@ def test_a_task_result_is_taken_while_the_stepping_holds_the_lock(scenario: Any,
             while not svc.task_results and time.monotonic() < deadline:
                 time.sleep(0.01)
             assert list(svc.task_results) == [(keys.topic("task/result"), 2 * dt)]
-        rig.ack(400)  # far ahead: only the task's end stops it
         end = -(-(2 * dt + TASK_END_MARGIN_NS) // dt) * dt
+        rig.ack(end // dt + 100)  # far ahead: only the task's end stops it
         deadline = time.monotonic() + 20
         while (rig.steps() or [0])[-1] * dt < end and time.monotonic() < deadline:
             time.sleep(0.05)

@@ -105,6 +105,7 @@ class MobileRows(GenericRows):
     model: RobotModel | None
     scene: Scene | None
     _last_tf_ns: dict[str, int]
+    _posed: set[str]
     _tf_last: dict[str, tuple[Any, ...]]
     _tf_rows: dict[str, list[tuple[Any, ...]]]
     _tf_times: dict[str, list[int]]
@@ -151,12 +152,16 @@ class MobileRows(GenericRows):
         self._last_tf_ns[first.child_frame_id] = t
         for tr in msg.transforms:
             tt, r = tr.transform.translation, tr.transform.rotation
-            child = self._frame(root, robot, tr.child_frame_id)
-            row = (self._frame(root, robot, tr.header.frame_id), child, tt.x, tt.y, tt.z, r.x, r.y, r.z, r.w)
-            if self._tf_last.get(child) == row:
-                continue  # a sensor's frame on the chassis: written once
-            self._tf_last[child] = row
+            if not root and tr.child_frame_id in self._posed:  # posed from the truth's joint states already
+                parent = child = None
+            else:
+                parent, child = (self._frame(root, robot, tr.header.frame_id),
+                                 self._frame(root, robot, tr.child_frame_id))
+            row = (parent, child, tt.x, tt.y, tt.z, r.x, r.y, r.z, r.w)
             entity = f"{root}tf/{part(tr.child_frame_id)}"
+            if self._tf_last.get(entity) == row:
+                continue  # a sensor's frame on the chassis: written once
+            self._tf_last[entity] = row
             self._tf_rows.setdefault(entity, []).append(row)
             self._tf_times.setdefault(entity, []).append(t)
             self.buffered += 1

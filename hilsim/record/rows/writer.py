@@ -32,12 +32,18 @@ class RowWriter(FastRows, JointRows, ImuRows, MobileRows, StatusRows, TaskRows, 
 
     ``robot`` is the scenario's robot (its entities have no ``robots/<robot>/`` prefix);
     ``model`` the robot model, or None; ``fault(text, exc=…)`` reports an error that only
-    loses part of a message's rows (a joint transform, one entity's batch).
+    loses part of a message's rows (a joint transform, one entity's batch). ``model_from_truth``: the
+    recording has the truth's joint states, from which the model's moving links are posed
+    (``robot/joint_transforms/…``); ``tf`` rows then do not name those links' frames (a frame posed by two
+    entities is an error in Rerun's viewer, and the same truth twice).
     """
 
     def __init__(self, rec: rr.RecordingStream, robot: str, model: RobotModel | None, fault: Fault,
-                 scene: Scene | None = None) -> None:
+                 scene: Scene | None = None, model_from_truth: bool = False) -> None:
         self.rec = rec
+        # the links posed from the truth's joint states: their tf rows name no frames
+        self._posed = {j.child_link for j in model.joints.values()} if model is not None and model_from_truth \
+            else set()
         self.robot = robot
         self.model = model
         self.scene = scene
@@ -223,8 +229,9 @@ class RowWriter(FastRows, JointRows, ImuRows, MobileRows, StatusRows, TaskRows, 
             if rows:
                 ts = self._tf_times[entity]
                 a = np.asarray([r[2:] for r in rows], dtype=float)
-                cols = rr.Transform3D.columns(translation=a[:, :3], quaternion=a[:, 3:],
-                                              parent_frame=[r[0] for r in rows], child_frame=[r[1] for r in rows])
+                frames = {} if rows[0][1] is None else {"parent_frame": [r[0] for r in rows],
+                                                        "child_frame": [r[1] for r in rows]}
+                cols = rr.Transform3D.columns(translation=a[:, :3], quaternion=a[:, 3:], **frames)
                 sends.append((entity, self._index(ts), cols))
                 rows.clear()
                 ts.clear()
