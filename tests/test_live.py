@@ -134,6 +134,17 @@ def test_the_page_refuses_other_hosts_and_a_missing_token(tmp_path: Path) -> Non
         srv.server_close()
 
 
+def _lines_until(p: subprocess.Popen[str], start: str) -> list[str]:
+    """What ``hilsim up`` printed, up to the first line that starts with ``start`` (or its end)."""
+    assert p.stdout is not None
+    lines: list[str] = []
+    for line in p.stdout:
+        lines.append(line)
+        if line.startswith(start):
+            break
+    return lines
+
+
 @pytest.mark.e2e
 @pytest.mark.timeout(300)
 def test_a_run_streams_only_once_a_viewer_joins(tmp_path: Path) -> None:
@@ -147,12 +158,7 @@ def test_a_run_streams_only_once_a_viewer_joins(tmp_path: Path) -> None:
     p = up(LEAN, "--interactive", "--out", str(run), "--set", "logger.live.enabled=true", "--set",
            f"logger.record={LIVE_KEYS}")
     try:
-        assert p.stdout is not None
-        lines: list[str] = []
-        for line in p.stdout:
-            lines.append(line)
-            if line.startswith("viewer: "):
-                break
+        lines = _lines_until(p, "viewer: ")
         assert lines and lines[-1].startswith("viewer: http://127.0.0.1:"), "".join(lines)
         info = live.read_live(run)
         assert info is not None and lines[-1].split()[1] == info["viewer"], (lines[-1], info)
@@ -220,13 +226,9 @@ def test_view_with_a_task_starts_once_a_viewer_joins(tmp_path: Path) -> None:
     run = tmp_path / "run"
     p = up(LEAN, "--view", "--view-wait", "120", "--clock", "lockstep", "--out", str(run), "--set",
            'logger.record=["tf/**"]')
+    lines: list[str] = []
     try:
-        assert p.stdout is not None
-        lines: list[str] = []
-        for line in p.stdout:
-            lines.append(line)
-            if line.startswith("waiting for a viewer"):
-                break
+        lines = _lines_until(p, "waiting for a viewer")
         text = "".join(lines)
         assert "viewer: http://127.0.0.1:" in text and "waiting for a viewer" in lines[-1], text
         time.sleep(2)
