@@ -333,7 +333,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "(default 60; 0: none)")
     bl.add_argument("--live", type=int, default=0, metavar="N",
                     help="only what watching it live costs: the pipelined arm without --view, with it and nobody "
-                         "watching, and with Rerun's viewer attached, N rounds (docs/performance.md)")
+                         "watching, streaming from the start, with Rerun's viewer joined, and with Foxglove's server "
+                         "alone and watched, N rounds (docs/performance.md)")
     bl.add_argument("--identities", type=int, default=0, metavar="N",
                     help="only this: N pairs of runs through the run's router, one identity for every process vs "
                          "one per process (docs/performance.md, \"Identities\")")
