@@ -59,16 +59,19 @@ class LoggerWorker(LoggerFiles):
         except OSError:
             pass
 
+    def _flush_period(self) -> float:
+        """Flushed more often while a viewer watches (the view moves on every live.FLUSH_PERIOD_S); asked after
+        each flush, not per sample."""
+        return live.FLUSH_PERIOD_S if self.live is not None and self.live.streaming() else FLUSH_PERIOD_S
+
     def _work(self) -> None:
         name_os_thread(b"logger-worker")  # as the OS sees it: hilsim up leaves it out of SCHED_FIFO
         q = self._queue
         rows = self.rows
         assert rows is not None
         last_flush = time.monotonic()
-        live_view = self.live
+        period = self._flush_period()
         while True:
-            # flushed more often while a viewer watches: the view moves on every live.FLUSH_PERIOD_S
-            period = live.FLUSH_PERIOD_S if live_view is not None and live_view.streaming() else FLUSH_PERIOD_S
             try:
                 key, payload, att, t = q.popleft()
             except IndexError:
@@ -77,7 +80,7 @@ class LoggerWorker(LoggerFiles):
                 if rows.buffered and time.monotonic() - last_flush >= period:
                     self._ordinary_class()
                     self._flush()
-                    last_flush = time.monotonic()
+                    last_flush, period = time.monotonic(), self._flush_period()
                     if self._limit_reached():
                         break
                 time.sleep(0.002)
@@ -86,7 +89,7 @@ class LoggerWorker(LoggerFiles):
             if rows.buffered >= FLUSH_ROWS or time.monotonic() - last_flush >= period:
                 self._ordinary_class()
                 self._flush()
-                last_flush = time.monotonic()
+                last_flush, period = time.monotonic(), self._flush_period()
                 if self._limit_reached():
                     break
 

@@ -78,7 +78,7 @@ def viewer_gate(la: Launcher) -> list[str]:
 
 def wait_for_viewer(la: Launcher) -> None:
     """Before the held units start: until a viewer joined the live stream, at most ``logger.live.wait`` s."""
-    from hilsim.record.live import wait_watched
+    from hilsim.record.live import wait_live
 
     wait = la.sc.logger.live.wait
     logger = la.children.get(_unit_of(la, "logger") or "")
@@ -88,7 +88,7 @@ def wait_for_viewer(la: Launcher) -> None:
     def alive() -> bool:
         return logger is not None and logger.proc.poll() is None and not la.outcome.interrupted
 
-    if wait_watched(la.run_dir, wait, alive):
+    if wait_live(la.run_dir, wait, alive, watched=True) is not None:
         la.say("a viewer joined: starting")
     elif alive():
         la.say(f"no viewer joined in {wait:g} s: starting without one")
@@ -227,8 +227,8 @@ def cmd_up(args: argparse.Namespace) -> int:
                     la.release()
                     ready = la.wait_ready(sc.clock.start_timeout)
             if ready:
-                if not gate and (sc.logger.live.enabled or sc.logger.foxglove.enabled) and any(
-                        "logger" in u.split("+") for u in la.local):
+                if not gate and (sc.logger.live.enabled or sc.logger.foxglove.enabled) and _unit_of(
+                        la, "logger") is not None:
                     threading.Thread(target=say_viewer, args=(la,), name="viewer", daemon=True).start()
                 if interactive:
                     la.say(_interactive_hint(la, example))  # the viewer thread says its lines too

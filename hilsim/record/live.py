@@ -412,19 +412,6 @@ def read_live(run_dir: str | Path) -> dict[str, Any] | None:
     return info if isinstance(info, dict) and "viewer" in info else None
 
 
-def wait_watched(run_dir: str | Path, timeout: float, alive: Callable[[], bool] = lambda: True) -> bool:
-    """Whether a viewer joined the run's live stream (``live.json`` says ``watched``) within ``timeout`` seconds,
-    while ``alive()``."""
-    end = time.monotonic() + timeout
-    while True:
-        info = read_live(run_dir)
-        if info is not None and info.get("watched"):
-            return True
-        if time.monotonic() >= end or not alive():
-            return False
-        time.sleep(0.1)
-
-
 def join(info: dict[str, Any], timeout: float = 10.0) -> None:
     """Tell a run's live stream a viewer joins (its rows stream from now on), as loading the page does; for a
     viewer that connects to the gRPC address itself (``hilsim view --live``, Rerun's native viewer).
@@ -443,13 +430,17 @@ def join(info: dict[str, Any], timeout: float = 10.0) -> None:
         conn.close()
 
 
-def wait_live(run_dir: str | Path, timeout: float, alive: Callable[[], bool] = lambda: True) -> dict[str, Any] | None:
-    """:func:`read_live`, waiting up to ``timeout`` seconds while ``alive()``."""
+def wait_live(run_dir: str | Path, timeout: float, alive: Callable[[], bool] = lambda: True,
+              watched: bool = False) -> dict[str, Any] | None:
+    """:func:`read_live`, waiting up to ``timeout`` seconds while ``alive()``; ``watched``: until it also says a
+    viewer joined (``hilsim up`` waits for that with ``logger.live.wait``), else None."""
     end = time.monotonic() + timeout
     while True:
         info = read_live(run_dir)
-        if info is not None or time.monotonic() >= end or not alive():
+        if info is not None and (info.get("watched") or not watched):
             return info
+        if time.monotonic() >= end or not alive():
+            return None
         time.sleep(0.1)
 
 
