@@ -411,7 +411,7 @@ def build_parser() -> argparse.ArgumentParser:
     br.add_argument("--sim-seconds", type=float, default=20.0, help="sim seconds of each run (default 20)")
     br.add_argument("--world", default="indoor", help="indoor or outdoor")
     br.add_argument("--repeat", type=int, default=3, help="runs with the laser on and off each (the best is kept)")
-    br.set_defaults(func=_lazy("hilsim.tools.bench.pipeline", "cmd_rover"))
+    br.set_defaults(func=_lazy("hilsim.tools.bench.rover", "cmd_rover"))
 
     inertia = sub.add_parser("inertia", help="a link's mass, centre of mass and inertia tensor from primitives")
     inertia.add_argument("file", help="YAML: links and their parts (box, cylinder, hollow_cylinder, "

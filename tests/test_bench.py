@@ -84,3 +84,25 @@ def test_bench_loop_measures_every_figure_it_prints(tmp_path: Path) -> None:
     assert dist["planner"] >= 0.0 and comp["planner"] >= 0.0, (dist, comp)
     assert res["distributed_cpu_floor_us"] == sum(dist.values()) / res["cores"]
     assert res["composed_cores_at_10x"] == sum(comp.values()) * 10_000 / 1e6
+
+
+@pytest.mark.timeout(600)
+def test_bench_loop_live_measures_every_mode_against_off(tmp_path: Path) -> None:
+    """``hilsim bench loop --live 1 --json`` in its own process, with short runs: every way of watching ran
+    (Rerun's viewer joined; a Foxglove client to the spec took messages in) and each ratio is its run's
+    real-time factor over the same round's run without it."""
+    import json
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "hilsim.cli", "bench", "loop", "--live", "1", "--sim-seconds", "2",
+                        "--json"], capture_output=True, text=True, timeout=540)
+    assert r.returncode == 0, r.stderr[-2000:]
+    live = json.loads(r.stdout)["live"]
+    modes = ("off", "on", "from_start", "watched", "foxglove", "foxglove_watched")
+    assert set(live["rtf"]) == set(modes), live
+    for m in modes:
+        assert len(live["rtf"][m]) == 1 and math.isfinite(live["rtf"][m][0]) and live["rtf"][m][0] > 0.01, live
+    for m in modes[1:]:
+        assert live[f"median_ratio_{m}"] == live["rtf"][m][0] / live["rtf"]["off"][0], live
+    assert live["foxglove_messages"][0] > 100, live  # the arm's keys reached the client

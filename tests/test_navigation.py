@@ -301,7 +301,7 @@ def test_plan_evaluate_rover_goals(tmp_path: Path) -> None:
 @pytest.mark.serial
 def test_bench_rover_laser_alone_counts_rays() -> None:
     """``hilsim bench rover``'s laser figure: the scenario's own sensor, 541 rays per scan."""
-    from hilsim.tools.bench.pipeline import bench_laser
+    from hilsim.tools.bench.rover import bench_laser
 
     r = bench_laser("indoor", scans=20)
     assert r["rays_per_scan"] == 541 and r["rays_per_s"] == pytest.approx(541 * r["scans_per_s"])

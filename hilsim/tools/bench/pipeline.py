@@ -40,7 +40,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 import statistics
 import time
 from pathlib import Path
@@ -50,18 +49,12 @@ from typing import Any
 import numpy as np
 import psutil
 
-from hilsim.core.config import Scenario
 from hilsim.core.scenario import load_scenario
 from hilsim.tools import progress
+from hilsim.tools.bench.live import bench_live
+from hilsim.tools.bench.runs import arm_scenario, launch, run_arm
 
 BATCH = 256  # logger.batch of the *_batch pipelines
-
-
-def _scenario(sim_seconds: float, **more: Any) -> Scenario:
-    # lag 0 unless a pipeline says otherwise: the figures stay comparable with every earlier sitting
-    o: dict[str, Any] = {"task.targets": [], "duration": sim_seconds, "clock.controller_lag": 0}
-    o.update(more)
-    return load_scenario("arm", o)
 
 
 def bench_bare(sim_seconds: float) -> float:
@@ -69,7 +62,7 @@ def bench_bare(sim_seconds: float) -> float:
     from hilsim.sim import control
     from hilsim.sim.world import World
 
-    sc = _scenario(sim_seconds)
+    sc = arm_scenario(sim_seconds)
     w = World(sc)
     gains = control.gains_for(sc.controller.gains, w.joint_names)
     pids = [control.Pid(g, -float(w.effort_limit[i]), float(w.effort_limit[i])) for i, g in enumerate(gains)]
@@ -89,7 +82,7 @@ def bench_in_process(sim_seconds: float) -> float:
     from hilsim.core.inproc import Bus
     from hilsim.core.registry import service_class
 
-    sc = _scenario(sim_seconds, services=["physics", "sensors", "controller", "planner"])
+    sc = arm_scenario(sim_seconds, services=["physics", "sensors", "controller", "planner"])
     bus = Bus()
     svcs = {n: service_class(n)(sc) for n in ("sensors", "controller", "planner", "physics")}
     for s in svcs.values():
@@ -112,68 +105,13 @@ def bench_in_process(sim_seconds: float) -> float:
     return sim_seconds / wall
 
 
-def cpu_s(pid: int) -> float:
-    """CPU seconds (user + system) of a process and its threads so far; 0 if it is gone."""
-    try:
-        t = psutil.Process(pid).cpu_times()
-        return float(t.user + t.system)
-    except psutil.Error:
-        return 0.0
-
-
-def _run(sc: Scenario, run_dir: Path, cpu: dict[str, float] | None = None, *, task: bool = False,
-         run_router: bool = False, per_service: bool = True, after_ready: Any = None) -> Any:
-    """Run ``sc`` with ``hilsim up``'s launcher; its outcome (hilsim.launch.follow.Outcome). ``cpu``, if
-    given, is filled with the CPU seconds each process spent from "ready" to the end of the run (the
-    router and launcher: this process). ``task``: the run ends with its task, not at a duration.
-
-    The router: a plain one, whose clients are then peers that also reach each other directly
-    (every earlier sitting's figures); ``run_router``: the run's own, with its user and password,
-    as ``hilsim up`` opens it, every service a client of it, so every sample passes through it; each
-    process with an identity of its own (``per_service``), or all with one that may do everything (as
-    before identities, docs/security.md)."""
-    from hilsim.launch.launcher import Launcher, open_default_router
-
-    ep, router = (None, None) if run_router else open_default_router()
-    la = Launcher(sc, run_dir, router=ep, quiet=True, per_service=per_service)
-    try:
-        la.start()
-        if not la.wait_ready():
-            raise RuntimeError(f"services did not start; see {run_dir}")
-        if after_ready is not None:
-            after_ready(la)
-        pids = {c.name: c.proc.pid for c in la.children.values()}
-        pids["router+launcher"] = os.getpid()
-        c0 = {n: cpu_s(p) for n, p in pids.items()}
-        la.follow(wall_timeout=600)
-        if cpu is not None:  # before stop: a process that has exited has no CPU times to read
-            cpu.update({n: cpu_s(p) - c0[n] for n, p in pids.items()})
-    finally:
-        la.stop()
-        if router is not None:
-            router.close()
-    if la.outcome.died:
-        raise RuntimeError(f"service died during the benchmark: {la.outcome.died}; see {run_dir}")
-    if task and la.outcome.task is None:
-        raise RuntimeError(f"the run's task did not end; see {run_dir}")
-    if not task and not la.outcome.physics_done:
-        raise RuntimeError(f"the run did not reach its duration; see {run_dir}")
-    return la.outcome
-
-
-def _launch(sc: Scenario, run_dir: Path, cpu: dict[str, float] | None = None,
-            run_router: bool = False, per_service: bool = True) -> dict[str, str]:
-    """:func:`_run` to the scenario's duration; physics' health at the end."""
-    return dict(_run(sc, run_dir, cpu, run_router=run_router, per_service=per_service).health.get("physics", {}))
-
-
 def bench_up_arm(tmp: Path, batch: int = 0) -> dict[str, float]:
     """The README's run: ``hilsim up arm`` as shipped (its targets planned and driven, lag 1,
     recording everything); ``batch``: ``logger.batch``. Physics' real-time factor over the whole
     run (planning included: in lockstep a plan takes wall time, no sim time), and the targets reached
     as the planner's results say, against the task's."""
     sc = load_scenario("arm", {"logger.batch": batch})
-    o = _run(sc, tmp / f"up-arm-batch{batch}", task=True, run_router=True)
+    o = run_arm(sc, tmp / f"up-arm-batch{batch}", task=True, run_router=True)
     reached = sum(1 for r in o.results if r.success and r.goal_id.startswith("task-"))  # as the summary counts
     return {"rtf": float(o.health.get("physics", {})["real_time_factor"]), "reached": float(reached),
             "targets": float(len(sc.task.targets)), "task_success": float(bool(o.task.success))}
@@ -183,7 +121,7 @@ def bench_distributed(sim_seconds: float, tmp: Path, cpu: dict[str, float] | Non
                       batch: int = 0) -> float:
     """``hilsim up arm``; ``bag``: the recorder writes its bag too (``logger.bag``); ``batch``: ``logger.batch``."""
     name = ("distributed" if bag else "distributed-nobag") + (f"-batch{batch}" if batch else "")
-    h = _launch(_scenario(sim_seconds, **{"logger.bag": bag, "logger.batch": batch}), tmp / name, cpu)
+    h = launch(arm_scenario(sim_seconds, **{"logger.bag": bag, "logger.batch": batch}), tmp / name, cpu)
     return float(h["real_time_factor"])
 
 
@@ -193,7 +131,7 @@ def bench_composed(sim_seconds: float, tmp: Path, with_recorder: bool = False,
     everything; ``with_recorder``: the recorder in that process too (its samples never cross Zenoh);
     ``lag``: ``clock.controller_lag``; ``batch``: ``logger.batch``."""
     group = ["physics", "sensors", "controller", *(["logger"] if with_recorder else [])]
-    h = _launch(_scenario(sim_seconds, compose=[group], **{"clock.controller_lag": lag, "logger.batch": batch}),
+    h = launch(arm_scenario(sim_seconds, compose=[group], **{"clock.controller_lag": lag, "logger.batch": batch}),
                 tmp / ("+".join(group) + f"-lag{lag}" + (f"-batch{batch}" if batch else "")), cpu)
     return float(h["real_time_factor"])
 
@@ -202,107 +140,13 @@ def bench_pipelined(sim_seconds: float, tmp: Path, cpu: dict[str, float] | None 
                     run_router: bool = False, per_service: bool = True) -> float:
     """``hilsim up arm`` with ``clock.controller_lag: 1``: physics steps on while sensors and
     controller work on the step before (the pipelined lockstep, docs/keys.md); ``batch``: ``logger.batch``;
-    ``run_router``: through the run's own router, as ``hilsim up`` runs it (see :func:`_launch`)."""
+    ``run_router``: through the run's own router, as ``hilsim up`` runs it (see
+    :func:`hilsim.tools.bench.runs.run_arm`)."""
     name = ("distributed-lag1" + (f"-batch{batch}" if batch else "") + ("-routed" if run_router else "")
             + ("" if per_service else "-one-identity"))
-    h = _launch(_scenario(sim_seconds, **{"clock.controller_lag": 1, "logger.batch": batch}), tmp / name,
+    h = launch(arm_scenario(sim_seconds, **{"clock.controller_lag": 1, "logger.batch": batch}), tmp / name,
                 cpu, run_router=run_router, per_service=per_service)
     return float(h["real_time_factor"])
-
-
-def bench_live(sim_seconds: float, tmp: Path, repeat: int, say: Any) -> dict[str, Any]:
-    """What watching it live costs (docs/recording.md, "Watch it live"): the pipelined arm through the run's
-    own router, as ``hilsim up`` runs it, without ``--view`` (off), with it and nobody watching (on: nothing
-    streams until a viewer joins), the same streaming from the start (``logger.live.from_start``: what a viewer
-    joining late would see, sent to Rerun's server whether or not anyone watches), and with Rerun's native
-    viewer joined (watched: ``rerun --headless --connect``, ingesting and rendering on this machine's cores as
-    a viewer on the same host does), in turns ``repeat`` times in one sitting (a shared machine's load
-    drifts): each round's ratios against off, and their medians. Where the ``websockets`` package is (the
-    test extra) also Foxglove's server (``--foxglove``) with nobody connected (*foxglove*) and with a client
-    subscribed to every channel it advertises (*foxglove watched*)."""
-    import subprocess
-    import threading
-
-    from hilsim.core.recording import rerun_env
-    from hilsim.record.foxglove_live import read_info
-    from hilsim.record.live import _rerun_binary, join, wait_live
-
-    rtf: dict[str, list[float]] = {"off": [], "on": [], "from_start": [], "watched": []}
-    taken: list[int] = []  # messages the Foxglove client took in, per round
-    try:
-        import websockets.sync.client  # noqa: F401  (a client to the protocol's spec, not hilsim's)
-
-        rtf.update({"foxglove": [], "foxglove_watched": []})
-    except ImportError:
-        say("    (no websockets package: Foxglove's server not measured; pip install -e '.[test]')")
-    for i in range(repeat):
-        for mode in rtf:
-            viewers: list[subprocess.Popen[bytes]] = []
-            stop = threading.Event()
-            got = [0]
-
-            def attach(la: Any, mode: str = mode, viewers: list[Any] = viewers, stop: threading.Event = stop,
-                       got: list[int] = got) -> None:
-                if mode == "foxglove_watched":
-                    info = read_info(la.run_dir)
-                    if info is None:
-                        raise RuntimeError(f"no Foxglove server; see {la.run_dir}")
-                    threading.Thread(target=_foxglove_client, args=(info["url"], stop, got), daemon=True).start()
-                if mode != "watched":
-                    return
-                info = wait_live(la.run_dir, 120)
-                if info is None:
-                    raise RuntimeError(f"no live viewer; see {la.run_dir}")
-                join(info)  # as `hilsim view --live` does before it connects
-                viewers.append(subprocess.Popen(
-                    [_rerun_binary(), "--headless", "--bind", "127.0.0.1", "--new", "--connect", info["grpc"]],
-                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env={**os.environ, **rerun_env()}))
-
-            fox = mode.startswith("foxglove")
-            sc = _scenario(sim_seconds, **{"clock.controller_lag": 1,
-                                           "logger.live.enabled": mode in ("on", "from_start", "watched"),
-                                           "logger.live.from_start": mode == "from_start",
-                                           "logger.foxglove.enabled": fox, "logger.foxglove.port": 0})
-            try:
-                o = _run(sc, tmp / f"live-{mode}-{i}", run_router=True, after_ready=attach)
-            finally:
-                stop.set()
-                for v in viewers:
-                    v.kill()
-                    v.wait()
-            rtf[mode].append(float(o.health["physics"]["real_time_factor"]))
-            if mode == "foxglove_watched":
-                taken.append(got[0])
-        say(f"    round {i + 1}: " + ", ".join(f"{m.replace('_', ' ')} {v[-1]:.2f}x" for m, v in rtf.items())
-            + (f" (the Foxglove client took in {taken[-1]} messages)" if taken else ""))
-    out: dict[str, Any] = {"rtf": rtf, "foxglove_messages": taken}
-    for mode in (m for m in rtf if m != "off"):
-        out[f"ratio_{mode}"] = r = [a / b for a, b in zip(rtf[mode], rtf["off"], strict=True)]
-        out[f"median_ratio_{mode}"] = statistics.median(r)
-    return out
-
-
-def _foxglove_client(url: str, stop: Any, got: list[int]) -> None:
-    """A Foxglove WebSocket client (the ``websockets`` package, to the protocol's spec) subscribed to every
-    channel the server advertises, taking in every message until ``stop`` (counted in ``got[0]``)."""
-    import websockets.sync.client as ws_client
-
-    with ws_client.connect(url, subprotocols=["foxglove.sdk.v1", "foxglove.websocket.v1"],  # type: ignore[list-item]
-                           max_size=None, open_timeout=60) as ws:
-        while not stop.is_set():
-            try:
-                msg = ws.recv(timeout=0.5)
-            except TimeoutError:
-                continue
-            except Exception:  # the run ended: the server went
-                return
-            if not isinstance(msg, str):
-                got[0] += 1
-            else:
-                j = json.loads(msg)
-                if j.get("op") == "advertise":
-                    ws.send(json.dumps({"op": "subscribe", "subscriptions": [
-                        {"id": c["id"], "channelId": c["id"]} for c in j["channels"]]}))
 
 
 def bench_identities(sim_seconds: float, tmp: Path, repeat: int, say: Any) -> dict[str, Any]:
@@ -330,7 +174,7 @@ def bench_identities(sim_seconds: float, tmp: Path, repeat: int, say: Any) -> di
 
 
 def bench_realtime(seconds: float, tmp: Path) -> dict[str, float]:
-    h = _launch(_scenario(seconds, **{"clock.mode": "realtime"}), tmp / "realtime")
+    h = launch(arm_scenario(seconds, **{"clock.mode": "realtime"}), tmp / "realtime")
     return {
         "jitter_p50_ms": float(h["jitter_p50_us"]) / 1e3,
         "jitter_p99_ms": float(h["jitter_p99_us"]) / 1e3,
@@ -518,90 +362,4 @@ def cmd_loop(args: argparse.Namespace) -> int:
         print(f"goal >= 2x real time hilsim up arm ({'as shipped' if k == 'up_arm' else f'logger.batch {BATCH}'}, "
               f"planning included): {'met' if u['rtf'] >= 2 and every else 'NOT met'} ({u['rtf']:.2f}x, "
               f"{u['reached']:.0f}/{u['targets']:.0f} targets reached)")
-    return 0
-
-
-# ---------------------------------------------------------------------------------- the rover
-def bench_laser(world: str, scans: int = 300) -> dict[str, float]:
-    """The scenario's laser alone: scans (one mj_multiRay each) per wall second, from poses along x."""
-    from hilsim.core import msgs
-    from hilsim.launch.launcher import world_scenario
-    from hilsim.sim.sensing import make_sensor
-
-    sc = load_scenario(world_scenario("rover", world))
-    laser = make_sensor("laser", sc.sensors["laser"], seed=sc.seed, dt_ns=sc.dt_ns, scenario=sc)
-    truth = [msgs.Odometry(pose=msgs.PoseWithCovariance(pose=msgs.Pose(
-        position=msgs.Point(x=0.01 * k, z=0.255)))) for k in range(scans)]
-    t0 = time.perf_counter()
-    n = 0
-    for k, o in enumerate(truth):
-        n = len(laser.measure(o, k * 100_000_000).ranges)
-    wall = time.perf_counter() - t0
-    return {"rays_per_scan": float(n), "scans_per_s": scans / wall, "rays_per_s": scans * n / wall}
-
-
-def bench_rover_run(world: str, sim_seconds: float, tmp: Path, laser: bool) -> float:
-    from hilsim.launch.launcher import world_scenario
-
-    o: dict[str, Any] = {"duration": sim_seconds, "sensors.laser.enabled": laser}
-    sc = load_scenario(world_scenario("rover", world), o)
-    sc.services = [s for s in sc.services if s != "logger"]
-    h = _launch(sc, tmp / f"rover-{world}-laser-{'on' if laser else 'off'}")
-    return float(h["real_time_factor"])
-
-
-def cmd_rover(args: argparse.Namespace) -> int:
-    """``hilsim bench rover``: the rover scenario with navigation, in lockstep.
-
-    - ``laser_on``: ``hilsim up rover --world W`` as shipped (physics 500 Hz, encoders and IMU
-      100 Hz, the 541-ray laser at 10 Hz, the four_wheel_steer controller, the navigator driving
-      the task's goals; recorder off), for ``--sim-seconds``: physics' real-time factor;
-    - ``laser_off``: the same with ``sensors.laser.enabled: false``: what the laser costs the loop;
-    - rays per second: the laser alone, one ``mj_multiRay`` per scan from the scenario's sensor
-      code (:class:`hilsim.sim.sensors_mobile.Laser`), as fast as it goes; and in the run, the rays
-      the loop cast per wall second (rays per scan × scan rate × real-time factor).
-    """
-    logging.basicConfig(level=logging.WARNING)
-    from hilsim.planning import quiet_ompl_at_exit
-
-    quiet_ompl_at_exit()
-    sim, world = args.sim_seconds, args.world
-    res: dict[str, Any] = {"world": world, "sim_seconds": sim, "physics_hz": 500}
-    say = progress(args.json)
-
-    say(f"hilsim bench rover: {world} world, lockstep, navigating the task's goals, {sim:g} s sim per run")
-    say("  laser alone (one mj_multiRay per scan) …")
-    res["laser_alone"] = bench_laser(world)
-    la = res["laser_alone"]
-    say(f"    {la['rays_per_s'] / 1e6:.2f} M rays/s ({la['scans_per_s']:.0f} scans/s, "
-        f"{la['rays_per_scan']:.0f} rays each)")
-    on: list[float] = []
-    off: list[float] = []
-    with TemporaryDirectory(prefix="hilsim-bench-") as d:
-        # on and off interleaved, the best of each: on a shared machine the load of the moment
-        # matters more than the laser
-        for k in range(args.repeat):
-            say(f"  run {k + 1}/{args.repeat}: the rover scenario, laser on (physics, sensors, controller, "
-                "navigator; no recorder) …")
-            on.append(bench_rover_run(world, sim, Path(d) / str(k), True))
-            say(f"    {on[-1]:.2f}x real time; laser off …")
-            off.append(bench_rover_run(world, sim, Path(d) / str(k), False))
-            say(f"    {off[-1]:.2f}x real time")
-    res["laser_on_rtf"], res["laser_off_rtf"] = max(on), max(off)
-    res["laser_on_runs"], res["laser_off_runs"] = on, off
-    from hilsim.launch.launcher import world_scenario
-
-    sc = load_scenario(world_scenario("rover", world))
-    scan_hz = sc.sensors["laser"].rate_hz
-    res["rays_per_s_in_run"] = la["rays_per_scan"] * scan_hz * res["laser_on_rtf"]
-    if args.json:
-        print(json.dumps(res, indent=2))
-        return 0
-    print(f"\nbest of {args.repeat} runs each ({sim:g} s sim)")
-    print("| rover, lockstep | real-time factor | laser rays per wall second |")
-    print("|---|---|---|")
-    print(f"| laser on ({la['rays_per_scan']:.0f} rays at {scan_hz:g} Hz) | {res['laser_on_rtf']:.2f}x | "
-          f"{res['rays_per_s_in_run']:.0f} |")
-    print(f"| laser off | {res['laser_off_rtf']:.2f}x | — |")
-    print(f"| laser alone (no loop) | — | {la['rays_per_s']:.0f} |")
     return 0

@@ -44,7 +44,7 @@ from typing import Any
 from hilsim.core.recording import read_counts
 from hilsim.core.scenario import load_scenario
 from hilsim.tools import progress
-from hilsim.tools.bench.pipeline import _scenario, cpu_s
+from hilsim.tools.bench.runs import arm_scenario, cpu_s
 
 SERVICES = ["physics", "sensors", "controller", "planner", "logger"]
 
@@ -134,11 +134,11 @@ def run_one(robots: int, subscribers: int, sim_seconds: float, tmp: Path, compos
         more["fleet.arrays"] = arrays
     if batch is not None:
         more["logger.batch"] = batch
-    # the arm as shipped (its controller_lag), unless asked: bench loop's _scenario pins lag 0
+    # the arm as shipped (its controller_lag), unless asked: bench loop's arm_scenario pins lag 0
     more["clock.controller_lag"] = lag if lag is not None else load_scenario("arm").clock.controller_lag
     if compose:
         more["compose"] = [["physics", "sensors", "controller"]]
-    sc = _scenario(sim_seconds, **more)
+    sc = arm_scenario(sim_seconds, **more)
     run_dir = tmp / f"robots{robots}-subs{subscribers}"
     # a router of its own on a free port, said nowhere: --json's stdout is the JSON alone
     ep = f"tcp/127.0.0.1:{transport.free_port()}"
