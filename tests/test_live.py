@@ -6,6 +6,7 @@ Rerun's own client, not written here).
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -17,6 +18,7 @@ from typing import Any
 
 import pytest
 
+from hilsim.core.recording import rerun_env
 from hilsim.record import live
 
 
@@ -227,6 +229,7 @@ def test_view_with_a_task_starts_once_a_viewer_joins(tmp_path: Path) -> None:
     p = up(LEAN, "--view", "--view-wait", "120", "--clock", "lockstep", "--out", str(run), "--set",
            'logger.record=["tf/**"]')
     lines: list[str] = []
+    viewer: subprocess.Popen[bytes] | None = None
     try:
         lines = _lines_until(p, "waiting for a viewer")
         text = "".join(lines)
@@ -234,11 +237,23 @@ def test_view_with_a_task_starts_once_a_viewer_joins(tmp_path: Path) -> None:
         time.sleep(2)
         assert "physics" not in next(x for x in lines if x.startswith("ready: ")), text
         assert not _physics_of(run), "physics started before a viewer joined"  # nothing moves yet
+        # joined (as a browser loading the page does) but no viewer connected to the stream yet (a browser's
+        # compiles first): still nothing moves
         joined = subprocess.run([sys.executable, "-m", "hilsim.cli", "view", "--live", "--run", str(run)],
                                 capture_output=True, text=True, timeout=60, env={**os.environ, "DISPLAY": ""})
         assert joined.returncode == 0, joined
+        time.sleep(3)
+        assert not _physics_of(run), "physics started before a viewer connected"
+        # a viewer connects (Rerun's own, headless): the run starts
+        grpc = json.loads((run / "live.json").read_text())["grpc"]
+        cmd = [live._rerun_binary(), "--headless", "--bind", "127.0.0.1", "--new", "--connect", grpc]
+        viewer = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                  env={**os.environ, **rerun_env()})
     finally:
         out = "".join(lines) + finish(p, 300)
+        if viewer is not None:
+            viewer.kill()
+            viewer.wait()
     assert "a viewer joined: starting" in out and "result: OK" in out, out[-3000:]
 
     run2 = tmp_path / "run2"

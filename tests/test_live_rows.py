@@ -1,6 +1,6 @@
 """The live viewer's rows (hilsim.record.live_rows): the file gets every row, the live stream each dense
-entity's rows thinned to 30 per second of sim time, log lines and strips whole; both read
-back with Rerun's own reader."""
+entity's rows thinned to 30 per second of sim time (a plot's to 10), most health values left out, log lines and
+strips whole; both read back with Rerun's own reader."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from hilsim.record.live_rows import LIVE_RATE_HZ, LiveTee
+from hilsim.record.live_rows import LIVE_RATE_HZ, PLOT_RATE_HZ, LiveTee
 from hilsim.record.rows.common import TIMELINE, rr
 
 
@@ -41,6 +41,10 @@ def test_the_live_stream_gets_every_dense_entity_thinned_and_logs_and_strips_who
         ns = np.arange(k * 200, (k + 1) * 200, dtype=np.int64) * 1_000_000
         idx = [rr.TimeColumn(TIMELINE, duration=ns.astype("timedelta64[ns]"))]
         tee.send_columns("joints/j1/position", idx, rr.Scalars.columns(scalars=np.sin(ns * 1e-9)))
+        tee.send_columns("robot/j1", idx, rr.Transform3D.columns(translation=np.zeros((ns.size, 3))))
+        tee.send_columns("health/physics/level", idx, rr.Scalars.columns(scalars=np.zeros(ns.size)))
+        tee.send_columns("health/physics/steps", idx, rr.Scalars.columns(scalars=np.zeros(ns.size)))
+        tee.send_columns("joint_states_throttle/position/0", idx, rr.Scalars.columns(scalars=np.zeros(ns.size)))
         tee.send_columns("log/physics", idx[:1], rr.TextLog.columns(text=[f"line {i}" for i in ns]))
     strips = [rr.TimeColumn(TIMELINE, duration=np.array([0, 1_000_000, 2_000_000], "timedelta64[ns]"))]
     tee.send_columns("planner/path", strips, rr.LineStrips3D.columns(
@@ -51,12 +55,19 @@ def test_the_live_stream_gets_every_dense_entity_thinned_and_logs_and_strips_who
     live_rec.flush()
     full = _read(file_sink.read(), tmp_path / "file.rrd")
     live = _read(live_sink.read(), tmp_path / "live.rrd")
-    assert full["/joints/j1/position"] == 2000 and full["/log/physics"] == 2000, full
-    # one row per 1/30 s of sim time: 2 s -> 60 (the periods' boundaries fall inside a flush or between two)
-    assert abs(live["/joints/j1/position"] - 2 * LIVE_RATE_HZ) <= 1, live
+    assert full["/joints/j1/position"] == 2000 and full["/log/physics"] == 2000 and full["/robot/j1"] == 2000, full
+    # the file has every entity; the live stream no health value but the level, no joint_states_throttle
+    assert full["/health/physics/steps"] == full["/joint_states_throttle/position/0"] == 2000, full
+    assert "/health/physics/steps" not in live and "/joint_states_throttle/position/0" not in live, live
+    # a transform: one row per 1/30 s of sim time, 2 s -> 60; a plot's one per 1/10 s, 2 s -> 20 (the periods'
+    # boundaries fall inside a flush or between two)
+    assert abs(live["/robot/j1"] - 2 * LIVE_RATE_HZ) <= 1, live
+    assert abs(live["/joints/j1/position"] - 2 * PLOT_RATE_HZ) <= 1, live
+    assert live["/health/physics/level"] == live["/joints/j1/position"], live
     assert live["/log/physics"] == 2000 and live["/planner/path"] == full["/planner/path"] == 3, live
     assert live["/planner/joint_space"] == full["/planner/joint_space"] == 1
-    assert tee.thinned == 2000 - live["/joints/j1/position"] and tee.sent == live["/joints/j1/position"] + 2003
+    thinned = sum(live[e] for e in ("/joints/j1/position", "/robot/j1", "/health/physics/level"))
+    assert tee.thinned == 3 * 2000 - thinned and tee.sent == thinned + 2003
 
 
 def test_a_row_older_than_what_was_sent_is_not_sent_again() -> None:
@@ -70,7 +81,7 @@ def test_a_row_older_than_what_was_sent_is_not_sent_again() -> None:
     tee.send_columns("a", idx, rr.Scalars.columns(scalars=np.zeros(ns.size)))
     first = tee.sent
     tee.send_columns("a", idx, rr.Scalars.columns(scalars=np.zeros(ns.size)))
-    assert first == 3 and tee.sent == first  # periods 0, 1, 2 of 33 ms, then nothing new
+    assert first == 1 and tee.sent == first  # period 0 of a plot's 100 ms, then nothing new
 
 
 def test_until_a_viewer_joins_the_live_stream_gets_the_static_rows_only() -> None:

@@ -82,8 +82,8 @@ def wait_for_viewer(la: Launcher) -> None:
 
     wait = la.sc.logger.live.wait
     logger = la.children.get(_unit_of(la, "logger") or "")
-    la.say(f"waiting for a viewer: the run starts once the page is open (at most {wait:g} s; --view-wait 0 "
-           "starts at once)")
+    la.say(f"waiting for a viewer: the run starts once the page is open and its viewer connected (at most "
+           f"{wait:g} s; --view-wait 0 starts at once)")
 
     def alive() -> bool:
         return logger is not None and logger.proc.poll() is None and not la.outcome.interrupted

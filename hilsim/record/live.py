@@ -3,7 +3,7 @@
 ``logger.live.enabled`` (``hilsim up … --view``) gives the recorder a second recording stream beside its
 file's, with the same recording id, into a :class:`rerun.BinaryStream` (no second subscriber on any key):
 the same rows, each entity's dense ones thinned (:mod:`hilsim.record.live_rows`: at most 30 a second of
-sim time; logs, paths and static data whole).
+sim time, a plot's 10; most health values left out; logs, paths and static data whole).
 :class:`LiveStream` hands what that sink holds, after each of the
 recorder's flushes, to a ``rerun --serve-web`` child reading it on its standard input: Rerun's own
 gRPC server (which keeps the run's history, static data always, for a viewer that joins late, within
@@ -25,9 +25,9 @@ On demand: until a viewer joins, the live stream gets the setup's static rows on
 pays for nothing but a rerun process waiting on its pipe. A viewer joins by loading the page (a browser, the
 panel's frame) or by ``hilsim view --live`` (which asks the page server's ``/hilsim/watch`` first); from then
 on the rows stream (health: ``live_watched``). A viewer that joins later still sees the run from that moment
-on (the server keeps it). ``hilsim up --view`` with a task starts its physics only once a viewer joined
-(:mod:`hilsim.launch.up`), so the whole task streams. ``logger.live.from_start`` streams from the start
-instead, watched or not.
+on (the server keeps it). ``hilsim up --view`` with a task starts its physics only once a viewer joined and
+one is connected to the server (:func:`viewer_connected`; :mod:`hilsim.launch.up`), so the whole task streams.
+``logger.live.from_start`` streams from the start instead, watched or not.
 
 The viewer's address is written to ``<run dir>/live.json`` (:func:`read_live`), where ``hilsim up
 --view`` prints it as ``viewer: URL`` and ``hilsim view --live`` finds it. Zenoh keys: none (the
@@ -263,7 +263,9 @@ class LiveStream:
         self.url = f"http://{seen}:{page.port}/?{q}"
         watch = f"http://{seen}:{page.port}{WATCH_PATH}" + (f"?{urllib.parse.urlencode({'token': token})}"
                                                              if token else "")
-        self.info = {"viewer": self.url, "grpc": self.grpc_url, "watch": watch, "pid": os.getpid()}
+        # server: the process a viewer connects to (hilsim up waits for a connection: viewer_connected)
+        self.info = {"viewer": self.url, "grpc": self.grpc_url, "watch": watch, "pid": os.getpid(),
+                     "server": self.proc.pid}
         self._write_info()
 
     def _write_info(self) -> None:
@@ -430,14 +432,32 @@ def join(info: dict[str, Any], timeout: float = 10.0) -> None:
         conn.close()
 
 
+def viewer_connected(info: dict[str, Any]) -> bool:
+    """Whether a viewer is connected to the live stream's server (a TCP connection to its gRPC port): a browser
+    loads the page and joins seconds before its viewer (compiled then) connects. True where it cannot be told
+    (the server's process is not this host's, e.g. a container's)."""
+    import psutil
+
+    try:
+        port = urllib.parse.urlsplit(str(info["grpc"]).removeprefix("rerun+")).port
+        server = psutil.Process(int(info["server"]))
+        if "rerun" not in server.name():  # a number of another process namespace's
+            return True
+        conns = server.net_connections(kind="tcp")
+    except (KeyError, ValueError, TypeError, psutil.Error):
+        return True
+    return any(c.status == psutil.CONN_ESTABLISHED and c.laddr and c.laddr.port == port for c in conns)
+
+
 def wait_live(run_dir: str | Path, timeout: float, alive: Callable[[], bool] = lambda: True,
               watched: bool = False) -> dict[str, Any] | None:
     """:func:`read_live`, waiting up to ``timeout`` seconds while ``alive()``; ``watched``: until it also says a
-    viewer joined (``hilsim up`` waits for that with ``logger.live.wait``), else None."""
+    viewer joined and one is connected to the stream (``hilsim up`` waits for that with ``logger.live.wait``),
+    else None."""
     end = time.monotonic() + timeout
     while True:
         info = read_live(run_dir)
-        if info is not None and (info.get("watched") or not watched):
+        if info is not None and (not watched or (info.get("watched") and viewer_connected(info))):
             return info
         if time.monotonic() >= end or not alive():
             return None
