@@ -18,7 +18,6 @@ from typing import Any
 
 import pytest
 
-from hilsim.core.recording import rerun_env
 from hilsim.record import live
 
 
@@ -245,10 +244,7 @@ def test_view_with_a_task_starts_once_a_viewer_joins(tmp_path: Path) -> None:
         time.sleep(3)
         assert not _physics_of(run), "physics started before a viewer connected"
         # a viewer connects (Rerun's own, headless): the run starts
-        grpc = json.loads((run / "live.json").read_text())["grpc"]
-        cmd = [live._rerun_binary(), "--headless", "--bind", "127.0.0.1", "--new", "--connect", grpc]
-        viewer = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                  env={**os.environ, **rerun_env()})
+        viewer = live.headless_viewer(json.loads((run / "live.json").read_text()))
     finally:
         out = "".join(lines) + finish(p, 300)
         if viewer is not None:

@@ -432,6 +432,16 @@ def join(info: dict[str, Any], timeout: float = 10.0) -> None:
         conn.close()
 
 
+def headless_viewer(info: dict[str, Any]) -> subprocess.Popen[bytes]:
+    """Rerun's native viewer without a window, connected to a run's stream (``info``: :func:`read_live`),
+    ingesting and rendering as one on this host does: a viewer for benchmarks and tests. The caller stops it."""
+    from hilsim.core.recording import rerun_env
+
+    return subprocess.Popen([_rerun_binary(), "--headless", "--bind", "127.0.0.1", "--new", "--connect",
+                             str(info["grpc"])], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                            env={**os.environ, **rerun_env()})
+
+
 def viewer_connected(info: dict[str, Any]) -> bool:
     """Whether a viewer is connected to the live stream's server (a TCP connection to its gRPC port): a browser
     loads the page and joins seconds before its viewer (compiled then) connects. True where it cannot be told
@@ -441,7 +451,7 @@ def viewer_connected(info: dict[str, Any]) -> bool:
     try:
         port = urllib.parse.urlsplit(str(info["grpc"]).removeprefix("rerun+")).port
         server = psutil.Process(int(info["server"]))
-        if "rerun" not in server.name():  # a number of another process namespace's
+        if "rerun" not in server.name():  # a pid of another PID namespace (a container's), not ours
             return True
         conns = server.net_connections(kind="tcp")
     except (KeyError, ValueError, TypeError, psutil.Error):

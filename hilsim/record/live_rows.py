@@ -14,6 +14,7 @@ No Zenoh keys: it sits between the recorder's row writer (:class:`hilsim.record.
 
 from __future__ import annotations
 
+import functools
 import re
 from collections.abc import Callable, Iterable
 from typing import Any
@@ -32,6 +33,7 @@ WHOLE = ("TextLog", "LineStrips3D", "LineStrips2D", "GeoLineStrings")
 NOT_LIVE = re.compile(r"(^|/)(health/[^/]+/(?!(level|real_time_factor)$)[^/]+|joint_states_throttle(/.*)?)$")
 
 
+@functools.cache  # asked for every entity at every flush: the answer never changes
 def live_entity(entity: str) -> bool:
     """Whether the live stream gets rows of ``entity`` (see :data:`NOT_LIVE`)."""
     return NOT_LIVE.search(entity.lstrip("/")) is None

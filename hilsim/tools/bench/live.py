@@ -8,7 +8,6 @@ and with a client, in turns (:func:`bench_live`). Zenoh keys: none of its own (t
 from __future__ import annotations
 
 import json
-import os
 import statistics
 from pathlib import Path
 from typing import Any
@@ -29,9 +28,8 @@ def bench_live(sim_seconds: float, tmp: Path, repeat: int, say: Any) -> dict[str
     import subprocess
     import threading
 
-    from hilsim.core.recording import rerun_env
     from hilsim.record.foxglove_live import read_info
-    from hilsim.record.live import _rerun_binary, join, wait_live
+    from hilsim.record.live import headless_viewer, join, wait_live
 
     rtf: dict[str, list[float]] = {"off": [], "on": [], "from_start": [], "watched": []}
     taken: list[int] = []  # messages the Foxglove client took in, per round
@@ -60,9 +58,7 @@ def bench_live(sim_seconds: float, tmp: Path, repeat: int, say: Any) -> dict[str
                 if info is None:
                     raise RuntimeError(f"no live viewer; see {la.run_dir}")
                 join(info)  # as `hilsim view --live` does before it connects
-                viewers.append(subprocess.Popen(
-                    [_rerun_binary(), "--headless", "--bind", "127.0.0.1", "--new", "--connect", info["grpc"]],
-                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env={**os.environ, **rerun_env()}))
+                viewers.append(headless_viewer(info))
 
             fox = mode.startswith("foxglove")
             sc = arm_scenario(sim_seconds, **{"clock.controller_lag": 1,
