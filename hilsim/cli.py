@@ -89,9 +89,9 @@ def _endpoint_args(p: argparse.ArgumentParser) -> None:
 
 
 def _view(args: argparse.Namespace) -> int:
-    """``hilsim view``: a recording, or ``--live`` a run that is up (hilsim.record.live)."""
+    """``hilsim view``: a recording, or ``--live`` a run that is up (hilsim.record.live_viewer)."""
     if args.live:
-        return _lazy("hilsim.record.live", "cmd_view_live")(args)
+        return _lazy("hilsim.record.live_viewer", "cmd_view_live")(args)
     return _lazy("hilsim.core.recording", "cmd_view")(args)
 
 

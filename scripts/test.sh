@@ -9,6 +9,9 @@ missing=()
 command -v ip >/dev/null || missing+=(iproute2)
 command -v openssl >/dev/null || missing+=(openssl)
 command -v chromium >/dev/null || missing+=(chromium)
+# Rerun's headless viewer (tests/test_live.py, tests/test_bench.py: `hilsim bench loop --live`) draws with
+# Vulkan, by software here: Mesa's lavapipe (with OpenGL alone it stops at its first frame)
+ls /usr/share/vulkan/icd.d/lvp_icd.*.json >/dev/null 2>&1 || missing+=(mesa-vulkan-drivers)
 # tests/test_compose_run.py runs docker/compose.yaml in containers with Podman: podman and runc (crun
 # refuses this machine's mixed cgroups), catatonit (`init: true`), netavark, aardvark-dns and
 # iptables (the compose network, its names, the published port), mmdebstrap (the base image, built

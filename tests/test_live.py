@@ -18,7 +18,7 @@ from typing import Any
 
 import pytest
 
-from hilsim.record import live
+from hilsim.record import live, live_viewer
 
 
 class _Frames:
@@ -161,7 +161,7 @@ def test_a_run_streams_only_once_a_viewer_joins(tmp_path: Path) -> None:
     try:
         lines = _lines_until(p, "viewer: ")
         assert lines and lines[-1].startswith("viewer: http://127.0.0.1:"), "".join(lines)
-        info = live.read_live(run)
+        info = live_viewer.read_live(run)
         assert info is not None and lines[-1].split()[1] == info["viewer"], (lines[-1], info)
         time.sleep(3)  # the arm runs 3 s with nobody watching
         before = tmp_path / "before.rrd"
@@ -228,7 +228,8 @@ def test_view_with_a_task_starts_once_a_viewer_joins(tmp_path: Path) -> None:
     p = up(LEAN, "--view", "--view-wait", "120", "--clock", "lockstep", "--out", str(run), "--set",
            'logger.record=["tf/**"]')
     lines: list[str] = []
-    viewer: subprocess.Popen[bytes] | None = None
+    viewer: live_viewer.HeadlessViewer | None = None
+    died: str | None = None
     try:
         lines = _lines_until(p, "waiting for a viewer")
         text = "".join(lines)
@@ -244,12 +245,13 @@ def test_view_with_a_task_starts_once_a_viewer_joins(tmp_path: Path) -> None:
         time.sleep(3)
         assert not _physics_of(run), "physics started before a viewer connected"
         # a viewer connects (Rerun's own, headless): the run starts
-        viewer = live.headless_viewer(json.loads((run / "live.json").read_text()))
+        viewer = live_viewer.HeadlessViewer(json.loads((run / "live.json").read_text()), tmp_path / "viewer.log")
     finally:
         out = "".join(lines) + finish(p, 300)
         if viewer is not None:
-            viewer.kill()
-            viewer.wait()
+            died = viewer.failure()  # one that died at once may still have connected for a moment
+            viewer.stop()
+    assert died is None, died
     assert "a viewer joined: starting" in out and "result: OK" in out, out[-3000:]
 
     run2 = tmp_path / "run2"

@@ -51,7 +51,7 @@ def _listening(port: int) -> bool:
 
 def _client(grpc: str, path: Path) -> subprocess.Popen[bytes]:
     """Rerun's own client joined to the run's stream, saving what it receives to ``path``."""
-    return subprocess.Popen([live._rerun_binary(), "--connect", grpc, "--save", str(path)], stdout=subprocess.DEVNULL,
+    return subprocess.Popen([live.rerun_binary(), "--connect", grpc, "--save", str(path)], stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL, env={**os.environ, **rerun_env()})
 
 

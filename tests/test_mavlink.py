@@ -289,7 +289,8 @@ def bridge(router: str, run_service: Callable[[Any], Any]) -> Iterator[Callable[
         c = run_service(svc)
         c.__enter__()
         ctx.append(c)
-        assert wait_until(lambda: watch.said("MAVLink link") > 0 or svc.link.up, 5)
+        # (30 s: a loaded CI machine took over 5 s to open a session and try the link; met at once otherwise)
+        assert wait_until(lambda: watch.said("MAVLink link") > 0 or svc.link.up, 30)
         time.sleep(0.3)  # the test's subscribers see the bridge's publishers
         return svc, port, watch
 

@@ -78,7 +78,7 @@ def viewer_gate(la: Launcher) -> list[str]:
 
 def wait_for_viewer(la: Launcher) -> None:
     """Before the held units start: until a viewer joined the live stream, at most ``logger.live.wait`` s."""
-    from hilsim.record.live import wait_live
+    from hilsim.record.live_viewer import wait_live
 
     wait = la.sc.logger.live.wait
     logger = la.children.get(_unit_of(la, "logger") or "")
@@ -98,7 +98,7 @@ def say_viewer(la: Launcher, timeout: float = 60.0) -> None:
     """``--view``: the live viewer's address on a line of its own, once the recorder's viewer listens;
     ``--foxglove``: the Foxglove server's."""
     from hilsim.record.foxglove_live import read_info
-    from hilsim.record.live import wait_live
+    from hilsim.record.live_viewer import wait_live
 
     logger = la.children.get("logger")
     if la.sc.logger.foxglove.enabled:  # started in the recorder's setup, before it announced itself

@@ -26,12 +26,12 @@ pays for nothing but a rerun process waiting on its pipe. A viewer joins by load
 panel's frame) or by ``hilsim view --live`` (which asks the page server's ``/hilsim/watch`` first); from then
 on the rows stream (health: ``live_watched``). A viewer that joins later still sees the run from that moment
 on (the server keeps it). ``hilsim up --view`` with a task starts its physics only once a viewer joined and
-one is connected to the server (:func:`viewer_connected`; :mod:`hilsim.launch.up`), so the whole task streams.
-``logger.live.from_start`` streams from the start instead, watched or not.
+one is connected to the server (:func:`hilsim.record.live_viewer.viewer_connected`; :mod:`hilsim.launch.up`),
+so the whole task streams. ``logger.live.from_start`` streams from the start instead, watched or not.
 
-The viewer's address is written to ``<run dir>/live.json`` (:func:`read_live`), where ``hilsim up
---view`` prints it as ``viewer: URL`` and ``hilsim view --live`` finds it. Zenoh keys: none (the
-recorder's stream only); files: ``<run dir>/live.json``, ``<run dir>/live-viewer.log``.
+The viewer's address is written to ``<run dir>/live.json`` (:func:`hilsim.record.live_viewer.read_live`),
+where ``hilsim up --view`` prints it as ``viewer: URL`` and ``hilsim view --live`` finds it. Zenoh keys: none
+(the recorder's stream only); files: ``<run dir>/live.json``, ``<run dir>/live-viewer.log``.
 """
 
 from __future__ import annotations
@@ -70,7 +70,7 @@ class LiveError(RuntimeError):
     """The live viewer could not be started or found (one line)."""
 
 
-def _rerun_binary() -> str:
+def rerun_binary() -> str:
     """The rerun CLI's binary itself (not the Python wrapper that starts it): one process, one pipe."""
     try:
         import rerun_cli
@@ -225,7 +225,7 @@ class LiveStream:
         self.log_path = self.run_dir / LOG_NAME
         with open(self.log_path, "wb") as log:
             self.proc = subprocess.Popen(
-                [_rerun_binary(), "--serve-web", "--bind", bind,
+                [rerun_binary(), "--serve-web", "--bind", bind,
                  "--port", str(self.grpc_port), "--web-viewer-port", str(web),
                  "--server-memory-limit", SERVER_MEMORY_LIMIT, "-"],
                 stdin=subprocess.PIPE, stdout=log, stderr=log, env=env, preexec_fn=_child_setup)
@@ -404,76 +404,6 @@ def _child_setup() -> None:
     sigterm_when_parent_dies()
 
 
-def read_live(run_dir: str | Path) -> dict[str, Any] | None:
-    """The live viewer's addresses of a run that is up with ``--view`` (``viewer``, ``grpc``), else None."""
-    p = Path(run_dir) / LIVE_NAME
-    try:
-        info = json.loads(p.read_text())
-    except (OSError, ValueError):
-        return None
-    return info if isinstance(info, dict) and "viewer" in info else None
-
-
-def join(info: dict[str, Any], timeout: float = 10.0) -> None:
-    """Tell a run's live stream a viewer joins (its rows stream from now on), as loading the page does; for a
-    viewer that connects to the gRPC address itself (``hilsim view --live``, Rerun's native viewer).
-    Raises OSError if the page server does not answer."""
-    if not info.get("watch"):
-        return  # no page server's address: nothing to tell
-    u = urllib.parse.urlsplit(str(info["watch"]))
-    conn = http.client.HTTPConnection(u.hostname or "127.0.0.1", u.port or 80, timeout=timeout)  # no proxy: loopback
-    try:
-        conn.request("GET", f"{u.path}?{u.query}" if u.query else u.path)
-        r = conn.getresponse()
-        r.read()
-        if r.status != 204:
-            raise OSError(f"{info['watch']} answered {r.status} {r.reason}")
-    finally:
-        conn.close()
-
-
-def headless_viewer(info: dict[str, Any]) -> subprocess.Popen[bytes]:
-    """Rerun's native viewer without a window, connected to a run's stream (``info``: :func:`read_live`),
-    ingesting and rendering as one on this host does: a viewer for benchmarks and tests. The caller stops it."""
-    from hilsim.core.recording import rerun_env
-
-    return subprocess.Popen([_rerun_binary(), "--headless", "--bind", "127.0.0.1", "--new", "--connect",
-                             str(info["grpc"])], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            env={**os.environ, **rerun_env()})
-
-
-def viewer_connected(info: dict[str, Any]) -> bool:
-    """Whether a viewer is connected to the live stream's server (a TCP connection to its gRPC port): a browser
-    loads the page and joins seconds before its viewer (compiled then) connects. True where it cannot be told
-    (the server's process is not this host's, e.g. a container's)."""
-    import psutil
-
-    try:
-        port = urllib.parse.urlsplit(str(info["grpc"]).removeprefix("rerun+")).port
-        server = psutil.Process(int(info["server"]))
-        if "rerun" not in server.name():  # a pid of another PID namespace (a container's), not ours
-            return True
-        conns = server.net_connections(kind="tcp")
-    except (KeyError, ValueError, TypeError, psutil.Error):
-        return True
-    return any(c.status == psutil.CONN_ESTABLISHED and c.laddr and c.laddr.port == port for c in conns)
-
-
-def wait_live(run_dir: str | Path, timeout: float, alive: Callable[[], bool] = lambda: True,
-              watched: bool = False) -> dict[str, Any] | None:
-    """:func:`read_live`, waiting up to ``timeout`` seconds while ``alive()``; ``watched``: until it also says a
-    viewer joined and one is connected to the stream (``hilsim up`` waits for that with ``logger.live.wait``),
-    else None."""
-    end = time.monotonic() + timeout
-    while True:
-        info = read_live(run_dir)
-        if info is not None and (not watched or (info.get("watched") and viewer_connected(info))):
-            return info
-        if time.monotonic() >= end or not alive():
-            return None
-        time.sleep(0.1)
-
-
 # ---------------------------------------------------------------------- the recorder's hooks (services/logger.py)
 def start(cfg: Any, run_dir: Path, warn: Callable[[str], None]) -> LiveStream | None:
     """The live stream of ``logger.live`` (:class:`hilsim.core.config.LiveConfig`), None when it is off or
@@ -511,44 +441,3 @@ def stop(stream: LiveStream | None) -> None:
             "live viewer stopped: %d frames (%d bytes) streamed, %d dropped (%d bytes)%s", h["live_frames"],
             h["live_bytes"], h["live_dropped"], h["live_dropped_bytes"],
             f"; {stream.stopped}" if stream.stopped else "")
-
-
-# ---------------------------------------------------------------------- hilsim view --live
-def cmd_view_live(args: Any) -> int:
-    """``hilsim view --live [--run DIR]``: the live viewer of a run that is up with ``--view``: its address
-    (``viewer: URL``), and with a display Rerun's native viewer connected to the run's stream."""
-    import sys
-
-    from hilsim.core import run_finder
-    from hilsim.core.config import ConfigError
-    from hilsim.core.recording import rerun_config_home, rerun_executable
-
-    try:
-        if args.run:
-            run_dir = Path(args.run)
-        else:
-            up = run_finder.live_runs()
-            if not up:
-                raise ConfigError("no run of yours is up (start one with `hilsim up arm --view`)")
-            run_dir = (up[0] if len(up) == 1 else run_finder.choose_run(up, "hilsim view --live")).run_dir
-    except ConfigError as e:
-        print(f"hilsim view --live: {e}", file=sys.stderr)
-        return 1
-    info = read_live(run_dir)
-    if info is None:
-        print(f"hilsim view --live: {run_dir} streams nothing live (is it up? it must be started with "
-              "`hilsim up … --view`)", file=sys.stderr)
-        return 1
-    try:
-        join(info)
-    except OSError as e:
-        print(f"hilsim view --live: {run_dir}'s viewer does not answer ({e})", file=sys.stderr)
-        return 1
-    print(f"viewer: {info['viewer']}", flush=True)
-    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        return 0
-    env = {**os.environ, "XDG_CONFIG_HOME": str(rerun_config_home())}
-    try:  # the native viewer, connected to the run's stream (it ends when its window is closed)
-        return subprocess.call([rerun_executable(), "--connect", str(info["grpc"])], env=env)
-    except KeyboardInterrupt:
-        return 130

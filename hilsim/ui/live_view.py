@@ -11,7 +11,7 @@ from __future__ import annotations
 from typing import Any
 
 from hilsim.core import run_finder
-from hilsim.record.live import read_live
+from hilsim.record.live_viewer import read_live
 
 
 def live_address(panel: Any) -> str:

@@ -25,11 +25,10 @@ def bench_live(sim_seconds: float, tmp: Path, repeat: int, say: Any) -> dict[str
     drifts): each round's ratios against off, and their medians. Where the ``websockets`` package is (the
     test extra) also Foxglove's server (``--foxglove``) with nobody connected (*foxglove*) and with a client
     subscribed to every channel it advertises (*foxglove watched*)."""
-    import subprocess
     import threading
 
     from hilsim.record.foxglove_live import read_info
-    from hilsim.record.live import headless_viewer, join, wait_live
+    from hilsim.record.live_viewer import HeadlessViewer, join, wait_live
 
     rtf: dict[str, list[float]] = {"off": [], "on": [], "from_start": [], "watched": []}
     taken: list[int] = []  # messages the Foxglove client took in, per round
@@ -41,7 +40,7 @@ def bench_live(sim_seconds: float, tmp: Path, repeat: int, say: Any) -> dict[str
         say("    (no websockets package: Foxglove's server not measured; pip install -e '.[test]')")
     for i in range(repeat):
         for mode in rtf:
-            viewers: list[subprocess.Popen[bytes]] = []
+            viewers: list[HeadlessViewer] = []
             stop = threading.Event()
             got = [0]
 
@@ -58,7 +57,7 @@ def bench_live(sim_seconds: float, tmp: Path, repeat: int, say: Any) -> dict[str
                 if info is None:
                     raise RuntimeError(f"no live viewer; see {la.run_dir}")
                 join(info)  # as `hilsim view --live` does before it connects
-                viewers.append(headless_viewer(info))
+                viewers.append(HeadlessViewer(info, la.run_dir / "headless-viewer.log"))
 
             fox = mode.startswith("foxglove")
             sc = arm_scenario(sim_seconds, **{"clock.controller_lag": 1,
@@ -69,9 +68,11 @@ def bench_live(sim_seconds: float, tmp: Path, repeat: int, say: Any) -> dict[str
                 o = run_arm(sc, tmp / f"live-{mode}-{i}", run_router=True, after_ready=attach)
             finally:
                 stop.set()
+                died = [f for f in (v.failure() for v in viewers) if f]
                 for v in viewers:
-                    v.kill()
-                    v.wait()
+                    v.stop()
+            if died:  # a viewer that died took nothing in: the round measured no viewer
+                raise RuntimeError(f"round {i + 1}, {mode}: {died[0]}")
             rtf[mode].append(float(o.health["physics"]["real_time_factor"]))
             if mode == "foxglove_watched":
                 taken.append(got[0])
