@@ -18,6 +18,7 @@ from typing import Any
 
 import pytest
 
+from hilsim.core import transport
 from hilsim.record import live, live_viewer
 
 
@@ -245,7 +246,9 @@ def test_view_with_a_task_starts_once_a_viewer_joins(tmp_path: Path) -> None:
         time.sleep(3)
         assert not _physics_of(run), "physics started before a viewer connected"
         # a viewer connects (Rerun's own, headless): the run starts
-        viewer = live_viewer.HeadlessViewer(json.loads((run / "live.json").read_text()), tmp_path / "viewer.log")
+        # (at the default priority: at idle priority it could wait minutes on a CI machine kept busy by other tests)
+        viewer = live_viewer.HeadlessViewer(json.loads((run / "live.json").read_text()), tmp_path / "viewer.log",
+                                            idle=False)
     finally:
         out = "".join(lines) + finish(p, 300)
         if viewer is not None:
@@ -259,3 +262,22 @@ def test_view_with_a_task_starts_once_a_viewer_joins(tmp_path: Path) -> None:
            'logger.record=["tf/**"]')
     out = finish(p, 300)
     assert "no viewer joined in 2 s: starting without one" in out and "result: OK" in out, out[-3000:]
+
+
+def test_a_viewer_hilsim_starts_runs_at_idle_priority_and_says_how_it_ended(tmp_path: Path) -> None:
+    """The viewer as ``hilsim view --live`` starts it runs on what the simulation leaves of the cores
+    (SCHED_IDLE); a headless one draws here (Vulkan by software), and one that ended says how."""
+    info = {"grpc": f"rerun+http://127.0.0.1:{transport.free_port()}/proxy"}  # nobody there: it keeps trying
+    v = live_viewer.HeadlessViewer(info, tmp_path / "idle.log")
+    try:
+        assert os.sched_getscheduler(v.proc.pid) == os.SCHED_IDLE
+        time.sleep(3)  # past its first frame (where it stops without a Vulkan device)
+        assert v.failure() is None, v.failure()
+    finally:
+        v.stop()
+    assert "exited with code" in (v.failure() or "")
+    normal = live_viewer.HeadlessViewer(info, tmp_path / "normal.log", idle=False)
+    try:
+        assert os.sched_getscheduler(normal.proc.pid) == os.SCHED_OTHER
+    finally:
+        normal.stop()

@@ -57,6 +57,7 @@ from typing import Any
 from hilsim.core.threads import sigterm_when_parent_dies
 
 LIVE_NAME = "live.json"
+SERVER_NICE = 10  # the viewer's server's niceness (the simulation's is 0)
 LOG_NAME = "live-viewer.log"
 QUEUE_BYTES = 32 * 1024**2  # frames waiting for the viewer's pipe at most (a few seconds of the arm's rows)
 SERVER_MEMORY_LIMIT = "512MiB"  # the run's history Rerun's server keeps for late viewers (static data always)
@@ -398,9 +399,10 @@ class LiveStream:
 
 
 def _child_setup() -> None:
-    """The viewer process: below the simulation's processes in the scheduler's eyes, gone with the recorder."""
+    """The viewer's server process: below the simulation's processes in the scheduler's eyes (niced, not idle: it
+    must keep reading the recorder's frames, else they are dropped), gone with the recorder."""
     with contextlib.suppress(OSError):
-        os.nice(10)
+        os.nice(SERVER_NICE)
     sigterm_when_parent_dies()
 
 

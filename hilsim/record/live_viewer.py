@@ -8,6 +8,7 @@ Zenoh keys: none. Files: reads ``<run dir>/live.json``.
 
 from __future__ import annotations
 
+import contextlib
 import http.client
 import json
 import os
@@ -50,21 +51,33 @@ def join(info: dict[str, Any], timeout: float = 10.0) -> None:
         conn.close()
 
 
+def idle_priority() -> None:
+    """In a viewer's process (``preexec_fn``): it runs only on what the simulation leaves of the cores
+    (``SCHED_IDLE``), so a viewer on the machine of a run that fills its cores falls behind (what it has not
+    drawn yet waits in the stream's server) instead of slowing the run (``hilsim bench loop --live``: a viewer
+    drawing by software at the default priority cost the arm 11 % of its speed on 2 cores)."""
+    with contextlib.suppress(OSError, AttributeError):  # AttributeError: not Linux
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+
+
 class HeadlessViewer:
     """Rerun's native viewer without a window, connected to a run's stream (``info``: :func:`read_live`), taking
-    in and drawing every frame as one on this host does: the viewer of benchmarks and tests. Its output goes to
-    ``log``. It draws with Vulkan: where only OpenGL is there (llvmpipe without Mesa's lavapipe, Debian's
-    ``mesa-vulkan-drivers``), Rerun 0.41's headless viewer stops at its first frame ("Failed to get render
-    context"), so :meth:`failure` is asked after use: a viewer that died measured nothing."""
+    in and drawing every frame as one on this host does, started as ``hilsim view --live`` starts its viewer
+    (:func:`idle_priority`): the viewer of benchmarks and tests. Its output goes to ``log``. It draws with Vulkan:
+    where only OpenGL is there (llvmpipe without Mesa's lavapipe, Debian's ``mesa-vulkan-drivers``), Rerun
+    0.41's headless viewer stops at its first frame ("Failed to get render context"), so :meth:`failure` is
+    asked after use: a viewer that died measured nothing."""
 
-    def __init__(self, info: dict[str, Any], log: Path) -> None:
+    def __init__(self, info: dict[str, Any], log: Path, *, idle: bool = True) -> None:
+        """``idle``: at :func:`idle_priority`, as ``hilsim view --live`` starts a viewer; False at the default
+        priority (a test that needs the viewer connected soon on a machine other tests keep busy)."""
         from hilsim.core.recording import rerun_env
 
         self.log = log
         with open(log, "wb") as out:
             self.proc = subprocess.Popen([rerun_binary(), "--headless", "--bind", "127.0.0.1", "--new", "--connect",
                                           str(info["grpc"])], stdout=out, stderr=subprocess.STDOUT,
-                                         env={**os.environ, **rerun_env()})
+                                         env={**os.environ, **rerun_env()}, preexec_fn=idle_priority if idle else None)
 
     def failure(self) -> str | None:
         """None while the viewer runs, else how it ended: its exit code and the first line of its output that
@@ -148,7 +161,9 @@ def cmd_view_live(args: Any) -> int:
     print(f"viewer: {info['viewer']}", flush=True)
     if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         return 0
-    try:  # the native viewer, connected to the run's stream (it ends when its window is closed)
-        return subprocess.call([rerun_binary(), "--connect", str(info["grpc"])], env={**os.environ, **rerun_env()})
+    try:  # the native viewer, connected to the run's stream (it ends when its window is closed); on what the
+        # simulation leaves of the cores
+        return subprocess.call([rerun_binary(), "--connect", str(info["grpc"])], env={**os.environ, **rerun_env()},
+                               preexec_fn=idle_priority)
     except KeyboardInterrupt:
         return 130
