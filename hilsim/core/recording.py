@@ -124,18 +124,20 @@ def import_rerun() -> Any:
 
 
 def rerun_executable() -> str:
-    """Path of the ``rerun`` CLI of this environment (next to the interpreter, or from rerun_cli)."""
-    here = Path(sys.executable).parent / "rerun"
-    if here.is_file() and os.access(here, os.X_OK):
-        return str(here)
+    """Path of the ``rerun`` CLI of this environment: rerun_cli's binary itself where it is installed (the
+    ``rerun`` script beside the interpreter is a Python wrapper that starts it as a child: two processes, and
+    the binary left behind when the wrapper is killed), else the script beside the interpreter, else PATH's."""
     try:
         import rerun_cli
 
         exe = Path(rerun_cli.__file__).parent / "rerun"
-        if exe.is_file():
+        if exe.is_file() and os.access(exe, os.X_OK):
             return str(exe)
     except ImportError:
         pass
+    here = Path(sys.executable).parent / "rerun"
+    if here.is_file() and os.access(here, os.X_OK):
+        return str(here)
     found = shutil.which("rerun")
     if found:
         return found
