@@ -11,10 +11,13 @@ the robot from ``/robot_description`` and the frames from ``/tf`` and ``/tf_stat
 the samples are the recorder's.
 
 Latched topics (transient local: ``/tf_static``, ``…/robot_description``) are put once at the start; their
-last sample is logged again whenever a client subscribes, as a transient-local publisher gives its cache to
-a late subscriber. Bounded: the server keeps at most ``BACKLOG`` messages per client and drops a slow
-client's oldest (``foxglove-sdk``'s ``message_backlog_size``); logging never waits for a client. Loopback
-by default (``logger.foxglove.host`` for another address). It stops with the recorder.
+last sample is logged again whenever a client subscribes, as a transient-local publisher gives its cache to a
+late subscriber. Any other channel is advertised with its first sample, so no client can have subscribed to it
+yet: that sample is logged again for a client that subscribes before the channel's second one (a map put every
+few seconds, a path put once a goal: else a client would wait for the next, or never see it). Bounded: the
+server keeps at most ``BACKLOG`` messages per client and drops a slow client's oldest (``foxglove-sdk``'s
+``message_backlog_size``); logging never waits for a client. Loopback by default (``logger.foxglove.host`` for
+another address). It stops with the recorder.
 
 Zenoh keys: none (the recorder's samples). Files: ``<run dir>/foxglove.json`` (its address) while it is up.
 """
@@ -66,6 +69,7 @@ class FoxgloveLive:
         self.by_id: dict[int, str] = {}  # channel id -> key
         self.latch: set[str] = set()  # keys of latched topics
         self.latched: dict[str, tuple[bytes, int]] = {}  # key -> its last sample and log time
+        self.first: dict[str, tuple[bytes, int]] = {}  # key -> its first sample, until a second one comes
         self.lock = threading.Lock()
         me = self
 
@@ -83,12 +87,17 @@ class FoxgloveLive:
     def add(self, key: str, payload: bytes, log_ns: int) -> None:
         """One sample the recorder took in (its raw CDR), on the key's channel."""
         ch = self.channels.get(key)
-        if ch is None:
+        new = ch is None
+        if new:
             ch = self._channel(key)
         ch.log(payload, log_time=log_ns)
-        if key in self.latch:
-            with self.lock:
+        with self.lock:
+            if key in self.latch:
                 self.latched[key] = (payload, log_ns)
+            elif new:
+                self.first[key] = (payload, log_ns)
+            elif key in self.first:
+                del self.first[key]  # a subscriber from now on has missed more than the first: it comes as put
         self.messages += 1  # (called from the recorder's receiving threads: a count, not exact under a race)
 
     def _channel(self, key: str) -> Any:
@@ -112,10 +121,11 @@ class FoxgloveLive:
         return ch
 
     def _resend(self, channel_id: int) -> None:
-        """A client subscribed: a latched topic's last sample again (the others come as they are put)."""
+        """A client subscribed: a latched topic's last sample again, another's first while it is its only one
+        (the others come as they are put)."""
         with self.lock:
             key = self.by_id.get(channel_id)
-            got = self.latched.get(key) if key is not None else None
+            got = (self.latched.get(key) or self.first.get(key)) if key is not None else None
             ch = self.channels.get(key) if key is not None else None
         if got is not None and ch is not None:
             ch.log(got[0], log_time=got[1])
