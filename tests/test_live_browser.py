@@ -34,7 +34,7 @@ import numpy as np
 import pytest
 from util import LEAN, Observer, chromium, wait_until
 
-from hilsim.core.recording import rerun_env
+from hilsim.core.recording import rerun_env, rerun_executable
 from hilsim.core.scenario import load_scenario
 from hilsim.record import live
 
@@ -51,7 +51,7 @@ def _listening(port: int) -> bool:
 
 def _client(grpc: str, path: Path) -> subprocess.Popen[bytes]:
     """Rerun's own client joined to the run's stream, saving what it receives to ``path``."""
-    return subprocess.Popen([live.rerun_binary(), "--connect", grpc, "--save", str(path)], stdout=subprocess.DEVNULL,
+    return subprocess.Popen([rerun_executable(), "--connect", grpc, "--save", str(path)], stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL, env={**os.environ, **rerun_env()})
 
 

@@ -38,7 +38,7 @@ import pytest
 from util import REPO, up
 
 from hilsim.core import transport
-from hilsim.core.recording import rerun_env
+from hilsim.core.recording import rerun_env, rerun_executable
 from hilsim.core.scenario import load_scenario
 from hilsim.record import live, live_viewer
 
@@ -193,7 +193,7 @@ def test_the_rover_live_in_rerun_and_over_foxglove_is_the_bag_and_the_truth(tmp_
         info = live_viewer.read_live(run)
         assert info is not None, text
         live_viewer.join(info)  # as the page does; then Rerun's client connects, and the run starts
-        client = subprocess.Popen([live.rerun_binary(), "--connect", info["grpc"], "--save", str(saved)],
+        client = subprocess.Popen([rerun_executable(), "--connect", info["grpc"], "--save", str(saved)],
                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                                   env={**os.environ, **rerun_env()})
         try:  # the reader thread takes what it prints (one reader of the pipe, not two)

@@ -71,21 +71,6 @@ class LiveError(RuntimeError):
     """The live viewer could not be started or found (one line)."""
 
 
-def rerun_binary() -> str:
-    """The rerun CLI's binary itself (not the Python wrapper that starts it): one process, one pipe."""
-    try:
-        import rerun_cli
-
-        exe = Path(rerun_cli.__file__).parent / "rerun"
-        if exe.is_file() and os.access(exe, os.X_OK):
-            return str(exe)
-    except ImportError:
-        pass
-    from hilsim.core.recording import rerun_executable
-
-    return rerun_executable()
-
-
 def _reached_at(host: str) -> str:
     """The address a browser uses for ``host``: loopback as 127.0.0.1, all interfaces by this host's name."""
     import socket
@@ -220,13 +205,13 @@ class LiveStream:
         bind = "127.0.0.1" if host in LOOPBACK else host
         self.grpc_port = _free_port(bind)
         web = _free_port(bind)
-        from hilsim.core.recording import rerun_env
+        from hilsim.core.recording import rerun_env, rerun_executable
 
         env = {**os.environ, **rerun_env(), "RERUN_ANALYTICS": "0"}
         self.log_path = self.run_dir / LOG_NAME
         with open(self.log_path, "wb") as log:
             self.proc = subprocess.Popen(
-                [rerun_binary(), "--serve-web", "--bind", bind,
+                [rerun_executable(), "--serve-web", "--bind", bind,
                  "--port", str(self.grpc_port), "--web-viewer-port", str(web),
                  "--server-memory-limit", SERVER_MEMORY_LIMIT, "-"],
                 stdin=subprocess.PIPE, stdout=log, stderr=log, env=env, preexec_fn=_child_setup)

@@ -20,7 +20,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from hilsim.record.live import LIVE_NAME, rerun_binary
+from hilsim.core.recording import rerun_env, rerun_executable
+from hilsim.record.live import LIVE_NAME
 
 
 def read_live(run_dir: str | Path) -> dict[str, Any] | None:
@@ -71,11 +72,9 @@ class HeadlessViewer:
     def __init__(self, info: dict[str, Any], log: Path, *, idle: bool = True) -> None:
         """``idle``: at :func:`idle_priority`, as ``hilsim view --live`` starts a viewer; False at the default
         priority (a test that needs the viewer connected soon on a machine other tests keep busy)."""
-        from hilsim.core.recording import rerun_env
-
         self.log = log
         with open(log, "wb") as out:
-            self.proc = subprocess.Popen([rerun_binary(), "--headless", "--bind", "127.0.0.1", "--new", "--connect",
+            self.proc = subprocess.Popen([rerun_executable(), "--headless", "--bind", "127.0.0.1", "--new", "--connect",
                                           str(info["grpc"])], stdout=out, stderr=subprocess.STDOUT,
                                          env={**os.environ, **rerun_env()}, preexec_fn=idle_priority if idle else None)
 
@@ -135,7 +134,6 @@ def cmd_view_live(args: Any) -> int:
 
     from hilsim.core import run_finder
     from hilsim.core.config import ConfigError
-    from hilsim.core.recording import rerun_env
 
     try:
         if args.run:
@@ -163,7 +161,7 @@ def cmd_view_live(args: Any) -> int:
         return 0
     try:  # the native viewer, connected to the run's stream (it ends when its window is closed); on what the
         # simulation leaves of the cores
-        return subprocess.call([rerun_binary(), "--connect", str(info["grpc"])], env={**os.environ, **rerun_env()},
+        return subprocess.call([rerun_executable(), "--connect", str(info["grpc"])], env={**os.environ, **rerun_env()},
                                preexec_fn=idle_priority)
     except KeyboardInterrupt:
         return 130
