@@ -169,3 +169,33 @@ def test_the_launcher_makes_the_loops_services_realtime_and_leaves_their_own_cla
         for p in (plain, own):
             p.kill()
             p.wait()
+
+
+def test_renice_sets_every_thread_though_one_ends_during_the_pass(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``renice`` (the recorder's niceness in lockstep): every thread of the process set, a thread that ends as
+    the pass reaches it passed over and the rest still set (a CI run's recorder kept a thread at nice 0: the
+    pass had given up at a thread gone), and the threads listed again until none is left to set."""
+    from hilsim.launch import priorities
+
+    child = subprocess.Popen([sys.executable, "-c", "import threading, time\n"
+                              "for _ in range(4):\n"
+                              "    threading.Thread(target=time.sleep, args=(30,), daemon=True).start()\n"
+                              "print('ok', flush=True); time.sleep(30)"], stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout is not None and child.stdout.readline().strip() == "ok"
+        tids = sorted(int(t) for t in os.listdir(f"/proc/{child.pid}/task"))
+        real, gone = os.setpriority, []
+
+        def first_gone_once(which: int, who: int, prio: int) -> None:  # as if it ended as the pass came to it
+            if who == tids[0] and not gone:
+                gone.append(who)
+                raise ProcessLookupError(3, "No such process")
+            real(which, who, prio)
+
+        monkeypatch.setattr(priorities.os, "setpriority", first_gone_once)
+        priorities.renice(child.pid, 7)
+        monkeypatch.undo()
+        assert gone and {os.getpriority(os.PRIO_PROCESS, t) for t in tids} == {7}, tids
+    finally:
+        child.kill()
+        child.wait()

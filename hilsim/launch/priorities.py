@@ -48,15 +48,31 @@ def realtime_process(pid: int, priority: int, skip: tuple[str, ...] = ()) -> boo
 
 def renice(pid: int, nice: int, only: tuple[str, ...] = ()) -> None:
     """Give every thread of a process (or only those whose name starts with one of ``only``) the niceness
-    ``nice`` (Linux keeps it per thread; threads made later inherit their maker's). Gone or not
-    permitted: left as it is."""
-    try:
-        for tid in os.listdir(f"/proc/{pid}/task"):
-            if only and not Path(f"/proc/{pid}/task/{tid}/comm").read_text().startswith(only):
+    ``nice`` (Linux keeps it per thread; threads made later inherit their maker's). A thread that ends
+    meanwhile is passed over, and the threads are listed again until a pass finds none left to set (one made
+    during a pass by a thread not yet set keeps its maker's: a CI run's recorder kept a thread at nice 0,
+    the rest of a pass given up on a thread gone). Gone or not permitted: left as it is."""
+    for _ in range(5):
+        try:
+            tids = os.listdir(f"/proc/{pid}/task")
+        except OSError:
+            return  # the process is gone
+        changed = False
+        for tid in tids:
+            try:
+                if only and not Path(f"/proc/{pid}/task/{tid}/comm").read_text().startswith(only):
+                    continue
+                if os.getpriority(os.PRIO_PROCESS, int(tid)) != nice:
+                    os.setpriority(os.PRIO_PROCESS, int(tid), nice)
+                    changed = True
+            except ProcessLookupError:
+                continue  # ended since the listing
+            except FileNotFoundError:
                 continue
-            os.setpriority(os.PRIO_PROCESS, int(tid), nice)
-    except OSError:
-        pass
+            except OSError:
+                return  # not permitted: as it is
+        if not changed:
+            return
 
 
 def raise_router_priority(say: Callable[[str], None]) -> None:
