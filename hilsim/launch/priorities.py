@@ -36,13 +36,19 @@ def realtime_process(pid: int, priority: int, skip: tuple[str, ...] = ()) -> boo
     (threads it makes later inherit it; one that asked for its own class keeps it), but those whose name
     starts with one of ``skip``. False: not permitted (root or CAP_SYS_NICE) or gone."""
     try:
-        for tid in os.listdir(f"/proc/{pid}/task"):
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return False
+    for tid in tids:
+        try:
             if skip and Path(f"/proc/{pid}/task/{tid}/comm").read_text().startswith(skip):
                 continue
             if os.sched_getscheduler(int(tid)) == os.SCHED_OTHER:
                 os.sched_setscheduler(int(tid), os.SCHED_FIFO, os.sched_param(priority))
-    except OSError:
-        return False
+        except (ProcessLookupError, FileNotFoundError):
+            continue  # a thread that ended since the listing: the others still get the class (as renice)
+        except OSError:
+            return False
     return True
 
 
