@@ -24,7 +24,7 @@ import pytest
 
 from hilsim.core import transport
 from hilsim.core.scenario import load_scenario
-from tests.util import LEAN, REPO, finish, up
+from tests.util import LEAN, REPO, finish, foxglove_subscribe, up
 
 WANTED = ("/arm/joint_states", "/tf", "/tf_static", "/arm/robot_description")
 
@@ -98,15 +98,7 @@ def test_a_foxglove_client_sees_the_arm_as_the_physics_has_it(tmp_path: Path) ->
                     j = json.loads(msg)
                     if j.get("op") != "advertise":
                         continue
-                    new = []
-                    for c in j["channels"]:
-                        if c["topic"] in WANTED and c["topic"] not in channels:
-                            channels[c["topic"]] = c
-                            sid = len(subs) + 1
-                            subs[sid] = c["topic"]
-                            new.append({"id": sid, "channelId": c["id"]})
-                    if new:
-                        ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
+                    foxglove_subscribe(ws, j, WANTED, channels, subs)
                     if "/arm/joint_states" in channels and "goal" not in goal:  # the arm moves while we watch
                         def send() -> None:
                             goal["out"] = subprocess.run(

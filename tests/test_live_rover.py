@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from util import REPO, up
+from util import REPO, foxglove_subscribe, up
 
 from hilsim.core import transport
 from hilsim.core.recording import rerun_env, rerun_executable
@@ -143,14 +143,7 @@ class FoxgloveClient(threading.Thread):
                         j = json.loads(msg)
                         if j.get("op") != "advertise":
                             continue
-                        new = []
-                        for c in j["channels"]:
-                            if c["topic"] in TYPES and c["topic"] not in self.channels:
-                                self.channels[c["topic"]] = c
-                                subs[len(subs) + 1] = c["topic"]
-                                new.append({"id": len(subs), "channelId": c["id"]})
-                        if new:
-                            ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
+                        foxglove_subscribe(ws, j, TYPES, self.channels, subs)
                         continue
                     if msg[0] != 0x01:  # not message data (opcode, subscription id, log time, payload)
                         continue

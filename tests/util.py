@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import signal
@@ -306,3 +307,18 @@ def chromium() -> tuple[Any, str]:
             pytest.fail(f"CI=true: the browser test must run, but {why}")
         pytest.skip(why)
     return sync_playwright, exe
+
+
+def foxglove_subscribe(ws: Any, advert: dict[str, Any], wanted: Any, channels: dict[str, dict[str, Any]],
+                       subs: dict[int, str]) -> None:
+    """A client to Foxglove's WebSocket spec, on an ``advertise`` (JSON): subscribe to the ``wanted`` topics not
+    subscribed yet; ``channels`` (topic -> the advertised channel) and ``subs`` (subscription id -> topic) grow."""
+    new = []
+    for c in advert["channels"]:
+        if c["topic"] in wanted and c["topic"] not in channels:
+            channels[c["topic"]] = c
+            subs[len(subs) + 1] = c["topic"]
+            new.append({"id": len(subs), "channelId": c["id"]})
+    if new:
+        ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
+
