@@ -318,7 +318,8 @@ def latest_recording(runs_dir: str | Path) -> Path:
     return max(found, key=lambda p: (p.stat().st_mtime, str(p)))
 
 
-def _has_display() -> bool:
+def has_display() -> bool:
+    """Whether a window can be opened here (an X or Wayland display)."""
     return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
@@ -336,7 +337,7 @@ def cmd_view(args: argparse.Namespace) -> int:
     # --bind: the viewer's gRPC server listens on loopback only.
     argv = [exe, "--bind", "127.0.0.1", *map(str, files)]
     command = f"XDG_CONFIG_HOME={home} " + " ".join(argv)
-    if not _has_display():
+    if not has_display():
         print(
             f"hilsim view: no display (DISPLAY/WAYLAND_DISPLAY unset); recording: {rrd}\n"
             f"open it on a machine with a display: {command}",

@@ -71,10 +71,8 @@ def renice(pid: int, nice: int, only: tuple[str, ...] = ()) -> None:
                 if os.getpriority(os.PRIO_PROCESS, int(tid)) != nice:
                     os.setpriority(os.PRIO_PROCESS, int(tid), nice)
                     changed = True
-            except ProcessLookupError:
+            except (ProcessLookupError, FileNotFoundError):
                 continue  # ended since the listing
-            except FileNotFoundError:
-                continue
             except OSError:
                 return  # not permitted: as it is
         if not changed:

@@ -20,7 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from hilsim.core.recording import rerun_env, rerun_executable
+from hilsim.core.recording import has_display, rerun_env, rerun_executable
 from hilsim.record.live import LIVE_NAME
 
 
@@ -125,7 +125,6 @@ def wait_live(run_dir: str | Path, timeout: float, alive: Callable[[], bool] = l
         time.sleep(0.1)
 
 
-
 # ---------------------------------------------------------------------- hilsim view --live
 def cmd_view_live(args: Any) -> int:
     """``hilsim view --live [--run DIR]``: the live viewer of a run that is up with ``--view``: its address
@@ -157,7 +156,7 @@ def cmd_view_live(args: Any) -> int:
         print(f"hilsim view --live: {run_dir}'s viewer does not answer ({e})", file=sys.stderr)
         return 1
     print(f"viewer: {info['viewer']}", flush=True)
-    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+    if not has_display():
         return 0
     try:  # the native viewer, connected to the run's stream (it ends when its window is closed); on what the
         # simulation leaves of the cores
